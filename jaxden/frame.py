@@ -1,0 +1,201 @@
+"""Frame: the one feature pytree used everywhere in jaxden.
+
+A Frame holds one rendered image (or a batch, with leading dimensions) in linear HDR radiance,
+NHWC float32:
+
+=========  ============  =====================================================================
+field      shape         meaning
+=========  ============  =====================================================================
+color      (..., H, W, 3)  mean radiance per pixel (the Monte Carlo estimate)
+variance   (..., H, W, 3)  variance of the pixel *mean* (sample variance / spp), per channel
+albedo     (..., H, W, 3)  diffuse reflectance of the first hit, in [0, 1] on diffuse surfaces
+normal     (..., H, W, 3)  world-space shading normal of the first hit, unit length (0 on misses)
+depth      (..., H, W, 1)  distance along the ray to the first hit (0 on misses)
+position   (..., H, W, 3)  world-space position of the first hit (0 on misses)
+motion     (..., H, W, 2)  pixel offset (dx, dy) from this pixel to where its surface point was
+                           in the previous frame: prev_xy = xy + motion
+spp        (...)           samples per pixel (a float array so batches can mix spp levels)
+=========  ============  =====================================================================
+
+Every field but ``color`` is optional (None). Frames are registered as JAX pytrees, so they pass
+through ``jit``, ``vmap`` and ``jvp`` unchanged; construction does no checking (it must work on
+tracers), and :meth:`Frame.validated` performs the user-facing checks with clear errors.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Literal
+
+import jax
+import numpy as np
+
+from jaxden.errors import FrameError
+
+# Field name -> EXR channel names, in order. The single source of truth for channel naming.
+CHANNELS: dict[str, tuple[str, ...]] = {
+    "color": ("R", "G", "B"),
+    "variance": ("variance.R", "variance.G", "variance.B"),
+    "albedo": ("albedo.R", "albedo.G", "albedo.B"),
+    "normal": ("normal.X", "normal.Y", "normal.Z"),
+    "depth": ("depth.Z",),
+    "position": ("position.X", "position.Y", "position.Z"),
+    "motion": ("motion.X", "motion.Y"),
+}
+IMAGE_FIELDS: tuple[str, ...] = tuple(CHANNELS)
+NonFinitePolicy = Literal["error", "zero"]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Frame:
+    """A rendered frame with its auxiliary features. See the module docstring for shapes."""
+
+    color: Any
+    variance: Any = None
+    albedo: Any = None
+    normal: Any = None
+    depth: Any = None
+    position: Any = None
+    motion: Any = None
+    spp: Any = None
+
+    # ------------------------------------------------------------------ accessors
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """(..., H, W) of the frame."""
+        return tuple(np.shape(self.color)[:-1])
+
+    @property
+    def height(self) -> int:
+        return self.shape[-2]
+
+    @property
+    def width(self) -> int:
+        return self.shape[-1]
+
+    def features(self) -> tuple[str, ...]:
+        """Names of the image fields that are present."""
+        return tuple(name for name in IMAGE_FIELDS if getattr(self, name) is not None)
+
+    def replace(self, **changes: Any) -> Frame:
+        return dataclasses.replace(self, **changes)
+
+    def map(self, fn) -> Frame:
+        """Apply ``fn`` to every present image field (not spp), e.g. a crop or a flip."""
+        return self.replace(
+            **{name: fn(getattr(self, name)) for name in IMAGE_FIELDS if getattr(self, name) is not None}
+        )
+
+    def crop(self, top: int, left: int, height: int, width: int) -> Frame:
+        """Spatial crop [top:top+height, left:left+width] of every image field."""
+        if top < 0 or left < 0 or top + height > self.height or left + width > self.width:
+            raise FrameError(
+                f"crop ({top}, {left}, {height}x{width}) does not fit in a frame of "
+                f"{self.height}x{self.width}"
+            )
+        return self.map(lambda a: a[..., top : top + height, left : left + width, :])
+
+    def numpy(self) -> Frame:
+        """A copy with every field as a float32 NumPy array (for I/O)."""
+        return jax.tree_util.tree_map(lambda a: np.asarray(a, dtype=np.float32), self)
+
+    def require(self, *names: str, who: str = "this operation") -> None:
+        """Raise FrameError naming the missing features if any of ``names`` is absent."""
+        missing = [n for n in names if getattr(self, n) is None]
+        if missing:
+            raise FrameError(
+                f"{who} needs the frame feature(s) {', '.join(missing)}, but the frame has only "
+                f"{', '.join(self.features())}"
+            )
+
+    # ------------------------------------------------------------------ validation
+    def validated(self, where: str = "frame", nonfinite: NonFinitePolicy = "error") -> Frame:
+        """Check shapes and values; return the frame (repaired if ``nonfinite='zero'``).
+
+        Checks: every present field is an array of shape (..., H, W, C) with the field's channel
+        count and the colour's (..., H, W); variance is finite and >= 0; all fields are finite.
+
+        ``nonfinite``: ``'error'`` (default) raises on NaN or inf anywhere. ``'zero'`` is the
+        documented repair policy of the authors' pipeline: NaN and inf are replaced by 0 and
+        negative variance is clipped to 0 (e.g. round-off in m2 - m1^2 of another renderer);
+        it still raises on variance below -1e-6 * (1 + |colour|^2), which is not round-off but
+        a wrong file.
+
+        ``where`` names the source (a file path, a function) in error messages.
+        """
+        if nonfinite not in ("error", "zero"):
+            raise FrameError(f"nonfinite policy must be 'error' or 'zero', got {nonfinite!r}")
+        if self.color is None:
+            raise FrameError(f"{where}: the frame has no colour")
+        arrays: dict[str, np.ndarray] = {}
+        for name in IMAGE_FIELDS:
+            value = getattr(self, name)
+            if value is None:
+                continue
+            array = np.asarray(value)
+            channels = len(CHANNELS[name])
+            if array.ndim < 3 or array.shape[-1] != channels:
+                raise FrameError(
+                    f"{where}: field '{name}' must have shape (..., H, W, {channels}), "
+                    f"got {array.shape}"
+                )
+            if not np.issubdtype(array.dtype, np.floating):
+                raise FrameError(f"{where}: field '{name}' must be floating point, got {array.dtype}")
+            arrays[name] = array
+        base = arrays["color"].shape[:-1]
+        for name, array in arrays.items():
+            if array.shape[:-1] != base:
+                raise FrameError(
+                    f"{where}: field '{name}' has size {array.shape[:-1]} (... H, W) but the "
+                    f"colour has {base}"
+                )
+        repaired: dict[str, np.ndarray] = {}
+        for name, array in arrays.items():
+            bad = ~np.isfinite(array)
+            if bad.any():
+                if nonfinite == "error":
+                    index = tuple(int(i) for i in np.argwhere(bad)[0])
+                    raise FrameError(
+                        f"{where}: field '{name}' has {int(bad.sum())} non-finite value(s) "
+                        f"(first at index {index}: {array[index]}); pass nonfinite='zero' to "
+                        f"replace them by 0"
+                    )
+                array = np.where(bad, 0.0, array).astype(array.dtype)
+                repaired[name] = array
+        if "variance" in arrays:
+            variance = repaired.get("variance", arrays["variance"])
+            color = repaired.get("color", arrays["color"])
+            tolerance = 1e-6 * (1.0 + np.square(color))
+            negative = variance < 0
+            if negative.any():
+                index = tuple(int(i) for i in np.argwhere(negative)[0])
+                if nonfinite == "error" or (variance < -tolerance).any():
+                    raise FrameError(
+                        f"{where}: variance must be >= 0 but {int(negative.sum())} value(s) are "
+                        f"negative (first at index {index}: {variance[index]:.6g})"
+                        + ("; pass nonfinite='zero' to clip round-off" if nonfinite == "error" else "")
+                    )
+                repaired["variance"] = np.maximum(variance, 0.0).astype(variance.dtype)
+        if self.spp is not None:
+            spp = np.asarray(self.spp)
+            if not np.all(np.isfinite(spp)) or np.any(spp <= 0):
+                raise FrameError(f"{where}: spp must be > 0, got {spp}")
+        return self.replace(**repaired) if repaired else self
+
+
+def stack(frames: list[Frame]) -> Frame:
+    """Stack frames with the same features into a batched frame (new leading axis)."""
+    if not frames:
+        raise FrameError("cannot stack an empty list of frames")
+    features = frames[0].features()
+    for i, frame in enumerate(frames):
+        if frame.features() != features:
+            raise FrameError(
+                f"cannot stack frames with different features: frame 0 has {features}, "
+                f"frame {i} has {frame.features()}"
+            )
+    has_spp = frames[0].spp is not None
+    if any((f.spp is not None) != has_spp for f in frames):
+        raise FrameError("cannot stack frames where only some have spp")
+    return jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *frames)
