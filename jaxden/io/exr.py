@@ -1,0 +1,345 @@
+"""Read and write Frames and plain images as multi-channel OpenEXR files.
+
+Channel names follow :data:`jaxden.frame.CHANNELS` (``R,G,B``, ``variance.R/G/B``,
+``albedo.R/G/B``, ``normal.X/Y/Z``, ``depth.Z``, ``position.X/Y/Z``, ``motion.X/Y``), so any
+EXR viewer shows ordinary named layers. Header attributes ``jaxden.spp``, ``jaxden.seed``,
+``jaxden.scene`` and ``jaxden.version`` record provenance.
+
+Writes are atomic: the file is written to a temporary name in the same folder and renamed, so
+an interrupted job never leaves a half-written EXR under the final name. Reads never return
+garbage: a missing, truncated or non-EXR file, a missing channel, or a channel of another size is
+an :class:`~jaxden.errors.ExrError` naming the file and the problem.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from jaxden.errors import ExrError, FrameError
+from jaxden.frame import CHANNELS, IMAGE_FIELDS, Frame, NonFinitePolicy
+
+ATTRIBUTE_PREFIX = "jaxden."
+_FIELDS_BY_CHANNEL_COUNT = {"color": 3, "variance": 3}
+
+
+def _openexr():
+    import OpenEXR  # imported lazily: keeps `import jaxden` light
+
+    return OpenEXR
+
+
+def _atomic_write(path: Path, write) -> None:
+    """Call ``write(tmp_path)`` then rename onto ``path``; never leave the temp file behind."""
+    path = Path(path)
+    if not path.parent.exists():
+        raise ExrError(f"{path}: the folder {path.parent} does not exist")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.exr", dir=path.parent)
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def write_channels(
+    path: str | os.PathLike,
+    channels: Mapping[str, np.ndarray],
+    *,
+    half: bool | Iterable[str] = False,
+    attributes: Mapping[str, Any] | None = None,
+) -> None:
+    """Write named 2-D channels (all H x W) to ``path`` atomically, ZIP-compressed.
+
+    ``half``: True stores every channel as float16, or give the channel names to store as half.
+    ``attributes``: extra header attributes (str, int, float), written with the ``jaxden.``
+    prefix unless the name already contains a dot.
+    """
+    OpenEXR = _openexr()
+    path = Path(path)
+    if not channels:
+        raise ExrError(f"{path}: nothing to write (no channels)")
+    half_names = set(channels) if half is True else set(half or ())
+    shape = None
+    pixels: dict[str, np.ndarray] = {}
+    for name, array in channels.items():
+        array = np.asarray(array)
+        if array.ndim != 2:
+            raise ExrError(f"{path}: channel '{name}' must be 2-D (H, W), got shape {array.shape}")
+        if shape is None:
+            shape = array.shape
+        elif array.shape != shape:
+            raise ExrError(f"{path}: channel '{name}' has shape {array.shape}, others {shape}")
+        dtype = np.float16 if name in half_names else np.float32
+        # A copy: OpenEXR.File replaces the values of the dict it is given (PLATFORM-NOTES).
+        pixels[name] = np.ascontiguousarray(array, dtype=dtype).copy()
+    header: dict[str, Any] = {
+        "compression": OpenEXR.ZIP_COMPRESSION,
+        "type": OpenEXR.scanlineimage,
+    }
+    for key, value in (attributes or {}).items():
+        if value is None:
+            continue
+        name = key if "." in key else ATTRIBUTE_PREFIX + key
+        if isinstance(value, (bool, np.bool_)):
+            value = int(value)
+        elif isinstance(value, (np.integer,)):
+            value = int(value)
+        elif isinstance(value, (np.floating,)):
+            value = float(value)
+        elif not isinstance(value, (int, float, str)):
+            value = str(value)
+        header[name] = value
+
+    def write(tmp: str) -> None:
+        OpenEXR.File(header, pixels).write(tmp)
+
+    _atomic_write(path, write)
+
+
+def _open(path: Path, header_only: bool = False):
+    OpenEXR = _openexr()
+    if not path.exists():
+        raise ExrError(f"{path}: no such file")
+    if path.is_dir():
+        raise ExrError(f"{path}: is a folder, not an EXR file")
+    with open(path, "rb") as handle:
+        magic = handle.read(4)
+    if magic != b"\x76\x2f\x31\x01":
+        raise ExrError(f"{path}: not an OpenEXR file (bad magic number)")
+    try:
+        return OpenEXR.File(str(path), separate_channels=True, header_only=header_only)
+    except Exception as error:  # the binding raises RuntimeError for every decode failure
+        raise ExrError(f"{path}: cannot be read as EXR (truncated or corrupt?): {error}") from None
+
+
+def _plain_header(raw: Mapping[str, Any]) -> dict[str, Any]:
+    header: dict[str, Any] = {}
+    for key, value in raw.items():
+        if key.startswith(ATTRIBUTE_PREFIX):
+            header[key[len(ATTRIBUTE_PREFIX) :]] = value
+        elif isinstance(value, (int, float, str)):
+            header[key] = value
+    return header
+
+
+def read_header(path: str | os.PathLike) -> dict[str, Any]:
+    """Header attributes: jaxden ones without their prefix (``spp``, ``seed``, ...), plus other
+    plain (str/int/float) attributes, and ``channels`` (list of names) and ``size`` (W, H)."""
+    path = Path(path)
+    exr = _open(path, header_only=True)
+    raw = exr.header()
+    header = _plain_header(raw)
+    header["channels"] = sorted(c.name for c in raw["channels"])
+    lo, hi = raw["dataWindow"]
+    header["size"] = (int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1))
+    return header
+
+
+def read_channels(
+    path: str | os.PathLike, names: Iterable[str] | None = None
+) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Read channels (all, or ``names``) as float32 (H, W) arrays, and the header.
+
+    Raises ExrError naming the missing channels and listing those present.
+    """
+    path = Path(path)
+    exr = _open(path)
+    try:
+        available = {name: channel.pixels for name, channel in exr.channels().items()}
+    except Exception as error:
+        raise ExrError(f"{path}: pixel data cannot be decoded (truncated?): {error}") from None
+    wanted = list(available) if names is None else list(names)
+    missing = [n for n in wanted if n not in available]
+    if missing:
+        raise ExrError(
+            f"{path}: missing channel(s) {', '.join(missing)}; the file has "
+            f"{', '.join(sorted(available))}"
+        )
+    out = {}
+    for name in wanted:
+        array = available[name]
+        if array is None or array.ndim != 2:
+            raise ExrError(f"{path}: channel '{name}' is not a full-resolution 2-D channel")
+        out[name] = np.asarray(array, dtype=np.float32)
+    return out, _plain_header(exr.header())
+
+
+def write_frame(
+    path: str | os.PathLike,
+    frame: Frame,
+    *,
+    half: bool | Iterable[str] = False,
+    attributes: Mapping[str, Any] | None = None,
+) -> None:
+    """Write one (unbatched) Frame to ``path`` atomically.
+
+    ``attributes`` may carry ``seed``, ``scene`` and anything else worth recording; ``spp`` and
+    ``version`` are filled in from the frame and the package.
+    """
+    from jaxden import __version__
+
+    path = Path(path)
+    frame = frame.numpy()
+    if frame.color is None or np.ndim(frame.color) != 3:
+        raise FrameError(
+            f"{path}: write_frame takes one frame of shape (H, W, 3), got colour shape "
+            f"{None if frame.color is None else np.shape(frame.color)}"
+        )
+    frame.validated(where=str(path))  # never write a file that would fail to read back
+    channels: dict[str, np.ndarray] = {}
+    for field in frame.features():
+        array = getattr(frame, field)
+        for index, channel in enumerate(CHANNELS[field]):
+            channels[channel] = array[..., index]
+    if half is True:
+        half_names: bool | list[str] = True
+    elif half:
+        half_fields = set(half)
+        half_names = [c for f in half_fields if f in CHANNELS for c in CHANNELS[f]]
+        half_names += [c for c in half_fields if c not in CHANNELS]
+    else:
+        half_names = False
+    attrs = {"version": __version__}
+    if frame.spp is not None:
+        spp = float(np.asarray(frame.spp))
+        attrs["spp"] = int(spp) if spp.is_integer() else spp
+    attrs.update(attributes or {})
+    write_channels(path, channels, half=half_names, attributes=attrs)
+
+
+def read_frame(
+    path: str | os.PathLike,
+    *,
+    require: Iterable[str] = ("color",),
+    nonfinite: NonFinitePolicy = "error",
+    channel_map: Mapping[str, Iterable[str]] | None = None,
+    variance_is_sample_variance: bool = False,
+    spp: float | None = None,
+) -> Frame:
+    """Read a Frame from an EXR, checking it.
+
+    ``require``: fields that must be present (e.g. ``("color", "variance")`` for SURE); a
+    missing one is an ExrError naming the field, the channels expected and those found.
+    ``nonfinite``: see :meth:`Frame.validated` ('error' or 'zero').
+    ``channel_map``: override channel names per field for files from other renderers, e.g.
+    ``{"variance": ("color_var.R", "color_var.G", "color_var.B")}``.
+    ``variance_is_sample_variance``: the file stores the per-sample variance, not the variance
+    of the pixel mean; it is divided by spp (from ``spp`` or the header) on reading.
+    ``spp``: overrides/supplies the sample count when the header has none.
+    """
+    path = Path(path)
+    mapping = {field: tuple(names) for field, names in CHANNELS.items()}
+    for field, names in (channel_map or {}).items():
+        if field not in CHANNELS:
+            raise ExrError(f"channel_map: unknown field '{field}'; fields are {', '.join(CHANNELS)}")
+        names = tuple(names)
+        if len(names) != len(CHANNELS[field]):
+            raise ExrError(
+                f"channel_map['{field}'] must name {len(CHANNELS[field])} channels, got {names}"
+            )
+        mapping[field] = names
+    required = list(require)
+    for field in required:
+        if field not in CHANNELS:
+            raise ExrError(f"require: unknown field '{field}'; fields are {', '.join(CHANNELS)}")
+    if "color" not in required:
+        required.insert(0, "color")
+    all_channels, header = read_channels(path)
+    present = set(all_channels)
+    missing_fields = [f for f in required if not set(mapping[f]) <= present]
+    if missing_fields:
+        details = "; ".join(
+            f"{f} needs {', '.join(c for c in mapping[f] if c not in present)}" for f in missing_fields
+        )
+        raise ExrError(
+            f"{path}: missing feature(s) {', '.join(missing_fields)} ({details}); the file has "
+            f"channels {', '.join(sorted(present))}"
+        )
+    fields: dict[str, Any] = {}
+    for field in IMAGE_FIELDS:
+        names = mapping[field]
+        if set(names) <= present:
+            fields[field] = np.stack([all_channels[c] for c in names], axis=-1)
+        elif any(c in present for c in names):
+            have = [c for c in names if c in present]
+            raise ExrError(
+                f"{path}: feature '{field}' is incomplete: has {', '.join(have)} but not "
+                f"{', '.join(c for c in names if c not in present)}"
+            )
+    sample_count = spp if spp is not None else header.get("spp")
+    if sample_count is not None:
+        try:
+            sample_count = float(sample_count)
+        except (TypeError, ValueError):
+            raise ExrError(f"{path}: header attribute spp is not a number: {sample_count!r}") from None
+    if variance_is_sample_variance and "variance" in fields:
+        if sample_count is None:
+            raise ExrError(
+                f"{path}: variance_is_sample_variance needs the sample count: the header has no "
+                f"jaxden.spp; pass spp="
+            )
+        fields["variance"] = fields["variance"] / np.float32(sample_count)
+    frame = Frame(
+        **fields, spp=None if sample_count is None else np.float32(sample_count)
+    )
+    try:
+        return frame.validated(where=str(path), nonfinite=nonfinite)
+    except FrameError as error:
+        raise ExrError(str(error)) from None
+
+
+def write_image(
+    path: str | os.PathLike,
+    image: np.ndarray,
+    *,
+    channels: tuple[str, ...] | None = None,
+    half: bool = False,
+    attributes: Mapping[str, Any] | None = None,
+) -> None:
+    """Write an (H, W, C) or (H, W) image. Default channel names: R,G,B for 3 channels, Y for 1,
+    otherwise C0..C{n-1}."""
+    array = np.asarray(image, dtype=np.float32)
+    if array.ndim == 2:
+        array = array[..., None]
+    if array.ndim != 3:
+        raise ExrError(f"{path}: write_image takes (H, W) or (H, W, C), got shape {array.shape}")
+    count = array.shape[-1]
+    if channels is None:
+        channels = {3: ("R", "G", "B"), 1: ("Y",)}.get(count, tuple(f"C{i}" for i in range(count)))
+    if len(channels) != count:
+        raise ExrError(f"{path}: {count} channels in the image but {len(channels)} names given")
+    from jaxden import __version__
+
+    write_channels(
+        path,
+        {name: array[..., i] for i, name in enumerate(channels)},
+        half=half,
+        attributes={"version": __version__, **(attributes or {})},
+    )
+
+
+def read_image(path: str | os.PathLike, channels: tuple[str, ...] | None = None) -> np.ndarray:
+    """Read an (H, W, C) float32 image; default channels R,G,B (or the file's only channel)."""
+    path = Path(path)
+    if channels is None:
+        available = read_header(path)["channels"]
+        if {"R", "G", "B"} <= set(available):
+            channels = ("R", "G", "B")
+        elif len(available) == 1:
+            channels = tuple(available)
+        else:
+            raise ExrError(
+                f"{path}: has no R,G,B channels; name the channels to read (the file has "
+                f"{', '.join(available)})"
+            )
+    data, _ = read_channels(path, channels)
+    return np.stack([data[c] for c in channels], axis=-1)
