@@ -1,0 +1,160 @@
+"""The ``jaxden`` command: a thin layer over the library functions.
+
+User errors (:class:`jaxden.errors.JaxdenError`) print one line ``jaxden: error: ...`` and exit
+with status 2; anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from jaxden.errors import JaxdenError
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """'WxH' -> (W, H), both positive."""
+    parts = text.lower().split("x")
+    try:
+        width, height = (int(p) for p in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must look like 256x256 (WxH), got {text!r}") from None
+    if width <= 0 or height <= 0:
+        raise argparse.ArgumentTypeError(f"size must be positive, got {text!r}")
+    return width, height
+
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {value}")
+    return value
+
+
+# ---------------------------------------------------------------------------------- commands
+def cmd_scenes(args: argparse.Namespace) -> int:
+    from jaxden.render.scenes import list_scenes
+
+    scenes = list_scenes()
+    width = max(len(name) for name in scenes)
+    for name, description in scenes.items():
+        print(f"{name:<{width}}  {description}")
+    print(f"{'procedural:SEED':<{width}}  a random scene from the seeded procedural generator")
+    print(f"{'path/to/scene.xml':<{width}}  your own Mitsuba 3 scene (box filter, independent sampler enforced)")
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from jaxden.io.exr import write_frame
+    from jaxden.render.core import render_frame
+
+    out = Path(args.out)
+    if out.suffix.lower() != ".exr":
+        raise JaxdenError(f"--out must name an .exr file, got {out}")
+    frame = render_frame(args.scene, spp=args.spp, seed=args.seed, size=args.size)
+    write_frame(out, frame, half=args.half, attributes={"seed": args.seed, "scene": args.scene})
+    print(f"wrote {out} ({frame.width}x{frame.height}, {args.spp} spp, channels: "
+          f"{', '.join(frame.features())})")
+    return 0
+
+
+def cmd_dataset_build(args: argparse.Namespace) -> int:
+    from jaxden.config import load_config
+    from jaxden.data.builder import build_dataset
+    from jaxden.data.config import DatasetConfig
+
+    config = load_config(args.config, DatasetConfig, args.overrides)
+    manifest = build_dataset(config, args.out, executor=args.executor, workers=args.workers)
+    print(f"dataset complete: {args.out} ({len(manifest.items)} items)")
+    return 0
+
+
+def cmd_dataset_verify(args: argparse.Namespace) -> int:
+    from jaxden.data.verify import verify_dataset
+
+    report = verify_dataset(args.dir)
+    for problem in report.problems:
+        print(f"PROBLEM {problem}")
+    print(f"{report.checked} items checked, {len(report.problems)} problem(s)")
+    return 1 if report.problems else 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from jaxden import bench
+
+    bench.run(args.name, as_json=args.json, quick=args.quick)
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from jaxden.demo import run_demo
+
+    run_demo(Path(args.out), quick=args.quick)
+    return 0
+
+
+# ---------------------------------------------------------------------------------- parser
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="jaxden", description="Monte Carlo denoising research in JAX (see README.md)."
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("demo", help="render, denoise and compare on the built-in scenes")
+    p.add_argument("--out", default="demo-out", help="output folder (default: demo-out)")
+    p.add_argument("--quick", action="store_true", help="smaller images and fewer spp levels")
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("scenes", help="list the built-in scenes")
+    p.set_defaults(func=cmd_scenes)
+
+    p = sub.add_parser("render", help="render one frame (colour, variance, features) to EXR")
+    p.add_argument("scene", help="built-in name, procedural:SEED, or a Mitsuba XML path")
+    p.add_argument("--spp", type=positive_int, required=True, help="samples per pixel")
+    p.add_argument("--size", type=parse_size, default=None, help="WxH (default: the scene's)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--half", action="store_true", help="store channels as float16")
+    p.add_argument("--out", required=True, help="output .exr")
+    p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("dataset", help="build or verify a dataset")
+    dsub = p.add_subparsers(dest="dataset_command", required=True, metavar="ACTION")
+    b = dsub.add_parser("build", help="render a dataset from a TOML config (resumable)")
+    b.add_argument("config", help="dataset config .toml")
+    b.add_argument("overrides", nargs="*", help="key=value overrides")
+    b.add_argument("--out", required=True, help="dataset folder")
+    b.add_argument("--executor", choices=("local", "ray"), default="local")
+    b.add_argument("--workers", type=positive_int, default=None)
+    b.set_defaults(func=cmd_dataset_build)
+    v = dsub.add_parser("verify", help="check every file against the manifest")
+    v.add_argument("dir")
+    v.set_defaults(func=cmd_dataset_verify)
+
+    p = sub.add_parser("bench", help="run a benchmark (ratios against a peer in the same run)")
+    p.add_argument("name", help="benchmark name (e.g. render, decoder)")
+    p.add_argument("--json", action="store_true", help="print one JSON object on the last line")
+    p.add_argument("--quick", action="store_true", help="smaller problem, fewer repeats")
+    p.set_defaults(func=cmd_bench)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except JaxdenError as error:
+        print(f"jaxden: error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("jaxden: interrupted (finished work is kept; run the same command to resume)",
+              file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

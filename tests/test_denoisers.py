@@ -1,0 +1,80 @@
+"""The denoiser registry, the U-Net and the OIDN black box."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxden.denoisers import OIDNConfig, UNetConfig, make_denoiser
+from jaxden.errors import ConfigError, FrameError
+from jaxden.frame import Frame
+
+
+def smooth_scene(h=64, w=64, seed=0):
+    """A smooth clean image (low-frequency gradients) and a noisy version with known variance."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:h, 0:w] / max(h, w)
+    clean = np.stack([0.5 + 0.4 * np.sin(3 * xx), 0.4 + 0.3 * yy, 0.3 + 0.2 * np.cos(2 * xx * yy)], -1)
+    variance = np.full_like(clean, 0.01)
+    noisy = clean + rng.normal(size=clean.shape) * np.sqrt(variance)
+    albedo = np.full_like(clean, 0.8)
+    normal = np.zeros_like(clean)
+    normal[..., 2] = 1
+    frame = Frame(
+        color=np.maximum(noisy, 0).astype(np.float32),
+        variance=variance.astype(np.float32),
+        albedo=albedo.astype(np.float32),
+        normal=normal.astype(np.float32),
+        spp=np.float32(4),
+    )
+    return frame, clean.astype(np.float32)
+
+
+def test_unknown_denoiser_lists_registered_ones():
+    with pytest.raises(ConfigError, match="registered denoisers: .*oidn.*unet"):
+        make_denoiser("bm3d")
+
+
+def test_wrong_config_type_is_an_error():
+    with pytest.raises(ConfigError, match="takes a UNetConfig"):
+        make_denoiser("unet", OIDNConfig())
+
+
+def test_oidn_lowers_error_on_noisy_smooth_image():
+    frame, clean = smooth_scene()
+    denoised = make_denoiser("oidn")(frame)
+    mse_noisy = np.mean((frame.color - clean) ** 2)
+    mse_oidn = np.mean((denoised - clean) ** 2)
+    assert denoised.shape == clean.shape and np.isfinite(denoised).all()
+    assert mse_oidn < 0.2 * mse_noisy, (mse_oidn, mse_noisy)
+
+
+def test_oidn_batch_equals_per_frame():
+    frames = [smooth_scene(32, 32, seed=s)[0] for s in range(2)]
+    batch = jax.tree_util.tree_map(lambda *xs: np.stack(xs), *frames)
+    den = make_denoiser("oidn", OIDNConfig(quality="fast"))
+    out = den(batch)
+    for i, frame in enumerate(frames):
+        np.testing.assert_array_equal(out[i], den(frame))
+
+
+@pytest.mark.parametrize("size", [(16, 16), (37, 21)])
+def test_unet_any_size_nonnegative_and_differentiable(size):
+    frame, _ = smooth_scene(*size)
+    den = make_denoiser("unet", key=jax.random.PRNGKey(1))
+    out = den(frame)
+    assert out.shape == frame.color.shape and bool(jnp.all(out >= 0))
+    tangent = jnp.ones_like(frame.color)
+    _, jvp_out = jax.jvp(lambda c: den.function()(frame.replace(color=c)), (jnp.asarray(frame.color),), (tangent,))
+    assert jvp_out.shape == frame.color.shape and bool(jnp.all(jnp.isfinite(jvp_out)))
+
+
+def test_unet_feature_sets_and_missing_feature():
+    frame, _ = smooth_scene(16, 16)
+    den = make_denoiser("unet", UNetConfig(features=("hdr", "var")), key=jax.random.PRNGKey(0))
+    assert den(frame).shape == (16, 16, 3)
+    den = make_denoiser("unet", UNetConfig(features=("hdr", "alb", "nrm")), key=jax.random.PRNGKey(0))
+    with pytest.raises(FrameError, match="needs the frame feature.*albedo.*normal"):
+        den(Frame(color=frame.color, variance=frame.variance))
+    with pytest.raises(FrameError, match="must include 'hdr'"):
+        make_denoiser("unet", UNetConfig(features=("var", "sure")), key=jax.random.PRNGKey(0))
