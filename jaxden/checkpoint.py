@@ -1,0 +1,192 @@
+"""Checkpoints: orbax for training state, and a single-file format for released weights.
+
+A training checkpoint folder (``WORKDIR/checkpoints/<step>/``) holds the train state pytree
+(params, optimiser state, step) and a JSON ``meta`` record::
+
+    {"kind": "denoiser" | "mixer", "model": "wskp", "model_config": {...},
+     "jaxden_version": "...", "step": 1200, "train_config": {...}}
+
+Orbax writes each step to a temporary folder and renames it when complete, so an interrupted
+save never leaves a half-written checkpoint that looks finished.
+
+Loading checks the record before the arrays: a checkpoint of another model, another config or
+another kind is a :class:`~jaxden.errors.CheckpointError` that names both sides, never a shape
+error from inside orbax.
+
+Released weights (shipped inside the package) are one ``.msgpack`` file of parameters plus a
+``.json`` record of the same form, written atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from jaxden.errors import CheckpointError
+
+CHECKPOINT_SUBDIR = "checkpoints"
+
+
+def _ocp():
+    import orbax.checkpoint as ocp
+
+    return ocp
+
+
+def _checkpoint_root(directory: str | os.PathLike) -> Path:
+    directory = Path(directory)
+    if directory.name != CHECKPOINT_SUBDIR and (directory / CHECKPOINT_SUBDIR).is_dir():
+        directory = directory / CHECKPOINT_SUBDIR
+    return directory
+
+
+class Checkpointer:
+    """Save/restore a training state with its meta record; keeps the newest ``max_to_keep``."""
+
+    def __init__(self, directory: str | os.PathLike, max_to_keep: int = 3, create: bool = True):
+        ocp = _ocp()
+        self.directory = _checkpoint_root(directory).absolute()
+        if not create and not self.directory.is_dir():
+            raise CheckpointError(f"{directory}: no checkpoint folder found")
+        self._manager = ocp.CheckpointManager(
+            self.directory,
+            options=ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=create),
+        )
+
+    def latest_step(self) -> int | None:
+        return self._manager.latest_step()
+
+    def save(self, step: int, state: Any, meta: dict[str, Any]) -> None:
+        ocp = _ocp()
+        meta = {**meta, "step": int(step)}
+        self._manager.save(
+            int(step),
+            args=ocp.args.Composite(
+                state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)
+            ),
+        )
+
+    def wait(self) -> None:
+        self._manager.wait_until_finished()
+
+    def read_meta(self, step: int | None = None) -> dict[str, Any]:
+        ocp = _ocp()
+        step = self._resolve_step(step)
+        restored = self._manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))
+        return dict(restored.meta)
+
+    def restore(
+        self, target: Any = None, step: int | None = None, expect: dict[str, Any] | None = None
+    ) -> tuple[Any, dict[str, Any]]:
+        """Restore (state, meta). ``target``: a pytree of the expected structure (shapes are
+        checked against it); ``expect``: meta fields that must match (e.g. model, model_config)."""
+        ocp = _ocp()
+        step = self._resolve_step(step)
+        meta = self.read_meta(step)
+        if expect:
+            check_meta(meta, expect, where=str(self.directory / str(step)))
+        try:
+            restore_args = ocp.args.StandardRestore(target) if target is not None else ocp.args.StandardRestore()
+            restored = self._manager.restore(step, args=ocp.args.Composite(state=restore_args))
+        except Exception as error:  # orbax raises many types for structure mismatches
+            raise CheckpointError(
+                f"{self.directory / str(step)}: the saved state does not match the model: "
+                f"{str(error).splitlines()[0][:300]}"
+            ) from None
+        state = restored.state
+        if target is not None:
+            check_same_structure(state, target, where=str(self.directory / str(step)))
+        return state, meta
+
+    def _resolve_step(self, step: int | None) -> int:
+        steps = self._manager.all_steps()
+        if not steps:
+            raise CheckpointError(f"{self.directory}: holds no finished checkpoint")
+        if step is None:
+            return max(steps)
+        if step not in steps:
+            raise CheckpointError(f"{self.directory}: no checkpoint at step {step}; have {sorted(steps)}")
+        return step
+
+    def close(self) -> None:
+        self._manager.close()
+
+
+def check_meta(meta: dict[str, Any], expect: dict[str, Any], where: str) -> None:
+    """Raise CheckpointError naming every field of ``expect`` that differs in ``meta``."""
+    problems = []
+    for key, value in expect.items():
+        found = meta.get(key)
+        if _jsonable(found) != _jsonable(value):
+            problems.append(f"{key}: checkpoint has {found!r}, expected {value!r}")
+    if problems:
+        raise CheckpointError(f"{where}: checkpoint of another model or config ({'; '.join(problems)})")
+
+
+def check_same_structure(params: Any, target: Any, where: str) -> None:
+    """Raise CheckpointError naming the first leaf whose path or shape differs."""
+    got = {jax.tree_util.keystr(p): np.shape(v) for p, v in jax.tree_util.tree_leaves_with_path(params)}
+    want = {jax.tree_util.keystr(p): np.shape(v) for p, v in jax.tree_util.tree_leaves_with_path(target)}
+    if got.keys() != want.keys():
+        extra = sorted(got.keys() - want.keys())[:3]
+        lacking = sorted(want.keys() - got.keys())[:3]
+        raise CheckpointError(
+            f"{where}: parameter names differ from the model's (unexpected {extra}, missing {lacking})"
+        )
+    for path, shape in want.items():
+        if got[path] != shape:
+            raise CheckpointError(f"{where}: parameter {path} has shape {got[path]}, the model needs {shape}")
+
+
+def _jsonable(value: Any) -> Any:
+    return json.loads(json.dumps(value, default=list))
+
+
+# ------------------------------------------------------------------------- released weights
+def save_weights(path: str | os.PathLike, params: Any, meta: dict[str, Any]) -> None:
+    """Write ``path`` (.msgpack, parameters) and ``path`` with .json (meta), atomically."""
+    from flax import serialization
+
+    path = Path(path)
+    blob = serialization.to_bytes(jax.tree_util.tree_map(np.asarray, params))
+    for target, data in ((path, blob), (path.with_suffix(".json"), json.dumps(meta, indent=2).encode())):
+        fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.")
+        try:
+            with os.fdopen(fd, "wb") as handle:
+                handle.write(data)
+            os.replace(tmp, target)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+
+
+def load_weights(
+    path: str | os.PathLike, target: Any, expect: dict[str, Any] | None = None
+) -> tuple[Any, dict[str, Any]]:
+    """Read released weights into the structure of ``target``; check the meta record first."""
+    from flax import serialization
+
+    path = Path(path)
+    meta_path = path.with_suffix(".json")
+    if not path.is_file() or not meta_path.is_file():
+        raise CheckpointError(f"{path}: released weights need both {path.name} and {meta_path.name}")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except json.JSONDecodeError as error:
+        raise CheckpointError(f"{meta_path}: not valid JSON ({error})") from None
+    if expect:
+        check_meta(meta, expect, where=str(path))
+    try:
+        state = serialization.msgpack_restore(path.read_bytes())
+    except Exception as error:
+        raise CheckpointError(f"{path}: corrupt weights file ({error})") from None
+    check_same_structure(state, target, where=str(path))
+    params = serialization.from_state_dict(target, state)
+    return params, meta
