@@ -190,3 +190,46 @@ def load_weights(
     check_same_structure(state, target, where=str(path))
     params = serialization.from_state_dict(target, state)
     return params, meta
+
+
+def load_trained_params(
+    source: str | os.PathLike, target: Any, expect: dict[str, Any] | None = None
+) -> tuple[Any, dict[str, Any]]:
+    """Parameters from a training workdir / checkpoint folder, or a released ``.msgpack`` file.
+
+    ``target``: freshly initialised parameters of the expected model (structure and shapes are
+    checked against it); ``expect``: meta fields that must match.
+    """
+    source = Path(source)
+    if source.is_file():
+        return load_weights(source, target, expect)
+    checkpointer = Checkpointer(source, create=False)
+    try:
+        meta = checkpointer.read_meta()
+        where = str(checkpointer.directory / str(meta.get("step", "?")))
+        if expect:
+            check_meta(meta, expect, where=where)
+        state, _ = checkpointer.restore()
+    finally:
+        checkpointer.close()
+    params = state["params"] if isinstance(state, dict) and "params" in state else state
+    check_same_structure(params, target, where=where)
+    return params, meta
+
+
+def read_checkpoint_meta(source: str | os.PathLike) -> dict[str, Any]:
+    """The meta record of a released weights file or of a checkpoint folder's newest step."""
+    source = Path(source)
+    if source.is_file():
+        meta_path = source.with_suffix(".json")
+        if not meta_path.is_file():
+            raise CheckpointError(f"{source}: no {meta_path.name} beside it")
+        try:
+            return json.loads(meta_path.read_text())
+        except json.JSONDecodeError as error:
+            raise CheckpointError(f"{meta_path}: not valid JSON ({error})") from None
+    checkpointer = Checkpointer(source, create=False)
+    try:
+        return checkpointer.read_meta()
+    finally:
+        checkpointer.close()

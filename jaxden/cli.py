@@ -83,6 +83,31 @@ def cmd_dataset_verify(args: argparse.Namespace) -> int:
     return 1 if report.problems else 0
 
 
+def cmd_train(args: argparse.Namespace) -> int:
+    from jaxden.train import load_train_config, train_and_evaluate
+
+    config = load_train_config(args.config, args.overrides)
+    result = train_and_evaluate(config, args.workdir)
+    print("finished: " + ", ".join(f"{k}={v:.5g}" if isinstance(v, float) else f"{k}={v}"
+                                   for k, v in result.items()))
+    return 0
+
+
+def cmd_denoise(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from jaxden.denoisers import load_denoiser
+    from jaxden.io.exr import read_frame, write_image
+
+    denoiser = load_denoiser(args.model)
+    required = denoiser.definition.required(denoiser.config)
+    frame = read_frame(args.input, require=required, nonfinite=args.nonfinite)
+    image = np.asarray(denoiser(frame))
+    write_image(args.out, image, attributes={"denoiser": denoiser.name, "source": str(args.input)})
+    print(f"wrote {args.out} (denoised by {denoiser.name})")
+    return 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from jaxden import bench
 
@@ -133,6 +158,20 @@ def build_parser() -> argparse.ArgumentParser:
     v = dsub.add_parser("verify", help="check every file against the manifest")
     v.add_argument("dir")
     v.set_defaults(func=cmd_dataset_verify)
+
+    p = sub.add_parser("train", help="train a denoiser or the mixer from a TOML config (resumable)")
+    p.add_argument("config", help="training config .toml")
+    p.add_argument("overrides", nargs="*", help="key=value overrides, e.g. optim.steps=500")
+    p.add_argument("--workdir", required=True, help="run folder: config, metrics.jsonl, checkpoints")
+    p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("denoise", help="denoise an EXR with a registered or trained denoiser")
+    p.add_argument("input", help="input EXR (colour and the features the model needs)")
+    p.add_argument("--model", required=True, help="oidn, a shipped model name, or a checkpoint folder")
+    p.add_argument("--out", required=True, help="output .exr")
+    p.add_argument("--nonfinite", choices=("error", "zero"), default="error",
+                   help="NaN/inf in the input: refuse (default) or replace by 0")
+    p.set_defaults(func=cmd_denoise)
 
     p = sub.add_parser("bench", help="run a benchmark (ratios against a peer in the same run)")
     p.add_argument("name", help="benchmark name (e.g. render, decoder)")

@@ -14,12 +14,14 @@ from __future__ import annotations
 import dataclasses
 import functools
 from collections.abc import Callable
+import os
+from pathlib import Path
 from typing import Any, Literal
 
 import jax
 import numpy as np
 
-from jaxden.errors import ConfigError, FrameError
+from jaxden.errors import CheckpointError, ConfigError, FrameError
 from jaxden.frame import Frame
 
 
@@ -222,6 +224,49 @@ register(
         init=_unet_init,
     )
 )
+
+
+WEIGHTS_DIR = Path(__file__).parent / "weights"
+
+
+def load_denoiser(spec: str | os.PathLike) -> Denoiser:
+    """A ready denoiser from a name or trained weights.
+
+    ``spec``: a registered black-box name (``oidn``); a name with weights shipped in the
+    package (``jaxden/weights/<name>.msgpack``); a training workdir or checkpoint folder from
+    ``jaxden train``; or a released ``.msgpack`` weights file. The checkpoint's meta record
+    says which model and config it holds; a mixer checkpoint or an unknown model is a
+    CheckpointError.
+    """
+    from jaxden.checkpoint import load_trained_params, read_checkpoint_meta
+    from jaxden.config import load_config
+
+    path = Path(spec)
+    shipped = WEIGHTS_DIR / f"{spec}.msgpack"
+    if not path.exists() and isinstance(spec, str) and shipped.is_file():
+        path = shipped
+    if not path.exists():
+        definition = get_definition(str(spec))
+        if definition.init is not None:
+            raise CheckpointError(
+                f"denoiser '{spec}' needs trained weights: pass a checkpoint folder from "
+                f"`jaxden train` (or a .msgpack weights file) instead of its name"
+            )
+        return make_denoiser(str(spec))
+    meta = read_checkpoint_meta(path)
+    if meta.get("kind") != "denoiser":
+        raise CheckpointError(
+            f"{path}: holds a {meta.get('kind', 'unknown')!r} checkpoint "
+            f"(model {meta.get('model')!r}), not a denoiser"
+        )
+    definition = get_definition(meta.get("model", "?"))
+    try:
+        config = load_config(meta.get("model_config", {}), definition.config_cls)
+    except ConfigError as error:
+        raise CheckpointError(f"{path}: its model_config does not fit '{definition.name}': {error}") from None
+    target = definition.init(jax.random.PRNGKey(0), config)
+    params, _ = load_trained_params(path, target, expect={"model": definition.name})
+    return Denoiser(definition, config, params)
 
 
 def _load_builtin_models() -> None:
