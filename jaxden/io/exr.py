@@ -25,6 +25,8 @@ from jaxden.errors import ExrError, FrameError
 from jaxden.frame import CHANNELS, IMAGE_FIELDS, Frame, NonFinitePolicy
 
 ATTRIBUTE_PREFIX = "jaxden."
+_UMASK = os.umask(0)
+os.umask(_UMASK)
 _FIELDS_BY_CHANNEL_COUNT = {"color": 3, "variance": 3}
 
 
@@ -43,6 +45,7 @@ def _atomic_write(path: Path, write) -> None:
     os.close(fd)
     try:
         write(tmp)
+        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; datasets are shared
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
