@@ -1,0 +1,73 @@
+"""Benchmarks: speed and memory as ratios to a peer measured in the same run.
+
+A benchmark is a function ``fn(quick: bool) -> dict`` registered with ``@register("name")`` in
+any module of this package (modules are discovered and imported on first use). Its dict holds
+at least one ratio key (e.g. ``"ratio"``: jaxden's time / the peer's time) and any times or
+settings worth printing. :func:`run` prints a readable table and, with ``as_json``, one JSON
+object on the last line (for scripts and CI).
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import pkgutil
+from collections.abc import Callable
+
+from jaxden.errors import JaxdenError
+
+BenchFn = Callable[[bool], dict]
+_REGISTRY: dict[str, BenchFn] = {}
+_discovered = False
+
+
+def register(name: str) -> Callable[[BenchFn], BenchFn]:
+    """Decorator: register ``fn(quick: bool) -> dict`` as benchmark ``name``."""
+
+    def decorate(fn: BenchFn) -> BenchFn:
+        if name in _REGISTRY and _REGISTRY[name] is not fn:
+            raise ValueError(f"benchmark {name!r} is registered twice")
+        _REGISTRY[name] = fn
+        return fn
+
+    return decorate
+
+
+def _discover() -> None:
+    global _discovered
+    if not _discovered:
+        for module in pkgutil.iter_modules(__path__):
+            importlib.import_module(f"{__name__}.{module.name}")
+        _discovered = True
+
+
+def names() -> list[str]:
+    """Names of all registered benchmarks, sorted."""
+    _discover()
+    return sorted(_REGISTRY)
+
+
+def _format(value) -> str:
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return str(value)
+
+
+def run(name: str, as_json: bool = False, quick: bool = False) -> dict:
+    """Run benchmark ``name``, print a table (and a JSON line if ``as_json``), return its dict.
+
+    ``quick`` asks the benchmark for a smaller problem (for smoke tests). Raises JaxdenError
+    for an unknown name, listing the valid ones.
+    """
+    _discover()
+    if name not in _REGISTRY:
+        raise JaxdenError(f"unknown benchmark {name!r}; valid: {', '.join(names()) or 'none'}")
+    result = dict(_REGISTRY[name](quick))
+    result.setdefault("bench", name)
+    width = max(len(str(key)) for key in result)
+    print(f"benchmark {name}{' (quick)' if quick else ''}")
+    for key, value in result.items():
+        print(f"  {str(key):<{width}}  {_format(value)}")
+    if as_json:
+        print(json.dumps(result, sort_keys=True, default=str))
+    return result

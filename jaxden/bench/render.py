@@ -1,0 +1,76 @@
+"""Benchmark ``render``: render_frame (colour + variance + features) vs a plain Mitsuba render.
+
+ratio = median time of :func:`jaxden.render.render_frame` / median time of ``mi.render`` with the
+same scene's own colour integrator (``path``), sensor, size, spp and variant, in one run. Both
+are warmed up first (JIT compilation excluded) and timed alternately, several repeats each, so
+drift of a shared machine hits both alike. render_frame's extra work is the three moment AOVs,
+the feature (``aov``) render at min(spp, 16) spp and the NumPy post-processing. Target <= 1.15.
+
+``ratio`` uses wall-clock time (what users wait for); ``cpu_ratio`` uses the process's CPU time
+over all threads, which is steadier when other jobs share the machine.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+import numpy as np
+
+from jaxden.bench import register
+
+SCENE = "cornell-box"
+SIZE = (256, 256)
+SPP = 64
+
+
+def measure(scene_spec=SCENE, size=SIZE, spp=SPP, repeats: int = 5) -> dict:
+    """Times (seconds) and ratio for one scene; see the module docstring."""
+    import mitsuba as mi
+
+    from jaxden.render import core, scenes
+    from jaxden.render.variant import ensure_variant
+
+    variant = ensure_variant()
+    scene = scenes.load_scene(scene_spec, size)
+    sensor = scenes.sensor_source(scene).build(tuple(size), None)
+    inner, _ = core._integrators(scene, None)
+
+    def frame() -> None:
+        core.render_frame(scene, spp, seed=1)
+
+    def plain() -> None:
+        np.array(mi.render(scene, sensor=sensor, integrator=inner, spp=spp, seed=1))
+
+    frame()
+    plain()  # warm-up: compile every kernel once
+    wall: dict[str, list[float]] = {"frame": [], "plain": []}
+    cpu: dict[str, list[float]] = {"frame": [], "plain": []}
+    for _ in range(repeats):
+        for key, fn in (("frame", frame), ("plain", plain)):
+            start, start_cpu = time.perf_counter(), time.process_time()
+            fn()
+            wall[key].append(time.perf_counter() - start)
+            cpu[key].append(time.process_time() - start_cpu)
+    frame_s, plain_s = statistics.median(wall["frame"]), statistics.median(wall["plain"])
+    frame_cpu, plain_cpu = statistics.median(cpu["frame"]), statistics.median(cpu["plain"])
+    return {
+        "ratio": frame_s / plain_s,
+        "cpu_ratio": frame_cpu / plain_cpu,
+        "render_frame_s": frame_s,
+        "plain_path_s": plain_s,
+        "render_frame_cpu_s": frame_cpu,
+        "plain_path_cpu_s": plain_cpu,
+        "scene": scene_spec,
+        "size": f"{size[0]}x{size[1]}",
+        "spp": spp,
+        "repeats": repeats,
+        "variant": variant,
+    }
+
+
+@register("render")
+def render_bench(quick: bool) -> dict:
+    if quick:
+        return measure(SCENE, (64, 64), 16, repeats=3)
+    return measure()

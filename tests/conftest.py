@@ -1,0 +1,37 @@
+"""Shared pytest setup: the ``--runslow`` option, the ``slow`` marker, and a PRNG key fixture.
+
+Tests marked ``@pytest.mark.slow`` (statistical or rendering-heavy) are skipped unless pytest
+runs with ``--runslow``. The ``slow`` marker itself is declared in pyproject.toml.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--runslow", action="store_true", default=False, help="also run tests marked slow"
+    )
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    # Declared here too so the marker is known even when pyproject.toml is not the rootdir's.
+    config.addinivalue_line("markers", "slow: long-running test; run with --runslow")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    if config.getoption("--runslow"):
+        return
+    skip_slow = pytest.mark.skip(reason="slow test: run with --runslow")
+    for item in items:
+        if "slow" in item.keywords:
+            item.add_marker(skip_slow)
+
+
+@pytest.fixture(scope="session")
+def key():
+    """jax.random.PRNGKey(0), shared by the session (split it; never reuse it for two draws)."""
+    import jax
+
+    return jax.random.PRNGKey(0)

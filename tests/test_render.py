@@ -1,0 +1,642 @@
+"""Tests of jaxden.render: variant choice, integrators, scene library, XML, render_frame.
+
+Renders are tiny (a few hundred pixels, a few spp) and reuse loaded scenes: Mitsuba's LLVM
+JIT compiles each new kernel once (a few hundred ms), then renders are quick.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from jaxden.errors import JaxdenError, SceneError
+from jaxden.frame import Frame
+from jaxden.render import choose_variant, list_scenes, load_scene, prepare_scene, render_frame
+from jaxden.render import core, integrators, scenes, variant
+
+mi = pytest.importorskip("mitsuba")
+
+BUILTIN = ("cornell-box", "texture-bump", "glossy-glass", "env-sun", "small-lights")
+# Reflectances of mi.cornell_box()'s three diffuse materials.
+CORNELL_ALBEDOS = np.array([
+    [0.885809, 0.698859, 0.666422],  # white
+    [0.570068, 0.0430135, 0.0443706],  # red
+    [0.105421, 0.37798, 0.076425],  # green
+])
+
+
+@pytest.fixture(scope="module")
+def cornell():
+    """The Cornell box at 32 x 24 (width x height)."""
+    return load_scene("cornell-box", size=(32, 24))
+
+
+@pytest.fixture(scope="module")
+def cornell_frame(cornell):
+    return render_frame(cornell, spp=8, seed=5)
+
+
+# ---------------------------------------------------------------------------- variant
+def test_variant_is_an_rgb_variant_and_set():
+    chosen = choose_variant()
+    assert chosen in ("llvm_ad_rgb", "scalar_rgb")
+    assert variant.ensure_variant() == chosen
+    assert mi.variant() == chosen
+
+
+def test_variant_override_must_be_installed_rgb_variant(monkeypatch):
+    monkeypatch.setenv(variant.ENV_VARIANT, "llvm_ad_spectral_not_a_variant")
+    with pytest.raises(JaxdenError, match="not an installed RGB Mitsuba variant.*scalar_rgb"):
+        choose_variant()
+
+
+def test_variant_falls_back_with_one_notice(monkeypatch, tmp_path, capsys):
+    """A failed probe selects scalar_rgb and prints exactly one line to stderr."""
+    calls = []
+    monkeypatch.delenv(variant.ENV_VARIANT, raising=False)
+    monkeypatch.setenv("JAXDEN_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(variant, "_chosen", None)
+    monkeypatch.setattr(variant, "_notice_printed", False)
+    monkeypatch.setattr(variant, "probe_variant",
+                        lambda name, timeout=0: calls.append(name) or (False, "simulated abort"))
+    assert choose_variant() == "scalar_rgb"
+    assert choose_variant() == "scalar_rgb"  # cached in-process: no second probe
+    assert calls == ["llvm_ad_rgb"]
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "simulated abort" in err[0] and "scalar_rgb" in err[0]
+    assert "libllvm19" in err[0]
+
+
+def test_variant_cache_file_stale_or_corrupt_is_ignored(monkeypatch, tmp_path):
+    calls = []
+    monkeypatch.delenv(variant.ENV_VARIANT, raising=False)
+    monkeypatch.setenv("JAXDEN_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(variant, "probe_variant",
+                        lambda name, timeout=0: calls.append(name) or (True, ""))
+    cache = tmp_path / variant.CACHE_FILE_NAME
+    for content in ("{not json", json.dumps({"key": "stale", "variant": "llvm_ad_rgb"}),
+                    json.dumps({"key": variant.cache_key(), "variant": "bogus_variant"})):
+        cache.write_text(content)
+        monkeypatch.setattr(variant, "_chosen", None)
+        assert choose_variant() == "llvm_ad_rgb"
+    assert len(calls) == 3  # every bad cache forced a probe
+    entry = json.loads(cache.read_text())
+    assert entry["key"] == variant.cache_key() and entry["variant"] == "llvm_ad_rgb"
+    monkeypatch.setattr(variant, "_chosen", None)
+    assert choose_variant() == "llvm_ad_rgb"
+    assert len(calls) == 3  # a valid entry is used without probing
+
+
+def test_probe_of_a_broken_variant_fails_cleanly():
+    ok, reason = variant.probe_variant("no_such_variant", timeout=120)
+    assert not ok
+    assert "probe render failed" in reason and "no_such_variant" in reason
+
+
+def test_scalar_variant_override_renders_in_subprocess(tmp_path):
+    script = textwrap.dedent("""
+        import numpy as np, mitsuba as mi
+        from jaxden.render import render_frame
+        frame = render_frame("cornell-box", spp=4, seed=1, size=(8, 6))
+        assert mi.variant() == "scalar_rgb", mi.variant()
+        assert frame.color.shape == (6, 8, 3) and np.isfinite(frame.color).all()
+        assert frame.variance.shape == (6, 8, 3) and (frame.variance >= 0).all()
+        assert frame.color.mean() > 0.01
+        print("OK", mi.variant())
+    """)
+    env = dict(os.environ, JAXDEN_MITSUBA_VARIANT="scalar_rgb")
+    result = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
+                            text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "OK scalar_rgb" in result.stdout
+
+
+# ---------------------------------------------------------------------------- integrators
+def test_moment_colour_equals_plain_path_render(cornell):
+    """Same seed and spp: the wrapper's colour equals plain `path` to float32 round-off.
+
+    Not bit for bit: a film with 3 extra channels accumulates in a different order (measured:
+    at most ~3 ulp). A different seed differs by orders of magnitude more, so the wrapper
+    draws the same random numbers.
+    """
+    sensor = cornell.sensors()[0]
+    path = integrators.path_integrator(8)
+    moment = integrators.moment_integrator(max_depth=8)
+    plain = np.array(mi.render(cornell, sensor=sensor, integrator=path, seed=7, spp=8))
+    both = np.array(mi.render(cornell, sensor=sensor, integrator=moment, seed=7, spp=8))
+    other = np.array(mi.render(cornell, sensor=sensor, integrator=path, seed=8, spp=8))
+    assert both.shape == plain.shape[:2] + (6,)
+    np.testing.assert_allclose(both[..., :3], plain, rtol=1e-6, atol=1e-7)
+    assert np.abs(other - plain).max() > 1e-2
+    # Second moments: m2 >= m1^2 (Cauchy-Schwarz) up to round-off.
+    assert (both[..., 3:] >= both[..., :3] ** 2 * (1 - 1e-5) - 1e-7).all()
+
+
+def test_moment_at_one_spp_is_the_square_of_the_sample(cornell):
+    """With one sample per pixel m2 = L^2 exactly, so the AOV is the square of that sample."""
+    moment = integrators.moment_integrator(max_depth=8)
+    image = np.array(mi.render(cornell, integrator=moment, seed=3, spp=1))
+    np.testing.assert_allclose(image[..., 3:], image[..., :3] ** 2, rtol=1e-6, atol=1e-8)
+
+
+def test_variance_of_mean_formula_against_numpy():
+    rng = np.random.default_rng(0)
+    samples = rng.gamma(2.0, 1.0, size=(16, 5, 3))  # 16 samples per "pixel"
+    m1, m2 = samples.mean(0), (samples**2).mean(0)
+    expected = samples.var(0, ddof=1) / 16
+    np.testing.assert_allclose(integrators.variance_of_mean(m1, m2, 16), expected, rtol=1e-12)
+    assert (integrators.variance_of_mean(m1, m1**2 - 1e-9, 16) == 0).all()  # clipped at 0
+
+
+def test_render_frame_colour_equals_plain_path_with_derived_seed(cornell, cornell_frame):
+    sensor = cornell.sensors()[0]
+    plain = np.array(mi.render(cornell, sensor=sensor, integrator=integrators.path_integrator(8),
+                               seed=core.derive_seed(5, "color", 0), spp=8))
+    np.testing.assert_allclose(cornell_frame.color, plain, rtol=1e-6, atol=1e-7)
+
+
+def test_derived_seeds_are_distinct_and_deterministic():
+    seeds = {core.derive_seed(s, p, i) for s in range(50) for p in ("color", "aov")
+             for i in range(3)}
+    assert len(seeds) == 300 and all(0 <= s < 2**32 for s in seeds)
+    assert core.derive_seed(7, "aov") == core.derive_seed(7, "aov")
+
+
+def test_split_passes():
+    assert core.split_passes(64, 256 * 256) == [64]
+    assert core.split_passes(10, 100, max_samples=300) == [3, 3, 2, 2]
+    assert core.split_passes(3000, 4, max_spp=1024) == [1000, 1000, 1000]
+    assert core.split_passes(2, 10, max_samples=1) == [1, 1]  # never a pass with 0 spp
+    for spp, pixels in ((1, 1), (7, 1000), (4097, 65536)):
+        passes = core.split_passes(spp, pixels, max_samples=100_000)
+        assert sum(passes) == spp and max(passes) - min(passes) <= 1
+
+
+def test_passes_combine_moments_exactly(cornell):
+    """spp=8 in two passes of 4 equals the hand-combined moments of two 4-spp renders."""
+    pixels = 32 * 24
+    frame = render_frame(cornell, spp=8, seed=11, max_samples_per_pass=4 * pixels)
+    moment = integrators.moment_integrator(max_depth=8)
+    images = [np.array(mi.render(cornell, integrator=moment, seed=core.derive_seed(11, "color", i),
+                                 spp=4), dtype=np.float64) for i in range(2)]
+    m1 = (images[0][..., :3] + images[1][..., :3]) / 2
+    m2 = (images[0][..., 3:] + images[1][..., 3:]) / 2
+    np.testing.assert_allclose(frame.color, m1, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(frame.variance, np.maximum(m2 - m1**2, 0) / 7, rtol=1e-5,
+                               atol=1e-9)
+
+
+# ---------------------------------------------------------------------------- render_frame
+def test_frame_shapes_types_and_validation(cornell_frame):
+    frame = cornell_frame
+    assert isinstance(frame, Frame)
+    shapes = {"color": 3, "variance": 3, "albedo": 3, "normal": 3, "depth": 1, "position": 3}
+    for name, channels in shapes.items():
+        array = getattr(frame, name)
+        assert isinstance(array, np.ndarray) and array.dtype == np.float32, name
+        assert array.shape == (24, 32, channels), name
+    assert frame.motion is None
+    assert frame.spp == np.float32(8) and isinstance(frame.spp, np.float32)
+    frame.validated("cornell")  # finite, variance >= 0
+
+
+def test_features_on_the_cornell_box(cornell_frame):
+    frame = cornell_frame
+    hit = frame.depth[..., 0] > 0
+    assert hit.mean() > 0.6  # the box fills the view but for strips left and right (4:3 film)
+    assert (frame.albedo >= 0).all() and (frame.albedo <= 1).all()
+    # Most hit pixels show exactly one of the scene's three diffuse reflectances.
+    distance = np.abs(frame.albedo[hit][:, None, :] - CORNELL_ALBEDOS[None]).max(-1).min(-1)
+    assert (distance < 1e-5).mean() > 0.7
+    norms = np.linalg.norm(frame.normal, axis=-1)
+    np.testing.assert_allclose(norms[hit], 1.0, atol=1e-5)
+    assert (frame.normal[~hit] == 0).all() and (frame.position[~hit] == 0).all()
+    assert (frame.depth[~hit] == 0).all()
+    # Depth is the distance from the camera (0, 0, 3.9) to the hit point: check on pixels
+    # where position and depth average consistently (interior of flat walls).
+    distance = np.linalg.norm(frame.position - np.array([0.0, 0.0, 3.9]), axis=-1)
+    relative = np.abs(distance[hit] - frame.depth[..., 0][hit]) / frame.depth[..., 0][hit]
+    assert np.median(relative) < 1e-3
+    # The back wall (z = -1) faces +z.
+    back = hit & (np.abs(frame.position[..., 2] + 1.0) < 1e-3)
+    assert back.sum() > 50
+    np.testing.assert_allclose(frame.normal[back], np.tile([0.0, 0.0, 1.0], (back.sum(), 1)),
+                               atol=1e-4)
+
+
+def test_render_is_deterministic_in_the_seed(cornell, cornell_frame):
+    again = render_frame(cornell, spp=8, seed=5)
+    for name in ("color", "variance", "albedo", "normal", "depth", "position"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(cornell_frame, name))
+    other = render_frame(cornell, spp=8, seed=6)
+    assert np.abs(other.color - cornell_frame.color).max() > 1e-2
+
+
+def test_one_spp_has_no_variance(cornell):
+    frame = render_frame(cornell, spp=1, seed=0)
+    assert frame.variance is None and frame.spp == 1
+    assert np.isfinite(frame.color).all()
+
+
+def test_crop_renders_only_the_crop_at_the_right_place(cornell, cornell_frame):
+    top, left, height, width = 4, 6, 10, 12
+    crop = render_frame(cornell, spp=8, seed=9, crop=(top, left, height, width))
+    assert crop.color.shape == (10, 12, 3) and crop.depth.shape == (10, 12, 1)
+    full = cornell_frame.position
+
+    def mismatch(dy, dx):
+        window = full[top + dy:top + dy + height, left + dx:left + dx + width]
+        return np.abs(crop.position - window).mean()
+
+    errors = {(dy, dx): mismatch(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)}
+    best = errors.pop((0, 0))
+    assert best < 0.5 * min(errors.values())
+
+
+@pytest.mark.parametrize("camera", [
+    {},  # the Cornell box's own camera (fov_axis 'smaller')
+    {"fov": 35.0, "fov_axis": "y", "principal_point_offset_x": 0.08,
+     "principal_point_offset_y": -0.05},
+])
+def test_crop_camera_equals_mitsuba_film_crop(cornell, camera):
+    """The off-centre crop camera gives the same render as Mitsuba's film crop (same seed),
+    to float round-off, and reuses one sensor (hence one set of kernels) across offsets."""
+    sensor_dict = dict(prepare_scene("cornell-box")["sensor"], **camera)
+    source = scenes.SensorSource(name="test", size=(40, 30), sensor_dict=sensor_dict)
+    moment = integrators.moment_integrator(max_depth=8)
+    sensors = []
+    for crop in [(3, 5, 10, 12), (20, 28, 10, 12), (0, 0, 30, 40)]:
+        emulated = source.build((40, 30), crop)
+        sensors.append(emulated)
+        mine = np.array(mi.render(cornell, sensor=emulated, integrator=moment, seed=4, spp=4))
+        film_crop = scenes.build_sensor(sensor_dict, (40, 30), crop, "test")
+        theirs = np.array(mi.render(cornell, sensor=film_crop, integrator=moment, seed=4, spp=4))
+        assert mine.shape == theirs.shape == (crop[2], crop[3], 6)
+        close = np.abs(mine - theirs) <= 1e-4 * (1 + np.abs(theirs))
+        assert close.all(-1).mean() > 0.97, crop  # a grazing ray may flip at an edge
+    assert sensors[0] is sensors[1]
+
+
+def test_crop_of_an_orthographic_camera_uses_the_film_crop(cornell):
+    camera = {"type": "orthographic", "near_clip": 0.01,
+              "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 3], target=[0, 0, 0],
+                                                         up=[0, 1, 0]),
+              "film": {"type": "hdrfilm", "width": 16, "height": 16}}
+    full = render_frame(cornell, spp=2, sensor=camera)
+    crop = render_frame(cornell, spp=2, sensor=camera, crop=(4, 2, 6, 8))
+    assert crop.depth.shape == (6, 8, 1)
+    # Orthographic rays start on the near plane and run along -z: depth = 3 - 0.01 - z.
+    np.testing.assert_allclose(crop.depth[..., 0], 2.99 - crop.position[..., 2], atol=1e-4)
+    np.testing.assert_allclose(crop.albedo, full.albedo[4:10, 2:10], atol=0.25)
+
+
+def test_size_override_and_sensor_override(cornell):
+    frame = render_frame(cornell, spp=2, seed=0, size=(20, 10))
+    assert frame.color.shape == (10, 20, 3)
+    camera = {
+        "type": "perspective", "fov": 30.0,
+        "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0.5, 2.0], target=[0, 0.5, -1.0],
+                                                   up=[0, 1, 0]),
+        "film": {"type": "hdrfilm", "width": 20, "height": 10, "rfilter": {"type": "gaussian"}},
+        "sampler": {"type": "stratified", "sample_count": 4},
+    }
+    frame = render_frame(cornell, spp=2, seed=0, sensor=camera)
+    assert frame.color.shape == (10, 20, 3)
+    # The central rays travel straight to the back wall at z = -1: depth 3.
+    np.testing.assert_allclose(frame.depth[4:6, 9:11], 3.0, rtol=5e-3)
+    frame = render_frame(cornell, spp=2, seed=0, sensor=camera, size=(40, 20),
+                         crop=(5, 10, 10, 20))
+    assert frame.color.shape == (10, 20, 3)
+    built = scenes.build_sensor(camera, (20, 10), None, "test")
+    assert str(built.film().rfilter()).startswith("BoxFilter")
+    assert str(built.sampler()).startswith("IndependentSampler")
+
+
+def test_max_depth_one_sees_only_emitters(cornell):
+    """max_depth=1 renders only directly visible emission: black walls, bright light."""
+    frame = render_frame(cornell, spp=2, seed=0, max_depth=1)
+    assert np.median(frame.color) == 0.0 and frame.color.max() > 10.0
+
+
+def test_foreign_mitsuba_scene_is_checked():
+    scene_dict = {"type": "scene",
+                  "sensor": {"type": "perspective",
+                             "film": {"type": "hdrfilm", "width": 8, "height": 8,
+                                      "rfilter": {"type": "gaussian"}}},
+                  "sphere": {"type": "sphere"}, "light": {"type": "constant"}}
+    foreign = mi.load_dict(scene_dict)
+    with pytest.raises(SceneError, match="box filter"):
+        render_frame(foreign, spp=2)
+    scene_dict["sensor"]["film"]["rfilter"] = {"type": "box"}
+    ok = mi.load_dict(scene_dict)
+    assert render_frame(ok, spp=2).color.shape == (8, 8, 3)  # no integrator: path is used
+    with pytest.raises(SceneError, match="cannot be resized or cropped"):
+        render_frame(ok, spp=2, crop=(0, 0, 2, 2))
+
+
+# ---------------------------------------------------------------------------- scene library
+def test_list_scenes():
+    listed = list_scenes()
+    assert tuple(listed) == BUILTIN
+    assert all(isinstance(d, str) and d and "\n" not in d for d in listed.values())
+
+
+# One film size and spp for the scene-library tests (crops included): Dr.Jit compiles kernels
+# per scene, film size and spp, so sharing them keeps the tests fast on a cold kernel cache.
+LIBRARY_SIZE = (48, 24)
+LIBRARY_SPP = 4
+
+
+@pytest.fixture(scope="module")
+def library():
+    """name -> (scene, frame) at LIBRARY_SIZE and LIBRARY_SPP, rendered once per module."""
+    cache = {}
+
+    def get(name):
+        if name not in cache:
+            scene = load_scene(name, size=LIBRARY_SIZE)
+            cache[name] = scene, render_frame(scene, spp=LIBRARY_SPP, seed=0)
+        return cache[name]
+
+    return get
+
+
+@pytest.mark.parametrize("name", BUILTIN)
+def test_builtin_scene_loads_and_renders(name, library):
+    scene, frame = library(name)
+    sensor = scene.sensors()[0]
+    assert tuple(sensor.film().size()) == LIBRARY_SIZE
+    assert str(sensor.film().rfilter()).startswith("BoxFilter")
+    assert str(sensor.sampler()).startswith("IndependentSampler")
+    frame.validated(name)  # finite everywhere, variance >= 0
+    assert frame.color.mean() > 0.01
+
+
+def test_env_sun_has_sky_on_misses(library):
+    _, frame = library("env-sun")
+    miss = frame.depth[..., 0] == 0
+    assert miss.mean() > 0.15  # the sky fills the upper part of the view
+    assert (frame.color[miss].mean(-1) > 0.05).all()  # lit: colour on every miss (ground 0.1)
+    assert frame.color[:4].mean() > 0.5  # the upper rows are all bright sky
+
+
+def test_texture_bump_has_fine_albedo_and_bumped_normals():
+    """Floor crop: neighbouring pixels' albedo differs strongly (fine texture); back wall: flat
+    geometry (normal +z) but varying shading normals (bump map)."""
+    # Crops of the default 256 x 256 film, of LIBRARY_SIZE: they reuse the library kernels.
+    floor = render_frame("texture-bump", spp=LIBRARY_SPP, seed=0, crop=(216, 100, 24, 48))
+    assert (np.abs(floor.position[..., 1]) < 1e-3).all()  # all floor (y = 0)
+    step = np.abs(np.diff(floor.albedo, axis=1)).mean()
+    assert step > 0.05, f"mean neighbour albedo difference {step:.4f}"
+    wall = render_frame("texture-bump", spp=LIBRARY_SPP, seed=0, crop=(40, 104, 24, 48))
+    assert (np.abs(wall.position[..., 2] + 2.0) < 1e-3).all()  # all back wall (z = -2)
+    assert np.abs(np.diff(wall.albedo, axis=1)).max() < 1e-6  # uniform albedo there
+    tilt = np.linalg.norm(wall.normal[..., :2], axis=-1)  # 0 for the geometric normal
+    assert tilt.mean() > 0.05 and tilt.std() > 0.02
+
+
+def test_glossy_glass_has_glossy_and_dielectric_materials():
+    scene = load_scene("glossy-glass", size=(8, 8))
+    kinds = {str(shape.bsdf()).split("[")[0] for shape in scene.shapes()}
+    assert {"RoughConductor", "RoughPlastic", "SmoothDielectric"} <= kinds, kinds
+
+
+def test_small_lights_are_tiny_and_bright(library):
+    scene, frame = library("small-lights")
+    areas = [shape.surface_area() for shape in scene.shapes() if shape.emitter() is not None]
+    assert len(areas) == 4 and max(np.array(a).ravel()[0] for a in areas) < 0.02
+    assert len(scene.emitters()) == 4  # no environment: the bulbs are the only light
+    bright = (frame.color.max(-1) > 20).sum()
+    assert 1 <= bright <= 0.01 * frame.color[..., 0].size  # bulbs cover a few pixels
+
+
+def test_procedural_scene_spec():
+    frame = render_frame("procedural:3", spp=2, seed=0, size=(12, 10))
+    assert frame.color.shape == (10, 12, 3)
+    frame.validated("procedural:3")
+    scene = prepare_scene("procedural:3", size=(12, 10))
+    assert scene["sensor"]["film"]["rfilter"] == {"type": "box"}
+    assert scene["sensor"]["sampler"]["type"] == "independent"
+
+
+def test_prepare_scene_enforces_box_independent_and_size():
+    original = {"type": "scene",
+                "cam": {"type": "perspective",
+                        "film": {"type": "hdrfilm", "width": 5, "height": 5,
+                                 "rfilter": {"type": "tent"}, "crop_width": 2},
+                        "sampler": {"type": "multijitter", "sample_count": 9}},
+                "s": {"type": "sphere"}}
+    patched = prepare_scene(original, size=(7, 3))
+    film = patched["cam"]["film"]
+    assert film["rfilter"] == {"type": "box"} and (film["width"], film["height"]) == (7, 3)
+    assert "crop_width" not in film
+    assert patched["cam"]["sampler"] == {"type": "independent", "sample_count": 9}
+    assert original["cam"]["film"]["rfilter"] == {"type": "tent"}  # the input is not modified
+
+
+# ---------------------------------------------------------------------------- XML scenes
+XML_SCENE = """<scene version="3.0.0">
+  <default name="resx" value="40"/>
+  <default name="resy" value="30"/>
+  <integrator type="path"><integer name="max_depth" value="4"/></integrator>
+  <sensor type="perspective">
+    <float name="fov" value="45"/>
+    <transform name="to_world"><lookat origin="0,0,4" target="0,0,0" up="0,1,0"/></transform>
+    <sampler type="stratified"><integer name="sample_count" value="$spp"/></sampler>
+    <film type="hdrfilm">
+      <integer name="width" value="$resx"/><integer name="height" value="$resy"/>
+      <rfilter type="gaussian"/>
+    </film>
+  </sensor>
+  <default name="spp" value="4"/>
+  <shape type="rectangle">
+    <bsdf type="diffuse"><texture type="bitmap" name="reflectance">
+      <string name="filename" value="textures/stripes.exr"/>
+      <string name="filter_type" value="nearest"/>
+    </texture></bsdf>
+  </shape>
+  <emitter type="constant"/>
+</scene>
+"""
+
+
+@pytest.fixture(scope="module")
+def xml_path(tmp_path_factory):
+    """An XML scene with a gaussian filter, a stratified sampler, $defaults and a texture
+    referenced by a path relative to the XML file."""
+    folder = tmp_path_factory.mktemp("xmlscene")
+    (folder / "textures").mkdir()
+    stripes = np.zeros((8, 8, 3), np.float32)
+    stripes[:, ::2] = 0.9
+    mi.Bitmap(stripes).write(str(folder / "textures" / "stripes.exr"))
+    path = folder / "scene.xml"
+    path.write_text(XML_SCENE)
+    return path
+
+
+@pytest.fixture(scope="module")
+def xml_scene(xml_path):
+    return load_scene(xml_path)
+
+
+def test_xml_scene_enforces_box_independent_and_defaults(xml_path, xml_scene):
+    resolver = mi.file_resolver()
+    resolver_before = [str(resolver[i]) for i in range(len(resolver))]
+    load_scene(xml_path)
+    assert [str(resolver[i]) for i in range(len(resolver))] == resolver_before  # restored
+    sensor = xml_scene.sensors()[0]
+    assert tuple(sensor.film().size()) == (40, 30)  # from the <default> parameters
+    assert str(sensor.film().rfilter()).startswith("BoxFilter")
+    assert str(sensor.sampler()).startswith("IndependentSampler")
+    frame = render_frame(xml_scene, spp=4, seed=0)
+    assert frame.color.shape == (30, 40, 3)
+    # The relative texture loaded: the rectangle's albedo alternates 0.9 / 0 stripes.
+    hit = frame.depth[..., 0] > 0
+    assert hit.sum() > 100 and frame.albedo[hit].max() > 0.8 and frame.albedo[hit].min() < 0.1
+
+
+def test_xml_scene_size_override_and_crop(xml_path, xml_scene):
+    scene = load_scene(str(xml_path), size=(20, 12))
+    assert tuple(scene.sensors()[0].film().size()) == (20, 12)
+    assert str(scene.sensors()[0].film().rfilter()).startswith("BoxFilter")
+    # A crop and a resized render of one scene object with one film size share kernels.
+    assert render_frame(xml_scene, spp=4, crop=(2, 3, 12, 20)).color.shape == (12, 20, 3)
+    assert render_frame(xml_scene, spp=4, size=(20, 12)).color.shape == (12, 20, 3)
+
+
+def test_render_frame_reuses_the_scene_of_a_spec(xml_path):
+    core._spec_scenes.clear()
+    for spec in ("cornell-box", xml_path):
+        first = core._load_cached(spec, (8, 8))
+        assert core._load_cached(spec, (8, 8)) is first
+        assert core._load_cached(spec, (8, 6)) is not first
+    os.utime(xml_path, ns=(0, 0))  # an edited file is loaded again
+    assert core._load_cached(xml_path, (8, 8)) is not first
+
+
+# ---------------------------------------------------------------------------- errors
+def test_unknown_scene_lists_the_valid_ones():
+    with pytest.raises(SceneError, match="unknown scene 'cornel-box'.*cornell-box.*env-sun"):
+        load_scene("cornel-box")
+
+
+def test_missing_xml_file(tmp_path):
+    with pytest.raises(SceneError, match=r"nope\.xml does not exist"):
+        load_scene(tmp_path / "nope.xml")
+
+
+def test_malformed_xml_file(tmp_path):
+    path = tmp_path / "broken.xml"
+    path.write_text("<scene version='3.0.0'><sensor type='perspective'></scene>")
+    with pytest.raises(SceneError, match=r"broken\.xml: invalid XML: mismatched tag"):
+        load_scene(path)
+
+
+def test_xml_mitsuba_rejects_is_one_line(tmp_path):
+    path = tmp_path / "bad_plugin.xml"
+    path.write_text('<scene version="3.0.0"><sensor type="perspective"/>'
+                    '<shape type="blob"/></scene>')
+    with pytest.raises(SceneError) as info:
+        load_scene(path)
+    message = str(info.value)
+    assert "bad_plugin.xml: Mitsuba could not load the scene" in message and "blob" in message
+    assert "\n" not in message
+
+
+def test_xml_without_sensor(tmp_path):
+    path = tmp_path / "nosensor.xml"
+    path.write_text('<scene version="3.0.0"><shape type="sphere"/></scene>')
+    with pytest.raises(SceneError, match=r"nosensor\.xml: the scene has no <sensor>"):
+        load_scene(path)
+
+
+def test_dict_without_sensor():
+    with pytest.raises(SceneError, match="no sensor"):
+        load_scene({"type": "scene", "s": {"type": "sphere"}})
+    with pytest.raises(SceneError, match="type 'scene'"):
+        load_scene({"type": "sphere"})
+
+
+@pytest.mark.parametrize("spp", [0, -4, 2.5, True, "8"])
+def test_bad_spp(cornell, spp):
+    with pytest.raises(SceneError, match="spp"):
+        render_frame(cornell, spp=spp)
+
+
+@pytest.mark.parametrize("size", [(0, 16), (16, -1), (16,), (10**6, 10), (8.0, 8), "64x64"])
+def test_bad_size(cornell, size):
+    with pytest.raises(SceneError, match="size"):
+        render_frame(cornell, spp=2, size=size)
+    with pytest.raises(SceneError, match="size"):
+        load_scene("cornell-box", size=size)
+
+
+@pytest.mark.parametrize("crop", [(0, 0, 25, 4), (-1, 0, 4, 4), (0, 30, 4, 4), (0, 0, 0, 4),
+                                  (0, 0, 4), (0, 0, 4.0, 4)])
+def test_bad_crop(cornell, crop):
+    with pytest.raises(SceneError, match="crop"):
+        render_frame(cornell, spp=2, crop=crop)
+
+
+def test_bad_seed_and_max_depth(cornell):
+    with pytest.raises(SceneError, match="seed"):
+        render_frame(cornell, spp=2, seed=-1)
+    with pytest.raises(SceneError, match="max_depth"):
+        render_frame(cornell, spp=2, max_depth=0)
+
+
+@pytest.mark.parametrize("spec", ["procedural:", "procedural:abc", "procedural:-1",
+                                  "procedural", "procedural:1.5"])
+def test_malformed_procedural_spec(spec):
+    with pytest.raises(SceneError, match="malformed.*procedural:SEED"):
+        load_scene(spec)
+
+
+def test_bad_sensor_type():
+    with pytest.raises(SceneError, match="sensor type 'radiancemeter' is not supported"):
+        load_scene({"type": "scene", "s": {"type": "sphere"},
+                    "cam": {"type": "radiancemeter"}})
+
+
+# ---------------------------------------------------------------------------- import, bench
+def test_importing_jaxden_render_does_not_import_mitsuba():
+    code = "import sys, jaxden.render; assert 'mitsuba' not in sys.modules"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 0, result.stderr[-2000:]
+
+
+def test_bench_registry_run_table_and_json(monkeypatch, capsys):
+    from jaxden import bench
+
+    assert "render" in bench.names()  # discovery imported jaxden.bench.render
+    monkeypatch.setattr(bench, "_REGISTRY", dict(bench._REGISTRY))  # "dummy" goes after
+
+    @bench.register("dummy")
+    def dummy(quick: bool) -> dict:
+        return {"ratio": 0.5 if quick else 2.0, "peer_s": 1.25}
+
+    result = bench.run("dummy", as_json=True, quick=True)
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert result["ratio"] == 0.5
+    assert json.loads(lines[-1]) == {"bench": "dummy", "peer_s": 1.25, "ratio": 0.5}
+    assert any("ratio" in line and "0.5" in line for line in lines[:-1])  # the table
+    bench.run("dummy", as_json=False)
+    assert not capsys.readouterr().out.strip().splitlines()[-1].startswith("{")
+    with pytest.raises(JaxdenError, match="unknown benchmark 'nope'; valid: .*dummy.*render"):
+        bench.run("nope")
+
+
+@pytest.mark.slow
+def test_render_bench_quick(capsys):
+    from jaxden import bench
+
+    result = bench.run("render", as_json=True, quick=True)
+    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert last["ratio"] == pytest.approx(result["ratio"]) and 0.5 < result["ratio"] < 5
