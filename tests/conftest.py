@@ -6,7 +6,12 @@ runs with ``--runslow``. The ``slow`` marker itself is declared in pyproject.tom
 
 from __future__ import annotations
 
-import pytest
+import os
+
+# Two host "devices" so data-parallel code is exercised on the CPU (must precede importing jax).
+os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+
+import pytest  # noqa: E402
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
