@@ -184,6 +184,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    from jaxden.compile_cache import enable_compilation_cache
+
+    enable_compilation_cache()
     try:
         return int(args.func(args) or 0)
     except JaxdenError as error:

@@ -94,6 +94,16 @@ class Denoiser:
         self.check_frame(frame)
         return self.function()(frame)
 
+    def deployed(self) -> Denoiser:
+        """The inference form: RepVGG blocks folded into single 5x5 convolutions (same outputs
+        to float round-off, fewer operations). Models without RepVGG blocks are returned as is."""
+        if getattr(self.config, "deploy", None) is not False:
+            return self  # no RepVGG blocks, or already deployed
+        from jaxden.nn.layers import reparameterize
+
+        return Denoiser(self.definition, dataclasses.replace(self.config, deploy=True),
+                        reparameterize(self.params))
+
 
 def make_denoiser(
     name: str, config: Any = None, params: Any = None, *, key: jax.Array | None = None

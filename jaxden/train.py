@@ -376,6 +376,9 @@ def train_and_evaluate(
 
         bar = tqdm(total=config.optim.steps, initial=start, desc=f"train {config.model}", unit="step")
     last_eval: dict[str, float] = {}
+    if start == 0:  # where the curve starts: the untrained model on the validation split
+        initial = evaluate(eval_step, state.params, val_loader, mesh, config.eval_batches, task.prepare)
+        log.write({"step": 0, **initial})
     tick = time.perf_counter()
     batches = batches_from(train_loader, start)
     for step in range(start, end):

@@ -14,6 +14,16 @@ os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
 import pytest  # noqa: E402
 
 
+def pytest_sessionstart(session: pytest.Session) -> None:
+    # XLA compiles dominate test time on 2 cores; identical programs (a resumed run, the same
+    # model in several tests) are compiled once per session through the persistent cache.
+    import tempfile
+
+    from jaxden.compile_cache import enable_compilation_cache
+
+    enable_compilation_cache(os.environ.get("JAXDEN_TEST_XLA_CACHE") or tempfile.mkdtemp(prefix="jaxden-xla-"))
+
+
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption(
         "--runslow", action="store_true", default=False, help="also run tests marked slow"

@@ -1,0 +1,78 @@
+"""Benchmark ``sharding``: a data-parallel training step on 2 host devices / on 1 device.
+
+Runs in a subprocess with ``XLA_FLAGS=--xla_force_host_platform_device_count=2`` (the flag
+must be set before JAX starts), and times the same jitted WSKP-6 train step (batch 8 of
+128 x 128 synthetic frames, SMAPE, Adam) with the batch on a 1-device mesh and split over a
+2-device mesh, alternating, after compiling both. ``ratio`` = median 2-device step time /
+median 1-device step time (target <= 0.6: both cores busy).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+from jaxden.bench import register
+from jaxden.errors import JaxdenError
+
+CHILD = r"""
+import json, statistics, sys, time
+import jax, jax.numpy as jnp, numpy as np
+from jaxden.frame import Frame
+from jaxden.train import (OptimConfig, TrainConfig, TrainState, data_mesh, loss_function,
+                          make_optimizer, make_task, make_train_step, replicate, shard_batch)
+
+batch_size, size, repeats = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
+rng = np.random.default_rng(0)
+shape = (batch_size, size, size)
+normal = rng.normal(size=shape + (3,)).astype(np.float32)
+frame = Frame(color=rng.gamma(1.0, 0.5, shape + (3,)).astype(np.float32),
+              albedo=rng.uniform(0, 1, shape + (3,)).astype(np.float32),
+              normal=normal / np.linalg.norm(normal, axis=-1, keepdims=True),
+              depth=rng.uniform(1, 4, shape + (1,)).astype(np.float32))
+batch = {"input": frame, "reference": rng.gamma(1.0, 0.5, shape + (3,)).astype(np.float32)}
+config = TrainConfig(model="wskp")
+task = make_task(config)
+optimizer = make_optimizer(OptimConfig(schedule="constant"))
+step = jax.jit(make_train_step(task, optimizer, loss_function("smape")))
+params = task.init(jax.random.PRNGKey(0), batch)
+runs = {}
+for count in (1, 2):
+    mesh = data_mesh(jax.devices()[:count])
+    state = replicate(TrainState(params, optimizer.init(params), jnp.int32(0)), mesh)
+    runs[count] = [state, shard_batch(batch, mesh), []]
+    for _ in range(2):
+        state, metrics = step(runs[count][0], runs[count][1])
+        jax.block_until_ready(metrics["loss"])
+        runs[count][0] = state
+for _ in range(repeats):
+    for count in (1, 2):
+        state, data, times = runs[count]
+        start = time.perf_counter()
+        state, metrics = step(state, data)
+        jax.block_until_ready(metrics["loss"])
+        times.append(time.perf_counter() - start)
+        runs[count][0] = state
+one, two = statistics.median(runs[1][2]), statistics.median(runs[2][2])
+print(json.dumps({"ratio": two / one, "step_1_device_s": one, "step_2_devices_s": two,
+                  "devices": len(jax.devices()), "batch": batch_size, "size": size,
+                  "repeats": repeats}))
+"""
+
+
+@register("sharding")
+def bench_sharding(quick: bool) -> dict:
+    batch, size, repeats = (4, 64, 5) if quick else (8, 128, 15)
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
+    result = subprocess.run(
+        [sys.executable, "-c", CHILD, str(batch), str(size), str(repeats)],
+        env=env, capture_output=True, text=True,
+    )
+    if result.returncode != 0:
+        raise JaxdenError(f"sharding benchmark failed: {result.stderr.strip().splitlines()[-1:]}")
+    out = json.loads(result.stdout.strip().splitlines()[-1])
+    out["model"] = "wskp (6 layers, width 14), SMAPE, Adam"
+    return out

@@ -1,0 +1,270 @@
+"""Weight-sharing kernel prediction (Fan et al. 2021): ImportanceNet, KPCN baselines, and the
+multi-resolution variant.
+
+Pipeline (paper Sec. 4, Fig. 1):
+
+1. inputs (10 channels): tone-mapped colour, albedo, normal * 0.5 + 0.5, depth / max depth of
+   the frame (paper Sec. 5.1; REFERENCE-NOTES);
+2. ImportanceNet: RepVGG blocks (5x5 + 3x3 + 1x1 [+ identity], LeakyReLU 0.1), width 14,
+   6 or 3 layers, ending in 2 M channels: M importance maps and M fusion logits;
+3. albedo demodulation: the noisy radiance is divided by the albedo and the *irradiance* is
+   filtered with each importance map's kernels of sizes k_i (3, 5, ..., 13), fused per pixel
+   by a softmax over the logits, and multiplied by the albedo again.
+
+Departures, each a config option:
+- ``tonemap``: the authors gamma-correct the clipped colour (their BMFR data is nearly LDR);
+  our scenes have bright emitters, so the default is ``reinhard_gamma`` (x / (1 + x)) ** (1/2.2),
+  which keeps highlights distinguishable; ``gamma`` is the authors' choice.
+- demodulation: where the albedo is below ``albedo_floor`` (misses, black or specular
+  surfaces: Mitsuba's albedo AOV is 0 there) the radiance is filtered as it is (albedo taken as
+  1) instead of dividing by ~0.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from typing import Literal
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from jaxden import kernels
+from jaxden.errors import FrameError
+from jaxden.frame import Frame
+from jaxden.nn.layers import RepVGGBlock, RepVGGDeployBlock
+
+WSKP_FEATURES = ("color", "albedo", "normal", "depth")
+
+
+def tonemap(color: jax.Array, kind: str) -> jax.Array:
+    color = jnp.maximum(color, 0.0)
+    if kind == "gamma":
+        return jnp.clip(color, 0.0, 1.0) ** (1 / 2.2)
+    if kind == "reinhard_gamma":
+        return (color / (1.0 + color)) ** (1 / 2.2)
+    raise FrameError(f"unknown tonemap {kind!r}; choose 'gamma' or 'reinhard_gamma'")
+
+
+def network_inputs(frame: Frame, tonemap_kind: str) -> jax.Array:
+    """(..., H, W, 10): tone-mapped colour, albedo, normal * 0.5 + 0.5, depth / frame max."""
+    depth = jnp.asarray(frame.depth, jnp.float32)
+    depth_max = jnp.max(depth, axis=(-3, -2, -1), keepdims=True)
+    return jnp.concatenate(
+        [
+            tonemap(jnp.asarray(frame.color, jnp.float32), tonemap_kind),
+            jnp.clip(frame.albedo, 0.0, 1.0),
+            frame.normal * 0.5 + 0.5,
+            depth / jnp.maximum(depth_max, 1e-6),
+        ],
+        axis=-1,
+    )
+
+
+def safe_albedo(albedo: jax.Array, floor: float) -> jax.Array:
+    """The albedo used for (de)modulation: 1 where the albedo carries no information."""
+    return jnp.where(albedo >= floor, albedo, 1.0)
+
+
+class RepVGGStack(nn.Module):
+    """``num_layers`` RepVGG blocks of ``width`` channels; the last outputs ``out_channels``
+    without activation (it produces logits). ``deploy``: single 5x5 convs (parameters from
+    :func:`jaxden.nn.layers.reparameterize` of the training form; same outputs, faster)."""
+
+    num_layers: int
+    width: int
+    out_channels: int
+    deploy: bool = False
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        block = RepVGGDeployBlock if self.deploy else RepVGGBlock
+        for index in range(self.num_layers):
+            last = index == self.num_layers - 1
+            x = block(
+                features=self.out_channels if last else self.width,
+                activation=not last,
+                name=f"block{index}",
+            )(x)
+        return x
+
+
+@dataclasses.dataclass(frozen=True)
+class WSKPConfig:
+    """ImportanceNet + weight-sharing kernel decoder (paper Sec. 4)."""
+
+    num_layers: int = 6  # 6 (quality) or 3 (speed) in the paper
+    width: int = 14
+    kernel_sizes: tuple[int, ...] = (3, 5, 7, 9, 11, 13)
+    tonemap: Literal["gamma", "reinhard_gamma"] = "reinhard_gamma"
+    albedo_floor: float = 1e-3
+    decoder: Literal["box", "unfold"] = "box"
+    deploy: bool = False  # re-parameterised single-conv blocks (inference)
+
+
+def wskp_denoise(params, config: WSKPConfig, frame: Frame) -> jax.Array:
+    """(..., H, W, 3) denoised radiance."""
+    count = len(config.kernel_sizes)
+    net = RepVGGStack(config.num_layers, config.width, 2 * count, config.deploy)
+    out = net.apply(params, network_inputs(frame, config.tonemap))
+    albedo = safe_albedo(jnp.asarray(frame.albedo, jnp.float32), config.albedo_floor)
+    irradiance = jnp.asarray(frame.color, jnp.float32) / albedo
+    filtered = kernels.decode(
+        irradiance, out[..., :count], out[..., count:], config.kernel_sizes, form=config.decoder
+    )
+    return filtered * albedo
+
+
+def wskp_init(key: jax.Array, config: WSKPConfig):
+    net = RepVGGStack(config.num_layers, config.width, 2 * len(config.kernel_sizes), config.deploy)
+    return net.init(key, jnp.zeros((1, 16, 16, 10), jnp.float32))
+
+
+# ------------------------------------------------------------------------------------- KPCN
+@dataclasses.dataclass(frozen=True)
+class KPConfig:
+    """Direct kernel prediction: the network outputs k * k weights per pixel (softmax).
+
+    The paper's variants: KP (6 layers, k = 13: the WSKP backbone), KP-1 (2 layers, k = 13),
+    KP-2 (5 layers, k = 7).
+    """
+
+    num_layers: int = 6
+    width: int = 14
+    kernel_size: int = 13
+    tonemap: Literal["gamma", "reinhard_gamma"] = "reinhard_gamma"
+    albedo_floor: float = 1e-3
+    deploy: bool = False
+
+
+def apply_per_pixel_kernels(color: jax.Array, weights: jax.Array, kernel_size: int) -> jax.Array:
+    """sum_q w_p(q) color(p + q) with weights (..., H, W, k*k) (row-major offsets), zero padding.
+
+    Loops over the k*k offsets with shifted slices, so the (H, W, k*k, C) unfolded colour is
+    never built.
+    """
+    radius = kernel_size // 2
+    height, width = color.shape[-3], color.shape[-2]
+    pad = [(0, 0)] * (color.ndim - 3) + [(radius, radius), (radius, radius), (0, 0)]
+    padded = jnp.pad(color, pad)
+    out = jnp.zeros_like(color)
+    for dy in range(kernel_size):
+        for dx in range(kernel_size):
+            shifted = padded[..., dy : dy + height, dx : dx + width, :]
+            out = out + weights[..., dy * kernel_size + dx, None] * shifted
+    return out
+
+
+def kp_denoise(params, config: KPConfig, frame: Frame) -> jax.Array:
+    taps = config.kernel_size**2
+    net = RepVGGStack(config.num_layers, config.width, taps, config.deploy)
+    logits = net.apply(params, network_inputs(frame, config.tonemap))
+    weights = jax.nn.softmax(logits, axis=-1)
+    albedo = safe_albedo(jnp.asarray(frame.albedo, jnp.float32), config.albedo_floor)
+    irradiance = jnp.asarray(frame.color, jnp.float32) / albedo
+    return apply_per_pixel_kernels(irradiance, weights, config.kernel_size) * albedo
+
+
+def kp_init(key: jax.Array, config: KPConfig):
+    net = RepVGGStack(config.num_layers, config.width, config.kernel_size**2, config.deploy)
+    return net.init(key, jnp.zeros((1, 16, 16, 10), jnp.float32))
+
+
+# ------------------------------------------------------------------------- multi-resolution
+@dataclasses.dataclass(frozen=True)
+class WSKPMRConfig:
+    """Multi-resolution WSKP (paper Sec. 5.2, Eq. 7): ``levels`` resolutions, each filtered with
+    weight-sharing kernels of ``kernel_sizes`` and fused; adjacent levels are combined from the
+    coarsest up with a predicted per-pixel weight alpha:
+    o = i_f - alpha * U(D(i_f)) + alpha * U(i_c),  D = 2x2 average, U = nearest x2.
+
+    The paper's network is a U-Net whose details are in its supplement; ours is a RepVGG stack
+    per level on the downsampled inputs (with the finer level's features), sharing nothing
+    across levels. Frames of any size are edge-padded to a multiple of 2^(levels-1).
+    """
+
+    levels: int = 3
+    num_layers: int = 4
+    width: int = 16
+    kernel_sizes: tuple[int, ...] = (3, 5)
+    tonemap: Literal["gamma", "reinhard_gamma"] = "reinhard_gamma"
+    albedo_floor: float = 1e-3
+    deploy: bool = False
+
+
+def downsample(x: jax.Array) -> jax.Array:
+    """2x2 average (H and W must be even)."""
+    shape = x.shape[:-3] + (x.shape[-3] // 2, 2, x.shape[-2] // 2, 2, x.shape[-1])
+    return x.reshape(shape).mean(axis=(-4, -2))
+
+
+def upsample(x: jax.Array) -> jax.Array:
+    return jnp.repeat(jnp.repeat(x, 2, axis=-3), 2, axis=-2)
+
+
+def _mr_nets(config: WSKPMRConfig):
+    count = len(config.kernel_sizes)
+    # Each level predicts M importance maps + M fusion logits (+ 1 blend weight, except the
+    # coarsest level which has nothing coarser to blend with).
+    return [
+        RepVGGStack(config.num_layers, config.width,
+                    2 * count + (1 if level < config.levels - 1 else 0), config.deploy,
+                    name=f"level{level}")
+        for level in range(config.levels)
+    ]
+
+
+class _MRNet(nn.Module):
+    config: WSKPMRConfig
+
+    @nn.compact
+    def __call__(self, inputs: list[jax.Array]) -> list[jax.Array]:
+        return [net(x) for net, x in zip(_mr_nets(self.config), inputs)]
+
+
+def wskp_mr_denoise(params, config: WSKPMRConfig, frame: Frame) -> jax.Array:
+    multiple = 2 ** (config.levels - 1)
+    height, width = frame.color.shape[-3], frame.color.shape[-2]
+    pad_h, pad_w = (-height) % multiple, (-width) % multiple
+
+    def pad(x):
+        x = jnp.asarray(x, jnp.float32)
+        if pad_h or pad_w:
+            x = jnp.pad(x, [(0, 0)] * (x.ndim - 3) + [(0, pad_h), (0, pad_w), (0, 0)], mode="edge")
+        return x
+
+    frame = Frame(color=pad(frame.color), albedo=pad(frame.albedo), normal=pad(frame.normal),
+                  depth=pad(frame.depth))
+    albedo = safe_albedo(frame.albedo, config.albedo_floor)
+    irradiance = [frame.color / albedo]
+    features = [network_inputs(frame, config.tonemap)]
+    for _ in range(config.levels - 1):
+        irradiance.append(downsample(irradiance[-1]))
+        features.append(downsample(features[-1]))
+    outputs = _MRNet(config).apply(params, features)
+    count = len(config.kernel_sizes)
+    filtered = [
+        kernels.decode(irr, out[..., :count], out[..., count : 2 * count], config.kernel_sizes)
+        for irr, out in zip(irradiance, outputs)
+    ]
+    result = filtered[-1]
+    for level in range(config.levels - 2, -1, -1):
+        fine = filtered[level]
+        alpha = jax.nn.sigmoid(outputs[level][..., 2 * count :])
+        result = fine - alpha * upsample(downsample(fine)) + alpha * upsample(result)
+    return (result * albedo)[..., :height, :width, :]
+
+
+def wskp_mr_init(key: jax.Array, config: WSKPMRConfig):
+    if config.levels < 1:
+        raise FrameError(f"levels must be >= 1, got {config.levels}")
+    size = 8 * 2 ** (config.levels - 1)
+    inputs = [jnp.zeros((1, size // 2**level, size // 2**level, 10)) for level in range(config.levels)]
+    return _MRNet(config).init(key, inputs)
+
+
+def check_kernel_sizes(sizes: Sequence[int]) -> None:
+    for size in sizes:
+        if size < 1 or size % 2 == 0:
+            raise FrameError(f"kernel sizes must be odd and >= 1, got {tuple(sizes)}")
