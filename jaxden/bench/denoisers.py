@@ -1,0 +1,55 @@
+"""Benchmark ``denoisers``: inference time of jaxden's denoisers / OIDN on the same frame.
+
+One 1280 x 720 frame (the Cornell box at 4 spp with its features; 320 x 180 with ``quick``) is
+denoised by WSKP-3, WSKP-6, KP (13 x 13, WSKP backbone), the U-Net and OIDN ('high' quality,
+pyoidn on the same CPU). The JAX models run in their inference (deploy) form, jitted and
+compiled before timing, with freshly initialised weights (inference time does not depend on
+the weights' values). Each is timed alternately with the others, median of the repeats.
+Keys ``<model>_over_oidn`` = model time / OIDN time (the issue's target: WSKP-6 <= 0.5).
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+import numpy as np
+
+from jaxden.bench import register
+
+MODELS = {"wskp3": "wskp3", "wskp6": "wskp", "kp": "kp", "unet": "unet"}
+
+
+@register("denoisers")
+def bench_denoisers(quick: bool) -> dict:
+    import jax
+
+    from jaxden.denoisers import make_denoiser
+    from jaxden.render.core import render_frame
+
+    size = (320, 180) if quick else (1280, 720)
+    repeats = 3 if quick else 7
+    frame = render_frame("cornell-box", 4, seed=1, size=size)
+    device_frame = jax.device_put(frame)
+    runners = {}
+    for key, name in MODELS.items():
+        denoiser = make_denoiser(name, key=jax.random.PRNGKey(0)).deployed()
+        function = denoiser.function()
+        runners[key] = (lambda f=function: jax.block_until_ready(f(device_frame)))
+    oidn = make_denoiser("oidn")
+    runners["oidn"] = lambda: oidn(frame)
+    for run in runners.values():
+        run()  # compile / warm up
+    times: dict[str, list[float]] = {key: [] for key in runners}
+    for _ in range(repeats):
+        for key, run in runners.items():
+            start = time.perf_counter()
+            run()
+            times[key].append(time.perf_counter() - start)
+    median = {key: statistics.median(values) for key, values in times.items()}
+    result: dict = {f"{key}_over_oidn": median[key] / median["oidn"] for key in MODELS}
+    result.update({f"{key}_s": value for key, value in median.items()})
+    result.update({"width": size[0], "height": size[1], "repeats": repeats,
+                   "devices": len(jax.devices()), "oidn_quality": "high"})
+    assert np.isfinite(list(median.values())).all()
+    return result
