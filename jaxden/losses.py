@@ -1,0 +1,56 @@
+"""Training losses: scalar, differentiable, jit-able; definitions shared with metrics.py.
+
+Each loss takes ``(prediction, target)`` of shape (..., H, W, C) (any leading batch
+dimensions) and returns a scalar: the per-image metric from :mod:`jaxden.metrics` averaged over
+the batch (equal image sizes, so this is the plain mean over every element). ``eps`` defaults
+to 0.01, as in OIDN, progressive denoising and WSKP.
+
+Gradients are taken through the whole expression, denominator included (for SMAPE the
+``|prediction|`` term), as in the authors' PyTorch losses; the target gets gradients too if
+it is traced, so pass it as a constant (or ``jax.lax.stop_gradient`` it) when training.
+At ``prediction == target`` |x - y| has a subgradient; JAX returns sign(0) = 0 there.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from jaxden import metrics
+
+
+def l1_loss(prediction, target):
+    """Mean absolute error over all elements: scalar."""
+    return jnp.mean(metrics.mae(prediction, target))
+
+
+def l2_loss(prediction, target):
+    """Mean squared error over all elements: scalar."""
+    return jnp.mean(metrics.mse(prediction, target))
+
+
+def relmse_loss(prediction, target, eps: float = metrics.EPS):
+    """Mean of (x - y)^2 / (y^2 + eps) with y the target: scalar."""
+    return jnp.mean(metrics.relmse(prediction, target, eps))
+
+
+def smape_loss(prediction, target, eps: float = metrics.EPS):
+    """Mean of |x - y| / (|x| + |y| + eps): scalar (WSKP's and PDNet's training loss)."""
+    return jnp.mean(metrics.smape(prediction, target, eps))
+
+
+# Short aliases (jaxden.train looks losses up as losses.smape, losses.relmse, ...).
+l1 = l1_loss
+l2 = l2_loss
+relmse = relmse_loss
+smape = smape_loss
+
+LOSSES = {
+    "l1": l1_loss,
+    "l2": l2_loss,
+    "relmse": relmse_loss,
+    "smape": smape_loss,
+}
+
+__all__ = [
+    "LOSSES", "l1", "l1_loss", "l2", "l2_loss", "relmse", "relmse_loss", "smape", "smape_loss",
+]

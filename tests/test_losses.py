@@ -1,0 +1,75 @@
+"""Tests for jaxden.losses: values by hand, analytic gradients, and consistency with metrics."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxden import losses, metrics
+from jaxden.errors import FrameError
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(5)
+
+
+X = np.array([[[1.0], [3.0]]], np.float32)  # (1, 2, 1): prediction
+Y = np.array([[[2.0], [1.0]]], np.float32)  # target
+
+
+def test_values_by_hand():
+    np.testing.assert_allclose(losses.l1_loss(X, Y), 1.5, rtol=1e-6)
+    np.testing.assert_allclose(losses.l2_loss(X, Y), 2.5, rtol=1e-6)
+    np.testing.assert_allclose(losses.relmse_loss(X, Y), (1 / 4.01 + 4 / 1.01) / 2, rtol=1e-6)
+    np.testing.assert_allclose(losses.smape_loss(X, Y), (1 / 3.01 + 2 / 4.01) / 2, rtol=1e-6)
+    np.testing.assert_allclose(losses.smape_loss(X, Y, eps=0.5), (1 / 3.5 + 2 / 4.5) / 2, rtol=1e-6)
+
+
+def test_gradients_analytic():
+    x, y = X[0, :, 0], Y[0, :, 0]  # the two pixels, n = 2
+    n = 2
+    expected = {
+        "l1": np.sign(x - y) / n,
+        "l2": 2 * (x - y) / n,
+        "relmse": 2 * (x - y) / (y**2 + 0.01) / n,
+        # d/dx |x-y| / (|x|+|y|+eps) = sign(x-y)/D - |x-y| sign(x) / D^2
+        "smape": (
+            np.sign(x - y) / (np.abs(x) + np.abs(y) + 0.01)
+            - np.abs(x - y) * np.sign(x) / (np.abs(x) + np.abs(y) + 0.01) ** 2
+        ) / n,
+    }
+    for name, loss in losses.LOSSES.items():
+        grad = jax.jit(jax.grad(loss))(X, Y)
+        np.testing.assert_allclose(grad[0, :, 0], expected[name], rtol=1e-5, err_msg=name)
+
+
+def test_losses_are_batch_means_of_metrics(rng):
+    x = rng.normal(0.5, 1.0, (3, 6, 7, 3)).astype(np.float32)
+    y = rng.random((3, 6, 7, 3)).astype(np.float32)
+    pairs = {"l1": metrics.mae, "l2": metrics.mse, "relmse": metrics.relmse, "smape": metrics.smape}
+    for name, metric in pairs.items():
+        np.testing.assert_allclose(
+            losses.LOSSES[name](x, y), jnp.mean(metric(x, y)), rtol=1e-6, err_msg=name
+        )
+        # Over equal-size images the batch mean of per-image means is the plain mean.
+        assert np.ndim(losses.LOSSES[name](x, y)) == 0
+
+
+def test_zero_at_target_and_finite_gradient(rng):
+    y = rng.random((4, 4, 3)).astype(np.float32)
+    y[0, 0] = 0.0  # |x| and |x - y| at 0: the gradient must still be finite
+    for name, loss in losses.LOSSES.items():
+        assert float(loss(y, y)) == 0.0, name
+        grad = jax.grad(loss)(y, y)
+        assert np.all(np.isfinite(grad)), name
+
+
+def test_short_aliases():
+    assert losses.smape is losses.smape_loss and losses.relmse is losses.relmse_loss
+    assert losses.l1 is losses.l1_loss and losses.l2 is losses.l2_loss
+
+
+def test_shape_mismatch_raises():
+    with pytest.raises(FrameError, match="same shape"):
+        losses.smape_loss(np.zeros((4, 4, 3)), np.zeros((4, 4, 1)))
