@@ -79,8 +79,10 @@ def cmd_dataset_verify(args: argparse.Namespace) -> int:
     report = verify_dataset(args.dir)
     for problem in report.problems:
         print(f"PROBLEM {problem}")
-    print(f"{report.checked} items checked, {len(report.problems)} problem(s)")
-    return 1 if report.problems else 0
+    for warning in report.warnings:
+        print(f"warning {warning}")
+    print(report.summary())
+    return 0 if report.ok else 1
 
 
 def cmd_train(args: argparse.Namespace) -> int:

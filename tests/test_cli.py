@@ -1,0 +1,82 @@
+"""The `jaxden` command end to end (in-process), including its one-line user errors."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from jaxden.cli import main
+from jaxden.io.exr import read_frame, read_header, read_image
+
+
+def test_render_writes_every_feature_channel(tmp_path, capsys):
+    out = tmp_path / "f.exr"
+    assert main(["render", "cornell-box", "--spp", "16", "--size", "64x64", "--out", str(out)]) == 0
+    channels = set(read_header(out)["channels"])
+    for name in ("R", "G", "B", "variance.R", "variance.G", "variance.B", "albedo.R", "albedo.G",
+                 "albedo.B", "normal.X", "normal.Y", "normal.Z", "depth.Z"):
+        assert name in channels
+    frame = read_frame(out, require=("color", "variance", "albedo", "normal", "depth"))
+    assert frame.color.shape == (64, 64, 3) and float(frame.spp) == 16
+    assert "wrote" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["render", "no-such-scene", "--spp", "4", "--out", "x.exr"], "unknown scene 'no-such-scene'"),
+        (["render", "missing.xml", "--spp", "4", "--out", "x.exr"], "missing.xml"),
+        (["render", "procedural:abc", "--spp", "4", "--out", "x.exr"], "procedural"),
+        (["render", "cornell-box", "--spp", "4", "--out", "x.png"], "must name an .exr"),
+        (["denoise", "absent.exr", "--model", "oidn", "--out", "y.exr"], "absent.exr: no such file"),
+        (["denoise", "absent.exr", "--model", "wskp", "--out", "y.exr"], "needs trained weights"),
+        (["dataset", "verify", "no-such-dir"], "no-such-dir"),
+        (["bench", "nonsense"], "unknown benchmark 'nonsense'"),
+    ],
+)
+def test_user_errors_are_one_line_and_exit_2(argv, message, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("jaxden: error:") and message in err and "\n" not in err, err
+
+
+@pytest.mark.parametrize("argv", [["render", "cornell-box", "--spp", "0", "--out", "x.exr"],
+                                  ["render", "cornell-box", "--spp", "4", "--size", "64", "--out", "x.exr"]])
+def test_argument_errors_exit_2(argv, capsys):
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    assert info.value.code == 2
+
+
+def test_config_key_error_names_key_and_file(tmp_path, capsys):
+    config = tmp_path / "bad.toml"
+    config.write_text('scenes = ["cornell-box"]\ncrop_sise = 32\n')
+    assert main(["dataset", "build", str(config), "--out", str(tmp_path / "d")]) == 2
+    err = capsys.readouterr().err
+    assert "crop_sise" in err and "bad.toml" in err and "crop_size" in err
+
+
+def test_dataset_build_verify_and_denoise_with_oidn(tmp_path, capsys):
+    out = tmp_path / "tiny"
+    assert main(["dataset", "build", "experiments/configs/dataset-tiny.toml", "--out", str(out),
+                 "--workers", "1"]) == 0
+    assert main(["dataset", "verify", str(out)]) == 0
+    manifest = json.loads((out / "manifest.json").read_text())
+    item = next(i for i in manifest["items"] if i["spp"] == 8)
+    noisy = out / item["path"]
+    denoised = tmp_path / "den.exr"
+    assert main(["denoise", str(noisy), "--model", "oidn", "--out", str(denoised)]) == 0
+    image = read_image(denoised)
+    assert image.shape == read_frame(noisy).color.shape and np.isfinite(image).all()
+    # Corrupt one file: verify reports it and exits 1.
+    noisy.write_bytes(noisy.read_bytes()[:100])
+    assert main(["dataset", "verify", str(out)]) == 1
+    assert "PROBLEM" in capsys.readouterr().out
+
+
+def test_console_script_is_installed():
+    result = subprocess.run([sys.executable, "-m", "jaxden.cli", "--help"], capture_output=True, text=True)
+    assert result.returncode == 0 and "render" in result.stdout and "dataset" in result.stdout
