@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# Runs every benchmark (or those named) and stores each one's JSON result, with the machine it
+# ran on, in experiments/results/bench-NAME.json. Run on an otherwise idle machine:
+#   experiments/run_benchmarks.sh [render decoder denoisers sharding sure]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+jaxden=${JAXDEN:-.venv/bin/jaxden}
+names=("$@")
+[ ${#names[@]} -gt 0 ] || names=(render decoder denoisers sharding sure)
+mkdir -p experiments/results
+for name in "${names[@]}"; do
+  echo "== jaxden bench $name --json"
+  log=$(mktemp)
+  "$jaxden" bench "$name" --json | tee "$log"
+  python3 - "$name" "$log" <<'PY'
+import json, os, platform, subprocess, sys, datetime
+name, log = sys.argv[1], sys.argv[2]
+result = json.loads(open(log).read().strip().splitlines()[-1])
+commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+result["_provenance"] = {
+    "command": f"jaxden bench {name} --json",
+    "commit": commit,
+    "date": datetime.date.today().isoformat(),
+    "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.platform()}",
+    "load_average_before": os.getloadavg()[0],
+}
+with open(f"experiments/results/bench-{name}.json", "w") as handle:
+    json.dump(result, handle, indent=2, sort_keys=True)
+    handle.write("\n")
+PY
+  rm -f "$log"
+done
