@@ -22,7 +22,7 @@ result["_provenance"] = {
     "commit": commit,
     "date": datetime.date.today().isoformat(),
     "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.platform()}",
-    "load_average_before": os.getloadavg()[0],
+    "load_average_1min_after": os.getloadavg()[0],
 }
 with open(f"experiments/results/bench-{name}.json", "w") as handle:
     json.dump(result, handle, indent=2, sort_keys=True)

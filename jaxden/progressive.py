@@ -534,3 +534,469 @@ def consistent_mix(x, y, alpha, var, config: TStatConfig | None = None, **overri
     z = mix(x, y, alpha)
     alpha_prime = t_statistic_scaling(alpha, x, z, var, config, **overrides)
     return mix(x, y, alpha_prime), alpha_prime
+
+
+# ==================================================================================== mixer
+# The mixer network, its config, training task, checkpoints and the inference pipeline.
+# (Appended to the pure functions above; the network module is jaxden.nn.mixer.PDNet.)
+
+MIXER_KIND = "mixer"
+MIXER_MODEL = "mixer"
+
+
+@dataclasses.dataclass(frozen=True)
+class MixerConfig:
+    """The progressive-denoising mixer ("PDNet") and the data it is trained on.
+
+    Network:
+      features: mixer inputs (:data:`MIXER_FEATURES`, 18 channels; :data:`MIXER_FEATURES_NO_SURE`
+        for the "w/o SURE" ablation, 12 channels).
+      head: ``"f_act"`` (paper Eq. 19, 9 outputs) or ``"sigmoid"`` / ``"clip"`` (the "w/o f_act"
+        ablation: alpha predicted directly, 3 outputs). See :data:`ALPHA_HEADS`.
+      width: hidden channels (48). centred_head: start alpha near 0.5 (see
+        :func:`jaxden.nn.mixer.head_bias`; our choice, the paper does not say).
+      f_act_eps: the eps of f_act (1e-6).
+
+    Training:
+      swap_probability: probability of swapping (x, var) with (y, SURE) per training sample
+        (0.5, paper Sec. 4.3). With the "w/o SURE" features the swap exchanges x and y only
+        (there is no error estimate of y to exchange var with; our choice).
+
+    Inference:
+      tstat: the t-statistic scaling (:class:`TStatConfig`), applied only at inference.
+
+    SURE cache (the denoised images and SURE maps the mixer is trained on, computed once per
+    dataset item by :func:`jaxden.pdcache.build_sure_cache`):
+      denoiser: denoiser spec (``oidn``, a checkpoint folder or a .msgpack file).
+      cache: cache folder; empty = ``DATASET/derived/<denoiser>`` (see
+        :func:`jaxden.pdcache.default_cache_dir`).
+      sure_probes, sure_method (``auto``: jvp for JAX denoisers, fd for black boxes),
+      sure_eps (None: the measured default of :func:`jaxden.pdcache.default_eps`), sure_seed.
+      build_cache: build (or finish) the cache when training starts if it is missing or
+        incomplete; else a missing cache is an error.
+    """
+
+    features: tuple[str, ...] = MIXER_FEATURES
+    head: Literal["f_act", "sigmoid", "clip"] = "f_act"
+    width: int = 48
+    centred_head: bool = True
+    f_act_eps: float = 1e-6
+    swap_probability: float = 0.5
+    tstat: TStatConfig = TStatConfig()
+    denoiser: str = "oidn"
+    cache: str = ""
+    sure_probes: int = 4
+    sure_method: Literal["auto", "jvp", "fd"] = "auto"
+    sure_eps: float | None = None
+    sure_seed: int = 0
+    build_cache: bool = True
+
+    def __post_init__(self):
+        _check_features(tuple(self.features))
+        if self.head not in ALPHA_HEADS:
+            raise ConfigError(
+                f"MixerConfig.head: unknown alpha head {self.head!r}; allowed: "
+                f"{', '.join(ALPHA_HEADS)}"
+            )
+        if not isinstance(self.width, int) or self.width < 1:
+            raise ConfigError(f"MixerConfig.width: expected an integer >= 1, got {self.width!r}")
+        if not (math.isfinite(self.f_act_eps) and self.f_act_eps > 0):
+            raise ConfigError(f"MixerConfig.f_act_eps: expected > 0, got {self.f_act_eps!r}")
+        if not 0.0 <= self.swap_probability <= 1.0:
+            raise ConfigError(
+                f"MixerConfig.swap_probability: expected a value in [0, 1], got "
+                f"{self.swap_probability!r}"
+            )
+        if not isinstance(self.tstat, TStatConfig):
+            raise ConfigError(f"MixerConfig.tstat: expected a TStatConfig, got {self.tstat!r}")
+        if not isinstance(self.sure_probes, int) or self.sure_probes < 1:
+            raise ConfigError(
+                f"MixerConfig.sure_probes: expected an integer >= 1, got {self.sure_probes!r}"
+            )
+        if self.sure_eps is not None and not (math.isfinite(self.sure_eps) and self.sure_eps > 0):
+            raise ConfigError(f"MixerConfig.sure_eps: expected > 0 or none, got {self.sure_eps!r}")
+        if not self.denoiser:
+            raise ConfigError("MixerConfig.denoiser: name the denoiser whose output is mixed")
+
+    @property
+    def in_channels(self) -> int:
+        return CHANNELS_PER_FEATURE * len(self.features)
+
+    @property
+    def out_channels(self) -> int:
+        return ALPHA_HEADS[self.head]
+
+    @property
+    def uses_sure(self) -> bool:
+        return any(f in SURE_BASED_FEATURES for f in self.features)
+
+
+def mixer_layout(config: MixerConfig) -> dict:
+    """The input/output layout a mixer's parameters belong to (stored in checkpoints).
+
+    ``{"features": [...], "in_channels": 18, "out_channels": 9, "head": "f_act",
+    "channels": {"hdr": [0, 3], ...}}`` (JSON-able).
+    """
+    slices = mixer_channel_slices(tuple(config.features))
+    return {
+        "features": list(config.features),
+        "in_channels": config.in_channels,
+        "out_channels": config.out_channels,
+        "head": config.head,
+        "channels": {name: [s.start, s.stop] for name, s in slices.items()},
+    }
+
+
+def mixer_module(config: MixerConfig):
+    """The flax module (:class:`jaxden.nn.mixer.PDNet`) for ``config``."""
+    from jaxden.nn.mixer import PDNet
+
+    return PDNet(
+        width=config.width,
+        out_channels=config.out_channels,
+        head=config.head,
+        centred_head=config.centred_head,
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _mixer_init(key, config: MixerConfig):
+    sample = jnp.zeros((1, 8, 8, config.in_channels), jnp.float32)
+    return mixer_module(config).init(key, sample)
+
+
+def mixer_init(key, config: MixerConfig = MixerConfig()):
+    """Fresh mixer parameters (a pytree) for ``config`` (compiled once per config)."""
+    return _mixer_init(key, config)
+
+
+def _mixer_swap_args(config: MixerConfig, x, y, var, sure):
+    """Arguments of the mixer with the roles of x and y exchanged (see MixerConfig)."""
+    if config.uses_sure:
+        return y, x, sure, var
+    return y, x, var, sure
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _mixer_alpha(params, x, y, var, sure, config: MixerConfig):
+    inputs = _mixer_inputs(x, y, var, sure, tuple(config.features))
+    raw = mixer_module(config).apply(params, inputs)
+    if config.head == "f_act":
+        return _f_act(raw, config.f_act_eps, "by_role")
+    if config.head == "sigmoid":
+        return jax.nn.sigmoid(raw)
+    return jnp.clip(raw, 0.0, 1.0)
+
+
+def _mixer_arrays(where: str, config: MixerConfig, x, y, var, sure):
+    if config.uses_sure and sure is None:
+        raise FrameError(f"{where}: the mixer's features {list(config.features)} need 'sure'")
+    arrays = {"x": x, "y": y, "var": var}
+    if sure is not None:
+        arrays["sure"] = sure
+    _check_same(where, **arrays)
+    x, y, var = (jnp.asarray(a, jnp.float32) for a in (x, y, var))
+    sure = jnp.zeros_like(x) if sure is None else jnp.asarray(sure, jnp.float32)
+    return x, y, var, sure
+
+
+def mixer_alpha(params, config: MixerConfig, x, y, var, sure=None):
+    """alpha = head(PDNet(mixer_inputs(x, y, var, sure))), (..., H, W, 3) in [0, 1].
+
+    x: noisy colour, y: denoised colour, var: variance of the pixel mean of x, sure: SURE of
+    y; all (..., H, W, 3) linear radiance (radiance^2 for var and sure). Pure and jitted
+    (``config`` is static), differentiable in ``params``. No t-statistic scaling.
+    """
+    x, y, var, sure = _mixer_arrays("mixer_alpha", config, x, y, var, sure)
+    return _mixer_alpha(params, x, y, var, sure, config)
+
+
+def mixer_apply(params, config: MixerConfig, x, y, var, sure=None):
+    """The training-time mixer: ``(z, alpha)`` with ``z = x + alpha (y - x)``; shapes as in
+    :func:`mixer_alpha`. No t-statistic scaling (the paper applies it only at inference)."""
+    x, y, var, sure = _mixer_arrays("mixer_apply", config, x, y, var, sure)
+    alpha = _mixer_alpha(params, x, y, var, sure, config)
+    return _mix(x, y, alpha), alpha
+
+
+def swap_symmetry(params, config: MixerConfig, x, y, var, sure=None, *, per_pixel: bool = False):
+    """How far a mixer is from swap symmetry: mean |alpha(x, y, var, sure) - (1 - alpha(y, x,
+    sure, var))|.
+
+    A mixer that learned the paper's swap invariance (Sec. 4.3, 7: swapping the inputs turns
+    alpha into beta = 1 - alpha) gives 0; the training swap only encourages it, so expect a
+    small positive number for a trained mixer. Inputs (..., H, W, 3). Returns a float (mean over
+    everything), or the per-pixel map (..., H, W, 3) with ``per_pixel=True``. With the
+    "w/o SURE" features the swapped call is alpha(y, x, var) (see :class:`MixerConfig`).
+    """
+    x, y, var, sure = _mixer_arrays("swap_symmetry", config, x, y, var, sure)
+    alpha = _mixer_alpha(params, x, y, var, sure, config)
+    swapped = _mixer_alpha(params, *_mixer_swap_args(config, x, y, var, sure), config)
+    gap = jnp.abs(alpha - (1.0 - swapped))
+    return gap if per_pixel else float(jnp.mean(gap))
+
+
+# ------------------------------------------------------------------------------ checkpoints
+
+def _mixer_meta(config: MixerConfig) -> dict:
+    from jaxden.config import config_to_dict
+
+    return {
+        "kind": MIXER_KIND,
+        "model": MIXER_MODEL,
+        "model_config": config_to_dict(config),
+        "layout": mixer_layout(config),
+    }
+
+
+def save_mixer(path, params, config: MixerConfig, **extra_meta) -> None:
+    """Write released mixer weights: ``path`` (.msgpack) and its .json meta record (atomic).
+
+    ``extra_meta``: anything worth recording (training steps, dataset, measured metrics).
+    """
+    from jaxden.checkpoint import save_weights
+
+    save_weights(path, params, {**extra_meta, **_mixer_meta(config)})
+
+
+def load_mixer(spec, *, expect_features: tuple[str, ...] | None = None):
+    """``(params, config)`` of a trained mixer.
+
+    ``spec``: a training workdir or checkpoint folder of ``jaxden train`` with ``model =
+    "mixer"``, a released ``.msgpack`` file (with its .json), or the name of weights shipped in
+    ``jaxden/weights/<name>.msgpack``. ``expect_features``: the input layout the caller needs.
+
+    Raises CheckpointError naming the difference when the checkpoint is not a mixer (e.g. a
+    denoiser checkpoint), its config is not a valid :class:`MixerConfig`, its recorded input
+    layout differs from what this jaxden builds for that config, its features differ from
+    ``expect_features``, or a parameter's shape does not fit the config.
+    """
+    from pathlib import Path
+
+    from jaxden.checkpoint import load_trained_params, read_checkpoint_meta
+    from jaxden.config import config_diff, load_config
+    from jaxden.errors import CheckpointError
+
+    path = Path(spec)
+    if not path.exists() and isinstance(spec, str):
+        from jaxden.denoisers import WEIGHTS_DIR
+
+        shipped = WEIGHTS_DIR / f"{spec}.msgpack"
+        if shipped.is_file():
+            path = shipped
+    if not path.exists():
+        raise CheckpointError(
+            f"mixer {spec}: no such checkpoint folder or weights file (train one with "
+            f"`jaxden train` and a config with model = \"mixer\")"
+        )
+    meta = read_checkpoint_meta(path)
+    if meta.get("kind") != MIXER_KIND:
+        raise CheckpointError(
+            f"{path}: holds a {meta.get('kind', 'unknown')!r} checkpoint (model "
+            f"{meta.get('model')!r}), not a mixer; a denoiser goes to --denoiser"
+        )
+    try:
+        config = load_config(dict(meta.get("model_config", {})), MixerConfig)
+    except ConfigError as error:
+        raise CheckpointError(f"{path}: its model_config is not a valid mixer config: {error}") from None
+    layout = mixer_layout(config)
+    stored = meta.get("layout")
+    if stored is not None:
+        differences = config_diff(stored, layout)
+        if differences:
+            raise CheckpointError(
+                f"{path}: the recorded mixer input layout differs from the one this jaxden "
+                f"builds for its config (stored -> built): {'; '.join(differences)}"
+            )
+    if expect_features is not None and tuple(expect_features) != tuple(config.features):
+        raise CheckpointError(
+            f"{path}: the mixer was trained on features {list(config.features)}, expected "
+            f"{list(expect_features)}"
+        )
+    # Shapes only: the loader checks names and shapes against it and fills in the values.
+    target = jax.eval_shape(lambda: mixer_init(jax.random.PRNGKey(0), config))
+    params, _ = load_trained_params(
+        path, target, expect={"kind": MIXER_KIND, "model": MIXER_MODEL}
+    )
+    return params, config
+
+
+# ------------------------------------------------------------------------------ inference
+
+_FROM_CONFIG = object()
+
+
+def progressive_denoise(
+    frame,
+    denoiser,
+    mixer_params,
+    mixer_config: MixerConfig,
+    key,
+    *,
+    num_probes: int = 4,
+    tstat=_FROM_CONFIG,
+    method: str = "auto",
+    eps: float | None = None,
+    probe_batch: int | None = None,
+    nonfinite: str = "error",
+):
+    """The whole progressive-denoising pipeline on one frame (paper Fig. 6).
+
+    y = D(x); SURE of y (jvp for JAX denoisers, finite differences for black boxes such as
+    OIDN; :func:`jaxden.pdcache.denoise_with_sure`); alpha = mixer; alpha' = t-statistic
+    scaling; z' = x + alpha' (y - x).
+
+    Args:
+      frame: :class:`jaxden.frame.Frame` (H, W, 3) (leading batch dims if the denoiser takes
+        them) with colour and ``variance`` (the variance of the pixel mean; required) plus
+        the features the denoiser uses.
+      denoiser: a :class:`jaxden.denoisers.Denoiser` or a spec for
+        :func:`jaxden.denoisers.load_denoiser` (``"oidn"``, a checkpoint folder, ...).
+      mixer_params, mixer_config: from :func:`load_mixer` (or :func:`mixer_init`).
+      key: PRNG key of the SURE probes.
+      num_probes, method (``auto``/``jvp``/``fd``), eps (None: measured default),
+        probe_batch: SURE options (:func:`jaxden.sure.sure`).
+      tstat: :class:`TStatConfig`; default the mixer config's; None skips the scaling
+        (the paper's "w/o t-test" ablation).
+      nonfinite: ``"error"`` or ``"zero"`` (the authors' repair of NaN / negative variance).
+
+    Returns:
+      ``(z_prime, alpha_prime, extras)``: output colour and the scaled alpha, (..., H, W, 3)
+      float32 JAX arrays, and a dict with ``denoised``, ``sure``, ``divergence`` (var dy/dx),
+      ``alpha`` (before scaling) and ``mixed`` (x + alpha (y - x), before scaling).
+
+    Raises:
+      FrameError: no variance (SURE needs it), negative or non-finite values, missing
+        denoiser features. ConfigError: bad options.
+    """
+    from jaxden.pdcache import denoise_with_sure
+
+    if tstat is _FROM_CONFIG:
+        tstat = mixer_config.tstat
+    if tstat is not None and not isinstance(tstat, TStatConfig):
+        raise ConfigError(f"progressive_denoise: tstat must be a TStatConfig or None, got {tstat!r}")
+    result, frame = denoise_with_sure(
+        denoiser, frame, key, num_probes=num_probes, method=method, eps=eps,
+        probe_batch=probe_batch, nonfinite=nonfinite, where="progressive_denoise",
+    )
+    x = jnp.asarray(frame.color, jnp.float32)
+    var = jnp.asarray(frame.variance, jnp.float32)
+    y = jnp.asarray(result.denoised, jnp.float32)
+    sure_map = jnp.asarray(result.sure, jnp.float32)
+    alpha = _mixer_alpha(mixer_params, x, y, var, sure_map, mixer_config)
+    mixed = _mix(x, y, alpha)
+    if tstat is None:
+        z_prime, alpha_prime = mixed, alpha
+    else:
+        t = _t_statistic(x, mixed, var, tstat)
+        alpha_prime = _scale_alpha(alpha, t, tstat)
+        z_prime = _mix(x, y, alpha_prime)
+    extras = {
+        "denoised": y,
+        "sure": sure_map,
+        "divergence": jnp.asarray(result.divergence_term, jnp.float32),
+        "alpha": alpha,
+        "mixed": mixed,
+    }
+    return z_prime, alpha_prime, extras
+
+
+# ------------------------------------------------------------------------------ training
+
+@functools.partial(jax.jit, static_argnames=("probability", "with_sure"))
+def _swap_batch(key, x, y, var, sure, probability: float, with_sure: bool):
+    """:func:`swap_inputs` with one key per sample (split from ``key``), (B, h, w, 3) each.
+
+    Without SURE features (the "w/o SURE" ablation) only x and y are exchanged: the call
+    passes var in both error slots, so var stays, and ``sure`` is returned unchanged.
+    """
+    keys = jax.random.split(key, x.shape[0])
+    swap = jax.vmap(lambda k, a, b, c, d: swap_inputs(k, a, b, c, d, probability))
+    x2, y2, var2, sure2, _ = swap(keys, x, y, var, sure if with_sure else var)
+    return x2, y2, var2, sure2 if with_sure else sure
+
+
+def mixer_task(train_config):
+    """The :class:`jaxden.train.Task` that trains the mixer (``model = "mixer"``).
+
+    ``train_config.model_config`` is a :class:`MixerConfig` table. Before training, the SURE
+    cache of ``model_config.denoiser`` over the dataset is opened, and built (or finished)
+    when missing and ``build_cache`` is true (:func:`jaxden.pdcache.build_sure_cache`; for
+    OIDN on the default dataset a few minutes).
+
+    Each batch: the loader's crops of the noisy frame (colour, variance) and the reference;
+    :meth:`jaxden.pdcache.SureCache.crops_for` cuts the same windows (and symmetries) out of
+    the cached denoised image and SURE map. Samples of the training split are swapped with
+    :func:`swap_inputs` (probability ``swap_probability``) using a key derived from the seed
+    and the batch (item ids and windows); batches are a pure function of (seed, step), so
+    the swaps are too and a resumed run sees the same swaps. Validation batches are not
+    swapped. Loss (``optim.loss``, SMAPE in the shipped configs) on z = x + alpha (y - x)
+    against the reference; no t-statistic in training (paper).
+    The logged ``val_baseline_loss`` is the denoiser output's loss (what the mixer must beat).
+    """
+    from jaxden.config import load_config
+    from jaxden.data.layout import derive_seed
+    from jaxden.pdcache import open_training_cache
+    from jaxden.train import Task
+
+    try:
+        config = load_config(dict(train_config.model_config), MixerConfig)
+    except ConfigError as error:
+        raise ConfigError(f"[model_config] of model 'mixer': {error}") from None
+    if not train_config.data.dataset:
+        raise ConfigError(
+            "data.dataset must name a dataset folder (built by `jaxden dataset build`)"
+        )
+    cache = open_training_cache(train_config.data.dataset, config)
+    swap_split = train_config.data.split
+    seed = int(train_config.seed)
+
+    def prepare(batch):
+        if batch.input.variance is None:
+            raise FrameError("mixer training needs the input variance (loader feature 'variance')")
+        y, sure_map, windows = cache.crops_for(batch)
+        x = np.asarray(batch.input.color, np.float32)
+        var = np.asarray(batch.input.variance, np.float32)
+        if config.swap_probability > 0 and all(cache.in_split(i, swap_split) for i in batch.items):
+            swap_key = jax.random.PRNGKey(
+                derive_seed(seed, "mixer-swap", list(batch.items), [list(w) for w in windows])
+            )
+            x, y, var, sure_map = _swap_batch(
+                swap_key, x, y, var, sure_map, config.swap_probability, config.uses_sure
+            )
+        return {
+            "x": np.asarray(x, np.float32),
+            "y": np.asarray(y, np.float32),
+            "var": np.asarray(var, np.float32),
+            "sure": np.asarray(sure_map, np.float32),
+            "reference": np.asarray(batch.reference.color, np.float32),
+        }
+
+    def predict(params, batch):
+        alpha = _mixer_alpha(params, batch["x"], batch["y"], batch["var"], batch["sure"], config)
+        return _mix(batch["x"], batch["y"], alpha)
+
+    return Task(
+        init=lambda key, batch: mixer_init(key, config),
+        predict=predict,
+        features=("color", "variance"),
+        meta=_mixer_meta(config),
+        prepare=prepare,
+        target=lambda batch: batch["reference"],
+        baseline=lambda batch: batch["y"],
+    )
+
+
+__all__ += [
+    "MixerConfig",
+    "load_mixer",
+    "mixer_alpha",
+    "mixer_apply",
+    "mixer_init",
+    "mixer_layout",
+    "mixer_module",
+    "mixer_task",
+    "progressive_denoise",
+    "save_mixer",
+    "swap_symmetry",
+]
