@@ -58,7 +58,7 @@ def test_oidn_batch_equals_per_frame():
         np.testing.assert_array_equal(out[i], den(frame))
 
 
-@pytest.mark.parametrize("size", [(16, 16), (37, 21)])
+@pytest.mark.parametrize("size", [(37, 21)])
 def test_unet_any_size_nonnegative_and_differentiable(size):
     frame, _ = smooth_scene(*size)
     den = make_denoiser("unet", key=jax.random.PRNGKey(1))

@@ -23,7 +23,7 @@ def random_frame(h=12, w=10, seed=0, batch=()):
     )
 
 
-@pytest.mark.parametrize("name", ["wskp", "wskp3", "kp2", "wskp_mr"])
+@pytest.mark.parametrize("name", ["wskp3", "kp2"])
 def test_models_denoise_any_size_and_batch(name):
     den = make_denoiser(name, key=jax.random.PRNGKey(0))
     for frame in (random_frame(13, 9), random_frame(8, 8, batch=(2,))):
@@ -87,7 +87,8 @@ def test_missing_features_are_named():
 @pytest.mark.parametrize("name", ["wskp3", "kp2", "wskp_mr"])
 def test_deployed_form_gives_the_same_output(name):
     den = make_denoiser(name, key=jax.random.PRNGKey(5))
-    frame = random_frame(16, 12, seed=4)
+    frame = random_frame(13, 9, seed=4)  # odd sizes: the multi-resolution model pads
     deployed = den.deployed()
     assert deployed.config.deploy and deployed.deployed() is deployed
+    assert deployed(frame).shape == frame.color.shape
     np.testing.assert_allclose(np.asarray(deployed(frame)), np.asarray(den(frame)), rtol=1e-4, atol=1e-5)
