@@ -91,9 +91,25 @@ class Checkpointer:
         meta = self.read_meta(step)
         if expect:
             check_meta(meta, expect, where=str(self.directory / str(step)))
+        # Restore onto this process's first device whatever device layout the run was saved
+        # with (orbax refuses another topology unless it is given target shardings); callers
+        # replicate or shard the result as they need.
+        device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
         try:
-            restore_args = ocp.args.StandardRestore(target) if target is not None else ocp.args.StandardRestore()
-            restored = self._manager.restore(step, args=ocp.args.Composite(state=restore_args))
+            if target is None:
+                reader = ocp.StandardCheckpointer()
+                tree = reader.metadata(self.directory / str(step) / "state").item_metadata
+                abstract = jax.tree_util.tree_map(
+                    lambda m: jax.ShapeDtypeStruct(m.shape, m.dtype, sharding=device), tree
+                )
+            else:
+                abstract = jax.tree_util.tree_map(
+                    lambda x: jax.ShapeDtypeStruct(np.shape(x), jax.numpy.asarray(x).dtype,
+                                                   sharding=device), target
+                )
+            restored = self._manager.restore(
+                step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract))
+            )
         except Exception as error:  # orbax raises many types for structure mismatches
             raise CheckpointError(
                 f"{self.directory / str(step)}: the saved state does not match the model: "

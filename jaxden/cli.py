@@ -161,6 +161,10 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("dir")
     v.set_defaults(func=cmd_dataset_verify)
 
+    from jaxden.cli_pd import add_pd_commands
+
+    add_pd_commands(sub, dsub)
+
     p = sub.add_parser("train", help="train a denoiser or the mixer from a TOML config (resumable)")
     p.add_argument("config", help="training config .toml")
     p.add_argument("overrides", nargs="*", help="key=value overrides, e.g. optim.steps=500")

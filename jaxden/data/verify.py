@@ -155,7 +155,9 @@ def verify_dataset(
             problems.append(Problem(shown, item.id, message))
     planned = {str(Path(item.path)) for item in items}
     warnings = []
-    for root, _, files in os.walk(directory):
+    for root, folders, files in os.walk(directory):
+        if Path(root) == Path(directory) and "derived" in folders:
+            folders.remove("derived")  # caches computed from the dataset (e.g. SURE maps)
         for name in files:
             relative = os.path.relpath(os.path.join(root, name), directory)
             if relative in planned or relative in (MANIFEST_NAME, CONFIG_NAME, LOCK_NAME):

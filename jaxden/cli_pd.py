@@ -1,0 +1,252 @@
+"""Progressive-denoising commands of the ``jaxden`` CLI: ``sure``, ``progressive`` and
+``dataset sure-cache``. :func:`add_pd_commands` adds them to the main parser.
+
+Input EXRs: jaxden's own channels (``R,G,B``, ``variance.R/G/B``, optional ``albedo.*`` and
+``normal.*``). Files from other renderers work when they have colour and the variance of the
+pixel mean; name the variance channels with ``--variance-channels`` if they differ, and pass
+``--sample-variance`` (with ``--spp`` if the header has no ``jaxden.spp``) when the file stores
+the per-sample variance. OIDN uses albedo and normal only when the file has them.
+
+Output of ``jaxden sure``: one EXR with ``R,G,B`` = the denoised image (so any viewer shows
+it), ``sure.R/G/B`` = the per-pixel SURE of it (an estimate of its squared error, radiance^2,
+can be negative) and ``divergence.R/G/B`` = var * dy/dx (the same format as the SURE cache,
+:mod:`jaxden.pdcache`).
+
+Output of ``jaxden progressive``: ``R,G,B`` = z' = x + alpha' (y - x); with ``--alpha A.exr``
+also ``R,G,B`` = alpha' (after the t-statistic scaling) and ``unscaled.R/G/B`` = alpha (before).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from jaxden.errors import ConfigError, FrameError
+
+__all__ = ["add_pd_commands", "cmd_progressive", "cmd_sure", "cmd_sure_cache"]
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {value}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {value}")
+    return value
+
+
+def _channel_names(text: str) -> tuple[str, str, str]:
+    names = tuple(part.strip() for part in text.split(","))
+    if len(names) != 3 or not all(names):
+        raise argparse.ArgumentTypeError(f"give three channel names like A.R,A.G,A.B, got {text!r}")
+    return names  # type: ignore[return-value]
+
+
+def _exr_out(path: str, option: str) -> Path:
+    out = Path(path)
+    if out.suffix.lower() != ".exr":
+        raise ConfigError(f"{option} must name an .exr file, got {out}")
+    if not out.parent.exists():
+        raise ConfigError(f"{option}: the folder {out.parent} does not exist")
+    return out
+
+
+def read_input_frame(args: argparse.Namespace, who: str):
+    """Read ``args.input`` for SURE: colour and variance required (clear errors otherwise)."""
+    from jaxden.io.exr import read_frame, read_header
+
+    channel_map = {"variance": args.variance_channels} if args.variance_channels else None
+    frame = read_frame(
+        args.input,
+        require=("color",),
+        nonfinite=args.nonfinite,
+        channel_map=channel_map,
+        variance_is_sample_variance=args.sample_variance,
+        spp=args.spp,
+    )
+    if frame.variance is None:
+        names = ", ".join(args.variance_channels or ("variance.R", "variance.G", "variance.B"))
+        found = ", ".join(read_header(args.input)["channels"])
+        raise FrameError(
+            f"{args.input}: {who} needs SURE, and SURE needs the variance of the pixel mean "
+            f"(channels {names}), which the file lacks (it has {found}); name your renderer's "
+            f"variance channels with --variance-channels (and --sample-variance if they hold "
+            f"the per-sample variance)"
+        )
+    return frame
+
+
+def _stderr(message: str) -> None:
+    print(message, file=sys.stderr)
+
+
+# ---------------------------------------------------------------------------------- commands
+def cmd_sure(args: argparse.Namespace) -> int:
+    """``jaxden sure IN.exr --denoiser NAME|CKPT --out SURE.exr``."""
+    import jax
+    import numpy as np
+
+    from jaxden.denoisers import load_denoiser
+    from jaxden.pdcache import default_eps, denoise_with_sure, resolve_method, write_sure_exr
+
+    out = _exr_out(args.out, "--out")
+    frame = read_input_frame(args, "jaxden sure")
+    denoiser = load_denoiser(args.denoiser)
+    method = resolve_method(args.method, denoiser)
+    eps = args.eps if args.eps is not None else default_eps(method, denoiser.differentiable)
+    result, _ = denoise_with_sure(
+        denoiser, frame, jax.random.PRNGKey(args.seed), num_probes=args.probes, method=method,
+        eps=eps, probe_batch=args.probe_batch, nonfinite=args.nonfinite, where=str(args.input),
+    )
+    write_sure_exr(out, result, attributes={
+        "source": str(args.input), "denoiser": denoiser.name, "probes": args.probes,
+        "method": method, "eps": -1.0 if eps is None else float(eps), "seed": args.seed,
+    })
+    mse = float(np.mean(np.asarray(result.sure)))
+    print(f"wrote {out}: R,G,B = denoised by {denoiser.name}, sure.* = per-pixel SURE "
+          f"({args.probes} probes, {method}); image SURE (MSE estimate) = {mse:.6g}")
+    return 0
+
+
+def cmd_progressive(args: argparse.Namespace) -> int:
+    """``jaxden progressive IN.exr --denoiser NAME|CKPT --mixer CKPT --out OUT.exr``."""
+    import jax
+    import numpy as np
+
+    from jaxden.denoisers import load_denoiser
+    from jaxden.io.exr import write_channels, write_image
+    from jaxden.progressive import load_mixer, progressive_denoise
+
+    out = _exr_out(args.out, "--out")
+    alpha_out = _exr_out(args.alpha, "--alpha") if args.alpha else None
+    params, config = load_mixer(args.mixer)
+    frame = read_input_frame(args, "jaxden progressive")
+    denoiser = load_denoiser(args.denoiser)
+    if config.denoiser != denoiser.name and Path(config.denoiser).name != Path(args.denoiser).name:
+        _stderr(f"jaxden: note: the mixer was trained on the output of denoiser "
+                f"{config.denoiser!r}; mixing {denoiser.name!r} instead")
+    z, alpha_prime, extras = progressive_denoise(
+        frame, denoiser, params, config, jax.random.PRNGKey(args.seed), num_probes=args.probes,
+        method=args.method, eps=args.eps, probe_batch=args.probe_batch,
+        tstat=None if args.no_tstat else config.tstat, nonfinite=args.nonfinite,
+    )
+    attributes = {"source": str(args.input), "denoiser": denoiser.name, "mixer": str(args.mixer),
+                  "probes": args.probes, "seed": args.seed, "tstat": int(not args.no_tstat)}
+    write_image(out, np.asarray(z), attributes=attributes)
+    message = f"wrote {out} (progressive denoising: {denoiser.name} + mixer {args.mixer})"
+    if alpha_out is not None:
+        alpha_prime = np.asarray(alpha_prime)
+        alpha = np.asarray(extras["alpha"])
+        channels = {name: alpha_prime[..., i] for i, name in enumerate(("R", "G", "B"))}
+        channels |= {f"unscaled.{c}": alpha[..., i] for i, c in enumerate("RGB")}
+        write_channels(alpha_out, channels, attributes=attributes)
+        message += (f"; alpha in {alpha_out} (mean alpha {alpha.mean():.4f}, after the t-test "
+                    f"{alpha_prime.mean():.4f})")
+    print(message)
+    return 0
+
+
+def cmd_sure_cache(args: argparse.Namespace) -> int:
+    """``jaxden dataset sure-cache DIR --denoiser SPEC``."""
+    from jaxden.pdcache import build_sure_cache
+
+    cache = build_sure_cache(
+        args.dir, args.denoiser, args.out, num_probes=args.probes, method=args.method,
+        eps=args.eps, seed=args.seed, fd_scheme=args.fd_scheme, probe_batch=args.probe_batch,
+        half=args.half, progress=not args.quiet,
+    )
+    settings = cache.identity.get("settings", {})
+    print(f"SURE cache complete: {cache.directory} ({len(cache.records)} items; "
+          f"{settings.get('num_probes')} probes, {settings.get('method')}, "
+          f"eps {settings.get('eps')}, seed {settings.get('seed')})")
+    return 0
+
+
+# ---------------------------------------------------------------------------------- parser
+def _input_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("input", help="input EXR: colour and the variance of the pixel mean")
+    parser.add_argument("--denoiser", required=True,
+                        help="oidn, a shipped model name, a checkpoint folder or a .msgpack file")
+    parser.add_argument("--probes", type=_positive_int, default=4,
+                        help="SURE probes K (default 4)")
+    parser.add_argument("--method", choices=("auto", "jvp", "fd"), default="auto",
+                        help="SURE divergence: jvp (JAX denoisers), fd (finite differences; the "
+                             "only choice for OIDN), auto (default)")
+    parser.add_argument("--eps", type=_positive_float, default=None,
+                        help="finite-difference step (default: 1e-2 for OIDN, 1e-3 for JAX fd)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the SURE probes")
+    parser.add_argument("--probe-batch", type=_positive_int, default=None,
+                        help="probes per jvp pass (1 bounds the memory for big images)")
+    parser.add_argument("--variance-channels", type=_channel_names, default=None,
+                        metavar="R,G,B",
+                        help="names of the variance channels if not variance.R/G/B")
+    parser.add_argument("--sample-variance", action="store_true",
+                        help="the file stores the per-sample variance: divide it by spp")
+    parser.add_argument("--spp", type=_positive_float, default=None,
+                        help="samples per pixel, when the header has no jaxden.spp")
+    parser.add_argument("--nonfinite", choices=("error", "zero"), default="error",
+                        help="NaN/inf or negative variance: refuse (default) or repair (NaN -> 0, "
+                             "variance clipped at 0; the authors' policy)")
+
+
+def add_pd_commands(subparsers, dataset_subparsers=None) -> None:
+    """Add ``sure`` and ``progressive`` to the top-level ``subparsers`` and ``sure-cache`` to
+    the ``dataset`` command's subparsers (found through ``subparsers`` when not given)."""
+    p = subparsers.add_parser(
+        "sure", help="denoise an EXR and write the per-pixel SURE of the result",
+        description="Writes one EXR: R,G,B = the denoised image, sure.R/G/B = its per-pixel SURE "
+                    "(squared-error estimate), divergence.R/G/B = var * dy/dx.",
+    )
+    _input_options(p)
+    p.add_argument("--out", required=True, help="output .exr (denoised + sure + divergence)")
+    p.set_defaults(func=cmd_sure)
+
+    p = subparsers.add_parser(
+        "progressive", help="progressive denoising: denoise, SURE, mixer, t-statistic scaling",
+        description="Writes z' = x + alpha' (y - x) as R,G,B; --alpha writes alpha' (R,G,B) and "
+                    "alpha before the t-statistic scaling (unscaled.R/G/B).",
+    )
+    _input_options(p)
+    p.add_argument("--mixer", required=True,
+                   help="trained mixer: checkpoint folder of `jaxden train` or a .msgpack file")
+    p.add_argument("--out", required=True, help="output .exr")
+    p.add_argument("--alpha", default=None, help="also write the mixing weights to this .exr")
+    p.add_argument("--no-tstat", action="store_true",
+                   help="skip the t-statistic scaling (the paper's 'w/o t-test' ablation)")
+    p.set_defaults(func=cmd_progressive)
+
+    if dataset_subparsers is None:
+        dataset_parser = subparsers.choices.get("dataset")
+        if dataset_parser is None:
+            raise ValueError("add_pd_commands: the parser has no 'dataset' command")
+        dataset_subparsers = next(
+            action for action in dataset_parser._actions
+            if isinstance(action, argparse._SubParsersAction)
+        )
+    c = dataset_subparsers.add_parser(
+        "sure-cache", help="denoise every dataset input once and cache it with its SURE map "
+                           "(resumable; what mixer training reads)")
+    c.add_argument("dir", help="dataset folder")
+    c.add_argument("--denoiser", required=True, help="oidn, a checkpoint folder or .msgpack")
+    c.add_argument("--out", default=None, help="cache folder (default: DIR/derived/<denoiser>)")
+    c.add_argument("--probes", type=_positive_int, default=4)
+    c.add_argument("--method", choices=("auto", "jvp", "fd"), default="auto")
+    c.add_argument("--eps", type=_positive_float, default=None)
+    c.add_argument("--fd-scheme", choices=("forward", "central"), default="forward")
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--probe-batch", type=_positive_int, default=None)
+    c.add_argument("--half", action="store_true", help="store float16 channels")
+    c.add_argument("--quiet", action="store_true", help="no progress bar")
+    c.set_defaults(func=cmd_sure_cache)
