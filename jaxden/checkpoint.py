@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -171,16 +170,10 @@ def save_weights(path: str | os.PathLike, params: Any, meta: dict[str, Any]) -> 
 
     path = Path(path)
     blob = serialization.to_bytes(jax.tree_util.tree_map(np.asarray, params))
+    from jaxden.fileio import atomic_write_bytes
+
     for target, data in ((path, blob), (path.with_suffix(".json"), json.dumps(meta, indent=2).encode())):
-        fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.")
-        try:
-            with os.fdopen(fd, "wb") as handle:
-                handle.write(data)
-            os.replace(tmp, target)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        atomic_write_bytes(target, data)
 
 
 def load_weights(

@@ -28,13 +28,9 @@ __all__ = ["add_pd_commands", "cmd_progressive", "cmd_sure", "cmd_sure_cache"]
 
 
 def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {value}")
-    return value
+    from jaxden.cli import positive_int
+
+    return positive_int(text)
 
 
 def _positive_float(text: str) -> float:

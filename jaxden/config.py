@@ -26,7 +26,6 @@ import json
 import math
 import os
 import re
-import tempfile
 import tomllib
 import types
 import typing
@@ -528,13 +527,6 @@ def save_config(config: Any, path: str | os.PathLike, *, header: str | None = No
     """Write ``dump_config(config)`` to ``path`` atomically (temporary file, then rename)."""
     path = Path(path)
     text = dump_config(config, header=header)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as handle:
-            handle.write(text)
-        os.chmod(tmp, 0o644)  # mkstemp makes it private; a config is meant to be read
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    from jaxden.fileio import atomic_write_text
+
+    atomic_write_text(path, text)

@@ -55,7 +55,6 @@ import functools
 import hashlib
 import json
 import os
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -63,6 +62,7 @@ from typing import Any
 import jax
 import numpy as np
 
+from jaxden.fileio import atomic_write_text, folder_lock
 from jaxden.errors import ConfigError, DatasetError, ExrError, FrameError
 from jaxden.frame import Frame
 
@@ -299,18 +299,7 @@ def _cache_key(identity: dict[str, Any]) -> str:
 
 
 def _save_json(path: Path, data: dict) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as handle:
-            json.dump(data, handle, indent=1)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write_text(path, json.dumps(data, indent=1))
 
 
 def _load_cache_manifest(directory: Path) -> dict[str, Any] | None:
@@ -331,21 +320,8 @@ def _load_cache_manifest(directory: Path) -> dict[str, Any] | None:
     return data
 
 
-@contextlib.contextmanager
 def _lock(directory: Path):
-    import fcntl
-
-    handle = open(directory / LOCK_NAME, "a+")
-    try:
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise DatasetError(
-                f"another SURE cache build is writing into {directory}; wait for it or stop it"
-            ) from None
-        yield
-    finally:
-        handle.close()
+    return folder_lock(directory, LOCK_NAME, "SURE cache build")
 
 
 def _eligible_items(manifest) -> list:

@@ -32,7 +32,6 @@ import numpy as np
 import optax
 
 from jaxden.errors import ConfigError, JaxdenError
-from jaxden.frame import Frame
 
 
 # ------------------------------------------------------------------------------------ config

@@ -306,22 +306,10 @@ def _clean_temporaries(directory: Path) -> int:
     return removed
 
 
-@contextlib.contextmanager
 def _build_lock(directory: Path):
-    import fcntl
+    from jaxden.fileio import folder_lock
 
-    handle = open(directory / LOCK_NAME, "a+")
-    try:
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise DatasetError(
-                f"another build is writing into {directory} (its {LOCK_NAME} is locked); wait for "
-                f"it to finish or stop it first"
-            ) from None
-        yield
-    finally:
-        handle.close()
+    return folder_lock(directory, LOCK_NAME, "build")
 
 
 def _reconcile(stored: Manifest, planned: Manifest, directory: Path) -> Manifest:

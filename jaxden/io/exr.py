@@ -14,7 +14,6 @@ an :class:`~jaxden.errors.ExrError` naming the file and the problem.
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
@@ -22,11 +21,10 @@ from typing import Any
 import numpy as np
 
 from jaxden.errors import ExrError, FrameError
+from jaxden.fileio import atomic_write
 from jaxden.frame import CHANNELS, IMAGE_FIELDS, Frame, NonFinitePolicy
 
 ATTRIBUTE_PREFIX = "jaxden."
-_UMASK = os.umask(0)
-os.umask(_UMASK)
 _FIELDS_BY_CHANNEL_COUNT = {"color": 3, "variance": 3}
 
 
@@ -41,16 +39,7 @@ def _atomic_write(path: Path, write) -> None:
     path = Path(path)
     if not path.parent.exists():
         raise ExrError(f"{path}: the folder {path.parent} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.exr", dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; datasets are shared
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write(path, write, suffix=".exr")
 
 
 def write_channels(
