@@ -1,0 +1,68 @@
+"""Benchmark ``sure``: the cost of SURE relative to denoising, and jvp against finite differences.
+
+On one 1280 x 720 frame (the Cornell box at 4 spp with its features and variance; 320 x 180
+with ``quick``), with WSKP-6 in its inference form (fresh weights: cost does not depend on their
+values), all jitted and compiled before timing, timed alternately, median of the repeats:
+
+- ``jvp_k1_over_forward``: SURE with the jvp divergence and K = 1 probe (which includes the
+  denoised image itself) / one forward pass of the denoiser (target <= 2.5);
+- ``jvp_over_fd_k4``: SURE with K = 4 jvp probes / SURE with K = 4 forward-difference probes
+  (eps 1e-3), both with ``probe_batch = 1`` (memory of one probe at a time).
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+from jaxden.bench import register
+
+
+@register("sure")
+def bench_sure(quick: bool) -> dict:
+    import jax
+
+    from jaxden.denoisers import make_denoiser
+    from jaxden.render.core import render_frame
+    from jaxden.sure import sure
+
+    size = (320, 180) if quick else (1280, 720)
+    repeats = 3 if quick else 5
+    frame = jax.device_put(render_frame("cornell-box", 4, seed=1, size=size))
+    denoiser = make_denoiser("wskp", key=jax.random.PRNGKey(0)).deployed()
+    definition, config, params = denoiser.definition, denoiser.config, denoiser.params
+
+    def apply(p, f):
+        return definition.apply(p, config, f)
+
+    key = jax.random.PRNGKey(1)
+    forward = jax.jit(apply)
+    jvp_k1 = jax.jit(lambda p, f, k: sure(apply, f, k, 1, "jvp", params=p).sure)
+    jvp_k4 = jax.jit(lambda p, f, k: sure(apply, f, k, 4, "jvp", params=p, probe_batch=1).sure)
+    fd_k4 = jax.jit(
+        lambda p, f, k: sure(apply, f, k, 4, "fd", 1e-3, params=p, probe_batch=1).sure
+    )
+    runners = {
+        "forward": lambda: forward(params, frame),
+        "jvp_k1": lambda: jvp_k1(params, frame, key),
+        "jvp_k4": lambda: jvp_k4(params, frame, key),
+        "fd_k4": lambda: fd_k4(params, frame, key),
+    }
+    for run in runners.values():
+        jax.block_until_ready(run())  # compile
+    times: dict[str, list[float]] = {name: [] for name in runners}
+    for _ in range(repeats):
+        for name, run in runners.items():
+            start = time.perf_counter()
+            jax.block_until_ready(run())
+            times[name].append(time.perf_counter() - start)
+    median = {name: statistics.median(values) for name, values in times.items()}
+    return {
+        "jvp_k1_over_forward": median["jvp_k1"] / median["forward"],
+        "jvp_over_fd_k4": median["jvp_k4"] / median["fd_k4"],
+        **{f"{name}_s": value for name, value in median.items()},
+        "denoiser": "wskp (6 layers, deploy form)",
+        "width": size[0],
+        "height": size[1],
+        "repeats": repeats,
+    }
