@@ -19,13 +19,8 @@ TEXTURE_SHAPE = (64, 64)
 
 
 def _ensure_variant():
-    try:
-        from jaxden.render.variant import ensure_variant
-    except ImportError:
-        import mitsuba as mi
+    from jaxden.render.variant import ensure_variant
 
-        mi.set_variant("llvm_ad_rgb")
-        return
     ensure_variant()
 
 

@@ -29,13 +29,8 @@ SCENE_SEED = 3
 
 
 def _ensure_variant():
-    try:
-        from jaxden.render.variant import ensure_variant
-    except ImportError:
-        import mitsuba as mi
+    from jaxden.render.variant import ensure_variant
 
-        mi.set_variant("llvm_ad_rgb")
-        return
     ensure_variant()
 
 
