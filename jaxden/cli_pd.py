@@ -22,7 +22,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from jaxden.errors import ConfigError, FrameError
+from jaxden.errors import CheckpointError, ConfigError, FrameError
 
 __all__ = ["add_pd_commands", "cmd_progressive", "cmd_sure", "cmd_sure_cache"]
 
@@ -127,6 +127,16 @@ def cmd_progressive(args: argparse.Namespace) -> int:
 
     out = _exr_out(args.out, "--out")
     alpha_out = _exr_out(args.alpha, "--alpha") if args.alpha else None
+    if args.mixer is None:
+        from jaxden.progressive import SHIPPED_MIXERS, shipped_mixer_path
+
+        if shipped_mixer_path(args.denoiser) is None:
+            raise CheckpointError(
+                f"jaxden progressive: no mixer ships for denoiser {args.denoiser!r} (shipped: "
+                f"{', '.join(f'{m} for {d}' for d, m in SHIPPED_MIXERS.items())}); pass "
+                f"--mixer CKPT"
+            )
+        args.mixer = SHIPPED_MIXERS[args.denoiser]
     params, config = load_mixer(args.mixer)
     frame = read_input_frame(args, "jaxden progressive")
     denoiser = load_denoiser(args.denoiser)
@@ -215,8 +225,10 @@ def add_pd_commands(subparsers, dataset_subparsers=None) -> None:
                     "alpha before the t-statistic scaling (unscaled.R/G/B).",
     )
     _input_options(p)
-    p.add_argument("--mixer", required=True,
-                   help="trained mixer: checkpoint folder of `jaxden train` or a .msgpack file")
+    p.add_argument("--mixer", default=None,
+                   help="trained mixer: a shipped name (oidn-pd), a checkpoint folder of "
+                        "`jaxden train` or a .msgpack file; default: the mixer shipped for "
+                        "--denoiser (oidn-pd for oidn)")
     p.add_argument("--out", required=True, help="output .exr")
     p.add_argument("--alpha", default=None, help="also write the mixing weights to this .exr")
     p.add_argument("--no-tstat", action="store_true",

@@ -43,7 +43,7 @@ def _metrics(image: np.ndarray, reference: np.ndarray) -> dict[str, float]:
 
 
 def _progressive_denoiser():
-    """(name, callable frame -> image) for PD(OIDN) if a shipped mixer exists, else None."""
+    """``frame -> (image, alpha)`` for PD(OIDN) if a shipped mixer exists, else None."""
     try:
         from jaxden.progressive import shipped_progressive_denoiser
     except ImportError:

@@ -951,6 +951,46 @@ def progressive_denoise(
     return z_prime, alpha_prime, extras
 
 
+#: Mixers shipped in ``jaxden/weights/`` per denoiser name: ``{denoiser: weights name}``.
+SHIPPED_MIXERS: dict[str, str] = {"oidn": "oidn-pd"}
+
+
+def shipped_mixer_path(denoiser: str = "oidn"):
+    """Path of the shipped mixer's .msgpack for ``denoiser``, or None if none ships."""
+    from jaxden.denoisers import WEIGHTS_DIR
+
+    name = SHIPPED_MIXERS.get(denoiser)
+    if name is None:
+        return None
+    path = WEIGHTS_DIR / f"{name}.msgpack"
+    return path if path.is_file() and path.with_suffix(".json").is_file() else None
+
+
+def shipped_progressive_denoiser(denoiser: str = "oidn", *, seed: int = 0, num_probes: int = 4):
+    """PD(denoiser) with the mixer shipped in the package, or None when none ships.
+
+    Returns a function ``frame -> (z_prime, alpha_prime)`` (NumPy float32, (H, W, 3) each):
+    :func:`progressive_denoise` with the shipped mixer (``jaxden/weights/oidn-pd.msgpack`` for
+    OIDN; see its model card ``oidn-pd.md``), its t-statistic config, ``num_probes`` SURE
+    probes drawn from ``PRNGKey(seed)``.
+    """
+    path = shipped_mixer_path(denoiser)
+    if path is None:
+        return None
+    from jaxden.denoisers import load_denoiser
+
+    params, config = load_mixer(str(path))
+    model = load_denoiser(denoiser)
+    key = jax.random.PRNGKey(seed)
+
+    def run(frame):
+        z, alpha, _ = progressive_denoise(frame, model, params, config, key,
+                                          num_probes=num_probes)
+        return np.asarray(z), np.asarray(alpha)
+
+    return run
+
+
 # ------------------------------------------------------------------------------ training
 
 @functools.partial(jax.jit, static_argnames=("probability", "with_sure"))

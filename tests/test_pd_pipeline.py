@@ -336,3 +336,76 @@ def test_swap_symmetry_of_the_trained_mixer_on_a_frame(trained):
     assert np.all(per_pixel >= 0) and np.all(per_pixel <= 1)
     print(f"\nswap symmetry of the tiny trained mixer on a 24 x 20 frame: {gap:.4f}")
     assert jnp.isfinite(gap)
+
+
+# ------------------------------------------------------------------------ reports
+
+
+def test_pd_report_rows_match_direct_computation(trained):
+    """jaxden.pdreport on the tiny dataset: one row per (crop, spp); each row's numbers equal
+    progressive_denoise / metrics computed directly with the same key; the summary's ratios
+    are the stated means."""
+    from jaxden import pdreport
+    from jaxden.data.layout import load_manifest
+
+    dataset, workdir = trained
+    params, config = P.load_mixer(workdir)
+    rows = pdreport.evaluate_progressive(dataset, "oidn", (params, config), split="all", seed=3)
+    manifest = load_manifest(dataset)
+    inputs = [i for i in manifest.items if i.kind == "input" and i.spp >= 2]
+    assert len(rows) == len(inputs) == 12
+    assert [r["spp"] for r in rows[:3]] == sorted(r["spp"] for r in rows[:3])
+
+    crop, reference, levels = next(pdreport.iter_crops(dataset, "all"))
+    spp, frame = levels[1]
+    row = rows[1]
+    assert (row["crop"], row["spp"]) == (crop.id, spp)
+    z, alpha_prime, extras = P.progressive_denoise(
+        frame, "oidn", params, config, jax.random.fold_in(jax.random.PRNGKey(3), 1))
+    assert row["pd_rmse"] == pytest.approx(float(metrics.rmse(np.asarray(z), reference.color)),
+                                           rel=1e-5)
+    assert row["mc_relmse"] == pytest.approx(float(metrics.relmse(frame.color, reference.color)),
+                                             rel=1e-6)
+    corrected = float(metrics.mse(frame.color, reference.color)) - float(reference.variance.mean())
+    assert row["mc_mse_nc"] == pytest.approx(corrected, rel=1e-4, abs=1e-9)
+    assert row["sure"] == pytest.approx(float(np.mean(np.asarray(extras["sure"]))), rel=1e-5)
+    assert row["alpha_prime"] == pytest.approx(float(np.mean(np.asarray(alpha_prime))), rel=1e-5)
+
+    summary = pdreport.summarize_progressive(rows)
+    top = summary["max_spp"]
+    assert top == max(r["spp"] for r in rows) and summary["crops"] == 4
+    at_top = [r for r in rows if r["spp"] == top]
+    assert summary["per_spp"][top]["pd_rmse"] == pytest.approx(
+        np.mean([r["pd_rmse"] for r in at_top]))
+    ratio = np.mean([m["pd_rmse"] / m["denoiser_rmse"] for m in summary["per_spp"].values()])
+    assert summary["headline"]["pd_over_denoiser"]["rmse"] == pytest.approx(ratio)
+    table = pdreport.markdown_progressive(summary)
+    assert "PD(OIDN)" in table and f"| {top} | MC |" in table
+
+
+def test_sure_accuracy_rows_and_summary(trained):
+    """sure_accuracy's SURE equals denoise_with_sure's with the same key; SURE / MSE is the
+    ratio of the crop means; an incomplete dataset is refused by name."""
+    from jaxden import pdreport
+    from jaxden.data.layout import load_manifest
+    from jaxden.errors import DatasetError
+
+    dataset, _ = trained
+    rows = pdreport.sure_accuracy(dataset, "oidn", split="all", seed=1, spp=(8, 32))
+    assert len(rows) == 8 and {r["spp"] for r in rows} == {8, 32}
+    _, reference, levels = next(pdreport.iter_crops(dataset, "all", spp=(8, 32)))
+    result, _ = denoise_with_sure("oidn", levels[0][1], jax.random.fold_in(jax.random.PRNGKey(1), 0))
+    assert rows[0]["sure"] == pytest.approx(float(np.mean(result.sure)), rel=1e-5)
+    summary = pdreport.summarize_sure(rows)
+    group = [r for r in rows if r["spp"] == 32]
+    assert summary["per_spp"][32]["ratio"] == pytest.approx(
+        np.mean([r["sure"] for r in group]) / np.mean([r["mse_nc"] for r in group]))
+    assert "| oidn | 32 |" in pdreport.markdown_sure({"oidn": summary})
+
+    manifest = load_manifest(dataset)
+    manifest.items[0].sha256 = None
+    broken = dataset.parent / "incomplete"
+    shutil.copytree(dataset, broken)
+    manifest.save(broken)
+    with pytest.raises(DatasetError, match="not complete"):
+        next(pdreport.iter_crops(broken, "all"))

@@ -1,0 +1,265 @@
+"""Measurements of progressive denoising on a rendered dataset (the paper's Table 3 / Fig. 10
+and the SURE accuracy table, on our data).
+
+Every error is measured against the dataset's high-spp reference of the same crop, which is
+itself noisy; besides the raw metrics each row carries the *noise-corrected* MSE,
+``mse(x, r) - mean(var_r)`` (:func:`jaxden.metrics.noise_corrected_mse`), an unbiased
+estimate of the MSE against the true image.
+
+- :func:`evaluate_progressive`: per crop and spp, RMSE / relMSE / FLIP / noise-corrected MSE
+  of MC (the input), the denoiser (y), the mixer before the t-test (x + alpha (y - x)) and
+  PD (z'), plus the image-level SURE of y, the mean alpha / alpha' and the mixer's swap
+  symmetry gap.
+- :func:`sure_accuracy`: per crop and spp, the image mean of SURE next to the noise-corrected
+  true MSE of a denoiser's output (jvp for JAX denoisers, finite differences for OIDN).
+- :func:`summarize_progressive`, :func:`summarize_sure`: per-spp means over crops and the
+  headline ratios; :func:`markdown_progressive`, :func:`markdown_sure`: tables.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from jaxden.errors import DatasetError
+
+PD_METHODS = ("mc", "denoiser", "mixed", "pd")
+PD_METRICS = ("rmse", "rmse_nc", "relmse", "flip", "mse_nc")
+
+
+def iter_crops(dataset_dir, split: str = "test", spp: tuple[int, ...] | None = None
+               ) -> Iterator[tuple[Any, Any, list[tuple[int, Any]]]]:
+    """``(crop, reference_frame, [(spp, input_frame), ...])`` for every crop of ``split``
+    (``all``: every crop) of a complete dataset, inputs with a variance (spp >= 2) in spp order,
+    restricted to ``spp`` when given."""
+    from jaxden.data.layout import load_manifest
+    from jaxden.io.exr import read_frame
+
+    dataset_dir = Path(dataset_dir)
+    manifest = load_manifest(dataset_dir)
+    if not manifest.complete:
+        raise DatasetError(f"{dataset_dir}: the dataset is not complete; finish `jaxden dataset "
+                           f"build` first")
+    crops = manifest.crops_in(split)
+    if not crops:
+        raise DatasetError(f"{dataset_dir}: no crops in split {split!r} "
+                           f"(splits: {manifest.split_counts()})")
+    for crop in crops:
+        items = manifest.items_of(crop.id)
+        references = [item for item in items if item.kind == "reference"]
+        if len(references) != 1:
+            raise DatasetError(f"{dataset_dir}: crop {crop.id} has {len(references)} references")
+        inputs = sorted((item for item in items if item.kind == "input" and item.spp >= 2
+                         and (spp is None or item.spp in spp)), key=lambda item: item.spp)
+        reference = read_frame(dataset_dir / references[0].path)
+        yield crop, reference, [(item.spp, read_frame(dataset_dir / item.path))
+                                for item in inputs]
+
+
+def _errors(image, reference) -> dict[str, float]:
+    from jaxden import metrics
+
+    image = np.asarray(image, np.float32)
+    mse_nc = float(metrics.noise_corrected_mse(image, reference.color, reference.variance))
+    return {
+        "rmse": float(metrics.rmse(image, reference.color)),
+        "rmse_nc": math.sqrt(max(mse_nc, 0.0)),
+        "relmse": float(metrics.relmse(image, reference.color)),
+        "flip": float(metrics.flip(image, reference.color, "HDR")),
+        "mse_nc": mse_nc,
+    }
+
+
+def _progress(iterable, total: int | None, show: bool, what: str):
+    if not show:
+        return iterable
+    from tqdm import tqdm
+
+    return tqdm(iterable, total=total, desc=what, unit="crop")
+
+
+def _crop_count(dataset_dir, split) -> int:
+    from jaxden.data.layout import load_manifest
+
+    manifest = load_manifest(dataset_dir)
+    return len(manifest.crops_in(split))
+
+
+def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
+                         seed: int = 0, num_probes: int = 4, spp: tuple[int, ...] | None = None,
+                         progress: bool = False) -> list[dict[str, Any]]:
+    """One row per (crop, spp): errors of MC, the denoiser, the mixer without the t-test and
+    PD, each as ``{method}_{metric}`` (metrics :data:`PD_METRICS`), plus ``sure`` (image mean
+    of y's SURE), ``alpha`` / ``alpha_prime`` (means) and ``swap_gap`` (mean |alpha(x, y) -
+    (1 - alpha(y, x))|).
+
+    ``denoiser``: a spec or :class:`jaxden.denoisers.Denoiser`; ``mixer``: a spec for
+    :func:`jaxden.progressive.load_mixer` or a ``(params, config)`` pair. SURE probes of item
+    ``i`` come from ``fold_in(PRNGKey(seed), i)``.
+    """
+    import jax
+
+    from jaxden.denoisers import load_denoiser
+    from jaxden.progressive import load_mixer, progressive_denoise, swap_symmetry
+
+    model = load_denoiser(denoiser) if isinstance(denoiser, str) else denoiser
+    params, config = load_mixer(mixer) if isinstance(mixer, (str, Path)) else mixer
+    base = jax.random.PRNGKey(seed)
+    rows, index = [], 0
+    crops = iter_crops(dataset_dir, split, spp)
+    for crop, reference, inputs in _progress(crops, _crop_count(dataset_dir, split), progress,
+                                             "PD report"):
+        for level, frame in inputs:
+            z, alpha_prime, extras = progressive_denoise(
+                frame, model, params, config, jax.random.fold_in(base, index),
+                num_probes=num_probes)
+            index += 1
+            images = {"mc": frame.color, "denoiser": extras["denoised"],
+                      "mixed": extras["mixed"], "pd": z}
+            row: dict[str, Any] = {"crop": crop.id, "scene": crop.scene, "spp": level}
+            for method, image in images.items():
+                row |= {f"{method}_{k}": v for k, v in _errors(image, reference).items()}
+            row["sure"] = float(np.mean(np.asarray(extras["sure"])))
+            row["alpha"] = float(np.mean(np.asarray(extras["alpha"])))
+            row["alpha_prime"] = float(np.mean(np.asarray(alpha_prime)))
+            row["swap_gap"] = swap_symmetry(params, config, frame.color, extras["denoised"],
+                                            frame.variance, extras["sure"])
+            rows.append(row)
+    return rows
+
+
+def sure_accuracy(dataset_dir, denoiser, *, split: str = "test", seed: int = 0,
+                  num_probes: int = 4, method: str = "auto", spp: tuple[int, ...] | None = None,
+                  progress: bool = False) -> list[dict[str, Any]]:
+    """One row per (crop, spp): ``sure`` (image mean of the per-pixel SURE of the denoiser's
+    output), ``mse_nc`` (its noise-corrected true MSE against the reference), ``mse_raw``
+    (uncorrected) and ``reference_var`` (mean variance of the reference's pixel mean)."""
+    import jax
+
+    from jaxden import metrics
+    from jaxden.denoisers import load_denoiser
+    from jaxden.pdcache import denoise_with_sure
+
+    model = load_denoiser(denoiser) if isinstance(denoiser, str) else denoiser
+    base = jax.random.PRNGKey(seed)
+    rows, index = [], 0
+    crops = iter_crops(dataset_dir, split, spp)
+    for crop, reference, inputs in _progress(crops, _crop_count(dataset_dir, split), progress,
+                                             f"SURE accuracy ({model.name})"):
+        for level, frame in inputs:
+            result, _ = denoise_with_sure(model, frame, jax.random.fold_in(base, index),
+                                          num_probes=num_probes, method=method)
+            index += 1
+            y = np.asarray(result.denoised, np.float32)
+            rows.append({
+                "crop": crop.id, "scene": crop.scene, "spp": level,
+                "sure": float(np.mean(np.asarray(result.sure))),
+                "mse_nc": float(metrics.noise_corrected_mse(y, reference.color,
+                                                            reference.variance)),
+                "mse_raw": float(metrics.mse(y, reference.color)),
+                "reference_var": float(np.mean(reference.variance)),
+            })
+    return rows
+
+
+def _by_spp(rows) -> dict[int, list[dict]]:
+    groups: dict[int, list[dict]] = defaultdict(list)
+    for row in rows:
+        groups[row["spp"]].append(row)
+    return dict(sorted(groups.items()))
+
+
+def summarize_progressive(rows) -> dict[str, Any]:
+    """Per-spp means over crops of every ``{method}_{metric}`` (and sure, alpha, swap_gap);
+    the ratios PD / denoiser and PD / MC per spp; and the headline numbers:
+
+    - ``pd_over_denoiser[metric]``: mean over spp of the per-spp ratio of crop-mean errors
+      (RMSE: of crop-mean RMSE; relMSE: of crop-mean relMSE), the paper's Table 3 form;
+    - ``pd_over_mc_at_max_spp[metric]``: the same ratio against MC at the highest spp.
+    """
+    per_spp = {}
+    for level, group in _by_spp(rows).items():
+        keys = [k for k in group[0] if k not in ("crop", "scene", "spp")]
+        per_spp[level] = {k: float(np.mean([r[k] for r in group])) for k in keys}
+        per_spp[level]["crops"] = len(group)
+    ratios: dict[str, dict[str, float]] = {"pd_over_denoiser": {}, "mixed_over_denoiser": {},
+                                           "pd_over_mc_at_max_spp": {}}
+    top = max(per_spp)
+    for metric in ("rmse", "rmse_nc", "relmse", "flip"):
+        for name, method in (("pd_over_denoiser", "pd"), ("mixed_over_denoiser", "mixed")):
+            per = [m[f"{method}_{metric}"] / m[f"denoiser_{metric}"] for m in per_spp.values()
+                   if m[f"denoiser_{metric}"] > 0]
+            ratios[name][metric] = float(np.mean(per)) if per else float("nan")
+        mc = per_spp[top][f"mc_{metric}"]
+        ratios["pd_over_mc_at_max_spp"][metric] = (per_spp[top][f"pd_{metric}"] / mc
+                                                   if mc > 0 else float("nan"))
+    for level, m in per_spp.items():
+        m["pd_over_denoiser_rmse"] = m["pd_rmse"] / m["denoiser_rmse"]
+        m["pd_over_mc_rmse"] = m["pd_rmse"] / m["mc_rmse"]
+    return {"per_spp": per_spp, "headline": ratios, "max_spp": top,
+            "crops": len({r["crop"] for r in rows})}
+
+
+def summarize_sure(rows) -> dict[str, Any]:
+    """Per spp: ``sure`` and ``mse_nc`` means over crops, ``ratio`` = mean SURE / mean true MSE
+    (noise-corrected), ``median_crop_ratio`` and the mean reference variance relative to the
+    true MSE (how much the correction matters)."""
+    per_spp = {}
+    for level, group in _by_spp(rows).items():
+        sure = np.array([r["sure"] for r in group])
+        true = np.array([r["mse_nc"] for r in group])
+        ref_var = np.array([r["reference_var"] for r in group])
+        per_spp[level] = {
+            "sure": float(sure.mean()), "mse_nc": float(true.mean()),
+            "ratio": float(sure.mean() / true.mean()) if true.mean() > 0 else float("nan"),
+            "median_crop_ratio": float(np.median(sure / np.where(true > 0, true, np.nan))),
+            "reference_var_over_mse": float(ref_var.mean() / true.mean())
+            if true.mean() > 0 else float("nan"),
+            "crops": len(group),
+        }
+    return {"per_spp": per_spp, "crops": len({r["crop"] for r in rows})}
+
+
+def markdown_progressive(summary: dict[str, Any], denoiser: str = "OIDN") -> str:
+    """Table 3 / Fig. 10 on our data: per spp, mean over crops."""
+    names = {"mc": "MC", "denoiser": denoiser, "mixed": f"mix w/o t-test", "pd": f"PD({denoiser})"}
+    lines = ["| spp | method | RMSE | RMSE (noise-corr.) | relMSE | FLIP |",
+             "|---:|---|---:|---:|---:|---:|"]
+    for level, m in summary["per_spp"].items():
+        for method in PD_METHODS:
+            lines.append(f"| {level} | {names[method]} | {m[f'{method}_rmse']:.5f} | "
+                         f"{m[f'{method}_rmse_nc']:.5f} | {m[f'{method}_relmse']:.5f} | "
+                         f"{m[f'{method}_flip']:.4f} |")
+    lines.append("")
+    lines.append("| ratio | RMSE | RMSE (noise-corr.) | relMSE | FLIP |")
+    lines.append("|---|---:|---:|---:|---:|")
+    labels = {"pd_over_denoiser": f"PD({denoiser}) / {denoiser}, mean over spp",
+              "mixed_over_denoiser": f"mix w/o t-test / {denoiser}, mean over spp",
+              "pd_over_mc_at_max_spp": f"PD({denoiser}) / MC at {summary['max_spp']} spp"}
+    for key, label in labels.items():
+        r = summary["headline"][key]
+        lines.append(f"| {label} | {r['rmse']:.3f} | {r['rmse_nc']:.3f} | {r['relmse']:.3f} | "
+                     f"{r['flip']:.3f} |")
+    lines.append("")
+    lines.append("| spp | mean alpha | mean alpha' | swap gap mean abs(alpha - (1 - alpha_swapped)) |")
+    lines.append("|---:|---:|---:|---:|")
+    for level, m in summary["per_spp"].items():
+        lines.append(f"| {level} | {m['alpha']:.3f} | {m['alpha_prime']:.3f} | "
+                     f"{m['swap_gap']:.3f} |")
+    return "\n".join(lines)
+
+
+def markdown_sure(summaries: dict[str, dict[str, Any]]) -> str:
+    """One table: per denoiser and spp, mean SURE vs noise-corrected true MSE."""
+    lines = ["| denoiser | spp | mean SURE | true MSE (noise-corr.) | SURE / MSE | median crop "
+             "ratio | ref. var / MSE |", "|---|---:|---:|---:|---:|---:|---:|"]
+    for name, summary in summaries.items():
+        for level, m in summary["per_spp"].items():
+            lines.append(f"| {name} | {level} | {m['sure']:.4g} | {m['mse_nc']:.4g} | "
+                         f"{m['ratio']:.3f} | {m['median_crop_ratio']:.3f} | "
+                         f"{m['reference_var_over_mse']:.3f} |")
+    return "\n".join(lines)
