@@ -336,8 +336,10 @@ def train_and_evaluate(
                 f"use a new --workdir"
             )
     else:
-        config_file.write_text(dump_config(config, header="resolved training config"))
-        saved_json.write_text(json.dumps(resolved, indent=2))
+        from jaxden.fileio import atomic_write_text
+
+        atomic_write_text(config_file, dump_config(config, header="resolved training config"))
+        atomic_write_text(saved_json, json.dumps(resolved, indent=2))
 
     task = make_task(config)
     loss_fn = loss_function(config.optim.loss)

@@ -1,0 +1,86 @@
+"""The mixer shipped for OIDN (jaxden/weights/oidn-pd.*) and the demo that uses it.
+
+The weights must load on a fresh install with their recorded layout, carry a model card with
+the command that retrains them, be found by name and by default in `jaxden progressive`, and
+give the same output through every entry point. The demo (README's main command) runs on a
+tiny setting and must write its files and beat the noisy input with OIDN.
+"""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from jaxden import cli
+from jaxden import progressive as P
+from jaxden.data.builder import synthetic_render
+from jaxden.denoisers import WEIGHTS_DIR
+from jaxden.errors import CheckpointError
+from jaxden.io.exr import read_image, write_frame
+
+
+def test_shipped_mixer_files_and_model_card():
+    path = P.shipped_mixer_path("oidn")
+    assert path == WEIGHTS_DIR / "oidn-pd.msgpack"
+    assert path.stat().st_size < 4 * 2**20  # "a few MB at most"
+    meta = json.loads(path.with_suffix(".json").read_text())
+    assert meta["kind"] == "mixer" and meta["model_config"]["denoiser"] == "oidn"
+    assert meta["trained_steps"] >= 100 and meta["dataset_manifest_sha256"]
+    card = path.with_suffix(".md").read_text()
+    for needle in ("jaxden train experiments/configs/mixer-oidn.toml",
+                   "dataset-default.toml", "## Measured", "PD(OIDN) / OIDN"):
+        assert needle in card
+    params, config = P.load_mixer("oidn-pd")
+    assert config.features == P.MIXER_FEATURES and config.head == "f_act"
+    leaves = jax.tree_util.tree_leaves(params)
+    assert all(np.all(np.isfinite(np.asarray(leaf))) for leaf in leaves)
+    assert P.shipped_mixer_path("unet") is None and P.shipped_progressive_denoiser("unet") is None
+
+
+def test_progressive_cli_defaults_to_the_shipped_mixer(tmp_path, capsys):
+    frame = synthetic_render("shipped", 16, seed=3, size=(24, 20)).numpy()
+    source = tmp_path / "in.exr"
+    write_frame(source, frame)
+    out = tmp_path / "out.exr"
+    assert cli.main(["progressive", str(source), "--denoiser", "oidn", "--out", str(out),
+                     "--seed", "4"]) == 0
+    params, config = P.load_mixer("oidn-pd")
+    z, alpha, _ = P.progressive_denoise(frame, "oidn", params, config, jax.random.PRNGKey(4))
+    np.testing.assert_allclose(read_image(out), np.asarray(z), rtol=1e-6, atol=1e-6)
+    run = P.shipped_progressive_denoiser("oidn", seed=4)
+    z2, alpha2 = run(frame)
+    np.testing.assert_allclose(z2, np.asarray(z), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(alpha2, np.asarray(alpha), atol=1e-6)
+    assert np.all((alpha2 >= 0) & (alpha2 <= 1))
+
+    capsys.readouterr()
+    code = cli.main(["progressive", str(source), "--denoiser", "kp", "--out",
+                     str(tmp_path / "kp.exr")])
+    err = capsys.readouterr().err
+    assert code == 2 and "no mixer ships for denoiser 'kp'" in err and "--mixer" in err
+    assert not (tmp_path / "kp.exr").exists()
+
+
+def test_demo_writes_frames_and_oidn_beats_the_noisy_input(tmp_path):
+    from jaxden.demo import DemoSettings, run_demo
+
+    settings = DemoSettings(scenes=("cornell-box",), size=(32, 32), spp_levels=(4, 16),
+                            reference_spp=256, seed=7)
+    summary = run_demo(tmp_path, settings=settings)
+    rows = summary["rows"]
+    assert {(r["spp"], r["method"]) for r in rows} == {
+        (s, m) for s in (4, 16) for m in ("mc", "oidn", "pd_oidn")}
+    assert json.loads((tmp_path / "summary.json").read_text())["rows"] == rows
+    for name in ("reference.exr", "spp00004.exr", "spp00004.oidn.exr", "spp00016.pd_oidn.exr"):
+        assert (tmp_path / "cornell-box" / name).is_file()
+    at4 = {r["method"]: r for r in rows if r["spp"] == 4}
+    assert at4["oidn"]["relmse"] < 0.5 * at4["mc"]["relmse"]
+    assert at4["pd_oidn"]["relmse"] < at4["mc"]["relmse"]
+
+
+def test_mixer_name_that_does_not_exist_is_a_clear_error():
+    with pytest.raises(CheckpointError, match="no-such-mixer: no such checkpoint"):
+        P.load_mixer("no-such-mixer")
