@@ -33,6 +33,7 @@ def _sha256(path: Path) -> str:
 
 
 def provenance(args: argparse.Namespace, extra: dict) -> dict:
+    """Where a result comes from; taken when the run starts (the commit it ran)."""
     from jaxden.data.layout import load_manifest, manifest_path
 
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
@@ -80,28 +81,27 @@ def _write(out: Path, result: dict, table: str) -> None:
 def cmd_pd(args: argparse.Namespace) -> None:
     from jaxden import pdreport
 
+    source = provenance(args, {"denoiser": args.denoiser[0],
+                               "mixer": _weights_identity(args.mixer)})
     rows = pdreport.evaluate_progressive(args.data, args.denoiser[0], args.mixer,
                                          split=args.split, seed=args.seed,
                                          num_probes=args.probes, progress=True)
     summary = pdreport.summarize_progressive(rows)
     name = "OIDN" if args.denoiser[0] == "oidn" else args.denoiser[0]
-    result = {"summary": summary, "rows": rows,
-              "provenance": provenance(args, {"denoiser": args.denoiser[0],
-                                              "mixer": _weights_identity(args.mixer)})}
+    result = {"summary": summary, "rows": rows, "provenance": source}
     _write(Path(args.out), result, pdreport.markdown_progressive(summary, name))
 
 
 def cmd_sure(args: argparse.Namespace) -> None:
     from jaxden import pdreport
 
+    source = provenance(args, {"denoisers": [_weights_identity(s) for s in args.denoiser]})
     summaries, rows = {}, {}
     for spec in args.denoiser:
         rows[spec] = pdreport.sure_accuracy(args.data, spec, split=args.split, seed=args.seed,
                                             num_probes=args.probes, progress=True)
         summaries[spec] = pdreport.summarize_sure(rows[spec])
-    result = {"summary": summaries, "rows": rows,
-              "provenance": provenance(args, {"denoisers": [_weights_identity(s)
-                                                            for s in args.denoiser]})}
+    result = {"summary": summaries, "rows": rows, "provenance": source}
     _write(Path(args.out), result, pdreport.markdown_sure(summaries))
 
 
