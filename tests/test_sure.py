@@ -273,3 +273,32 @@ def test_shape_and_option_errors(frame):
     ):
         with pytest.raises(ConfigError, match=match):
             sure(lambda f: f.color, frame, key(0), **kwargs)
+
+
+@pytest.mark.parametrize("tonemap", ["reinhard_gamma", "gamma"])
+def test_jvp_sure_of_wskp_is_finite_on_black_pixels_with_zero_variance(tonemap):
+    """Low-spp renders have pixels whose samples are all 0 (colour 0, variance 0). The WSKP
+    input tone map t ** (1/2.2) has an infinite slope at 0; jvp then gave inf * 0 = NaN there
+    (seen on the test set at 2-64 spp). With the floor the SURE map is finite everywhere and
+    equals (y - x)^2 at pixels whose variance is 0 (no probe moves them)."""
+    from jaxden.denoisers import make_denoiser
+    from jaxden.nn.wskp import WSKPConfig
+    from jaxden.pdcache import denoise_with_sure
+
+    rng = np.random.default_rng(0)
+    h, w = 16, 16
+    color = rng.gamma(1.0, 0.5, (h, w, 3)).astype(np.float32)
+    variance = (0.05 * color).astype(np.float32)
+    color[4:8, 4:8] = 0.0
+    variance[4:8, 4:8] = 0.0
+    normal = np.zeros((h, w, 3), np.float32)
+    normal[..., 2] = 1.0
+    frame = Frame(color=color, variance=variance, albedo=np.full((h, w, 3), 0.5, np.float32),
+                  normal=normal, depth=np.ones((h, w, 1), np.float32), spp=2)
+    config = WSKPConfig(num_layers=2, width=4, kernel_sizes=(3, 5), tonemap=tonemap)
+    model = make_denoiser("wskp", config, key=jax.random.PRNGKey(0))
+    result, _ = denoise_with_sure(model, frame, jax.random.PRNGKey(1), num_probes=2)
+    sure_map = np.asarray(result.sure)
+    assert np.all(np.isfinite(sure_map))
+    residual = (np.asarray(result.denoised) - color) ** 2
+    np.testing.assert_allclose(sure_map[4:8, 4:8], residual[4:8, 4:8], rtol=1e-5, atol=1e-9)

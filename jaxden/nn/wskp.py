@@ -38,12 +38,21 @@ from jaxden.nn.layers import RepVGGBlock, RepVGGDeployBlock
 WSKP_FEATURES = ("color", "albedo", "normal", "depth")
 
 
+#: Floor of the value raised to 1/2.2 in :func:`tonemap`: t ** (1/2.2) has an infinite
+#: derivative at 0, which made jvp SURE NaN (inf * 0) at black pixels with zero variance.
+TONEMAP_FLOOR = 1e-8
+
+
+def _gamma(t: jax.Array) -> jax.Array:
+    return jnp.maximum(t, TONEMAP_FLOOR) ** (1 / 2.2)
+
+
 def tonemap(color: jax.Array, kind: str) -> jax.Array:
     color = jnp.maximum(color, 0.0)
     if kind == "gamma":
-        return jnp.clip(color, 0.0, 1.0) ** (1 / 2.2)
+        return _gamma(jnp.clip(color, 0.0, 1.0))
     if kind == "reinhard_gamma":
-        return (color / (1.0 + color)) ** (1 / 2.2)
+        return _gamma(color / (1.0 + color))
     raise FrameError(f"unknown tonemap {kind!r}; choose 'gamma' or 'reinhard_gamma'")
 
 
