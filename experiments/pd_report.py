@@ -85,7 +85,7 @@ def cmd_pd(args: argparse.Namespace) -> None:
                                "mixer": _weights_identity(args.mixer)})
     rows = pdreport.evaluate_progressive(args.data, args.denoiser[0], args.mixer,
                                          split=args.split, seed=args.seed,
-                                         num_probes=args.probes, progress=True)
+                                         num_probes=args.probes, spp=args.spp, progress=True)
     summary = pdreport.summarize_progressive(rows)
     name = "OIDN" if args.denoiser[0] == "oidn" else args.denoiser[0]
     result = {"summary": summary, "rows": rows, "provenance": source}
@@ -99,7 +99,7 @@ def cmd_sure(args: argparse.Namespace) -> None:
     summaries, rows = {}, {}
     for spec in args.denoiser:
         rows[spec] = pdreport.sure_accuracy(args.data, spec, split=args.split, seed=args.seed,
-                                            num_probes=args.probes, progress=True)
+                                            num_probes=args.probes, spp=args.spp, progress=True)
         summaries[spec] = pdreport.summarize_sure(rows[spec])
     result = {"summary": summaries, "rows": rows, "provenance": source}
     _write(Path(args.out), result, pdreport.markdown_sure(summaries))
@@ -116,6 +116,8 @@ def main(argv=None) -> int:
                        help="oidn, a shipped name or a checkpoint folder (sure: repeatable)")
         p.add_argument("--seed", type=int, default=0, help="seed of the SURE probes")
         p.add_argument("--probes", type=int, default=4, help="SURE probes per image")
+        p.add_argument("--spp", type=int, nargs="+", default=None,
+                       help="only these input spp levels (default: all)")
         p.add_argument("--out", required=True, help="output path without suffix")
         if name == "pd":
             p.add_argument("--mixer", default="oidn-pd", help="mixer spec (default oidn-pd)")

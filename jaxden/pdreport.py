@@ -54,7 +54,7 @@ def iter_crops(dataset_dir, split: str = "test", spp: tuple[int, ...] | None = N
         if len(references) != 1:
             raise DatasetError(f"{dataset_dir}: crop {crop.id} has {len(references)} references")
         inputs = sorted((item for item in items if item.kind == "input" and item.spp >= 2
-                         and (spp is None or item.spp in spp)), key=lambda item: item.spp)
+                         and (spp is None or item.spp in tuple(spp))), key=lambda item: item.spp)
         reference = read_frame(dataset_dir / references[0].path)
         yield crop, reference, [(item.spp, read_frame(dataset_dir / item.path))
                                 for item in inputs]
