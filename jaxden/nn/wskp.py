@@ -38,13 +38,12 @@ from jaxden.nn.layers import RepVGGBlock, RepVGGDeployBlock
 WSKP_FEATURES = ("color", "albedo", "normal", "depth")
 
 
-#: Floor of the value raised to 1/2.2 in :func:`tonemap`: t ** (1/2.2) has an infinite
-#: derivative at 0, which made jvp SURE NaN (inf * 0) at black pixels with zero variance.
-TONEMAP_FLOOR = 1e-8
-
-
 def _gamma(t: jax.Array) -> jax.Array:
-    return jnp.maximum(t, TONEMAP_FLOOR) ** (1 / 2.2)
+    """t ** (1/2.2) for t >= 0, with a zero derivative at t = 0 (the true one is infinite,
+    which made jvp SURE NaN, inf * 0, at black pixels with zero variance). Values are
+    unchanged: the inner ``where`` only keeps the power's derivative finite."""
+    positive = t > 0
+    return jnp.where(positive, jnp.where(positive, t, 1.0) ** (1 / 2.2), 0.0)
 
 
 def tonemap(color: jax.Array, kind: str) -> jax.Array:
