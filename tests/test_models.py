@@ -53,7 +53,9 @@ def test_wskp_with_zero_network_is_fused_box_filter_on_irradiance():
     params = jax.tree_util.tree_map(jnp.zeros_like, wskp.wskp_init(jax.random.PRNGKey(0), config))
     frame = random_frame(9, 8)
     out = np.asarray(wskp.wskp_denoise(params, config, frame))
-    albedo = np.where(frame.albedo >= 1e-3, frame.albedo, 1.0)
+    f = config.albedo_floor
+    albedo = np.where(frame.albedo >= f, frame.albedo, 1.0 - (1.0 - f) * frame.albedo / f)
+    assert (frame.albedo < f).any()  # the draw exercises the ramp
     irr = frame.color / albedo
 
     def box(image, k):
@@ -65,6 +67,19 @@ def test_wskp_with_zero_network_is_fused_box_filter_on_irradiance():
 
     expected = 0.5 * (box(irr, 3) + box(irr, 5)) * albedo
     np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("floor", [1e-3, 0.05, 0.5])
+def test_safe_albedo_is_continuous_and_bounds_the_amplification(floor):
+    """The demodulation divisor equals the albedo from the floor up, is 1 at albedo 0, never
+    drops below the floor (so no pixel is amplified more than 1 / floor), and is continuous:
+    no jump at the floor, where the first form (1 below, albedo above) jumped by 1 / floor."""
+    a = np.concatenate([np.linspace(0.0, 1.0, 20001), [floor, np.nextafter(floor, 0)]]).astype(np.float32)
+    safe = np.asarray(wskp.safe_albedo(jnp.asarray(a), floor))
+    np.testing.assert_array_equal(safe[a >= floor], a[a >= floor])
+    assert safe[0] == 1.0 and safe.min() >= floor * (1 - 1e-6)
+    order = np.argsort(a)
+    assert np.abs(np.diff(safe[order])).max() < 2e-4 / floor + 1e-6
 
 
 def test_multiresolution_combination_eq7_with_constant_alpha():

@@ -15,9 +15,12 @@ Departures, each a config option:
 - ``tonemap``: the authors gamma-correct the clipped colour (their BMFR data is nearly LDR);
   our scenes have bright emitters, so the default is ``reinhard_gamma`` (x / (1 + x)) ** (1/2.2),
   which keeps highlights distinguishable; ``gamma`` is the authors' choice.
-- demodulation: where the albedo is below ``albedo_floor`` (misses, black or specular
-  surfaces: Mitsuba's albedo AOV is 0 there) the radiance is filtered as it is (albedo taken as
-  1) instead of dividing by ~0.
+- demodulation: the radiance is divided by a *safe* albedo (:func:`safe_albedo`): the albedo
+  itself from ``albedo_floor`` up, and below it a linear ramp to 1 at albedo 0 (misses, black or
+  specular surfaces: Mitsuba's albedo AOV is 0 there, where the radiance is filtered as it is).
+  The ramp is continuous and never below the floor, so no pixel's irradiance is amplified by
+  more than 1 / albedo_floor. A hard switch at 1e-3 (our first form) amplified anti-aliased edge
+  pixels of albedo ~0.001 beside mirrors ~1000x and smeared them into their neighbours.
 """
 
 from __future__ import annotations
@@ -71,8 +74,11 @@ def network_inputs(frame: Frame, tonemap_kind: str) -> jax.Array:
 
 
 def safe_albedo(albedo: jax.Array, floor: float) -> jax.Array:
-    """The albedo used for (de)modulation: 1 where the albedo carries no information."""
-    return jnp.where(albedo >= floor, albedo, 1.0)
+    """The albedo used for (de)modulation, per channel: ``albedo`` where it is at least
+    ``floor``; below, ``1 - (1 - floor) * albedo / floor`` (1 at albedo 0, where the albedo
+    carries no information, down to ``floor``). Continuous and >= min(floor, 1)."""
+    ramp = 1.0 - (1.0 - floor) * jnp.clip(albedo, 0.0, None) / floor
+    return jnp.where(albedo >= floor, albedo, ramp)
 
 
 class RepVGGStack(nn.Module):
@@ -106,7 +112,7 @@ class WSKPConfig:
     width: int = 14
     kernel_sizes: tuple[int, ...] = (3, 5, 7, 9, 11, 13)
     tonemap: Literal["gamma", "reinhard_gamma"] = "reinhard_gamma"
-    albedo_floor: float = 1e-3
+    albedo_floor: float = 0.05
     decoder: Literal["box", "unfold"] = "box"
     deploy: bool = False  # re-parameterised single-conv blocks (inference)
 
@@ -142,7 +148,7 @@ class KPConfig:
     width: int = 14
     kernel_size: int = 13
     tonemap: Literal["gamma", "reinhard_gamma"] = "reinhard_gamma"
-    albedo_floor: float = 1e-3
+    albedo_floor: float = 0.05
     deploy: bool = False
 
 
@@ -197,7 +203,7 @@ class WSKPMRConfig:
     width: int = 16
     kernel_sizes: tuple[int, ...] = (3, 5)
     tonemap: Literal["gamma", "reinhard_gamma"] = "reinhard_gamma"
-    albedo_floor: float = 1e-3
+    albedo_floor: float = 0.05
     deploy: bool = False
 
 
