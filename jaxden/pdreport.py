@@ -27,7 +27,9 @@ import numpy as np
 
 from jaxden.errors import DatasetError
 
-PD_METHODS = ("mc", "denoiser", "mixed", "pd")
+PD_METHODS = ("mc", "denoiser", "mixed", "pd", "oracle")
+ORACLE_BLOCK = 8
+PAPER_MIN_SPP = 32  # the paper averages its Table 3 over 32..8192 spp
 PD_METRICS = ("rmse", "rmse_nc", "relmse", "flip", "mse_nc")
 
 
@@ -74,6 +76,25 @@ def _errors(image, reference) -> dict[str, float]:
     }
 
 
+def oracle_mix(x, y, reference, block: int = ORACLE_BLOCK) -> np.ndarray:
+    """The best mix ``x + alpha (y - x)`` with one alpha in [0, 1] per channel and per
+    ``block`` x ``block`` tile, fitted by least squares to the reference: an upper bound on
+    what a mixer whose alpha varies on that scale can reach (it sees the reference, so it is
+    not a method). Tiles at the right/bottom edge may be smaller."""
+    x, y, r = (np.asarray(a, np.float64) for a in (x, y, reference))
+    h, w = x.shape[:2]
+    out = np.empty_like(x)
+    for top in range(0, h, block):
+        for left in range(0, w, block):
+            tile = np.s_[top : top + block, left : left + block]
+            d = (y - x)[tile]
+            num = np.sum((r - x)[tile] * d, axis=(0, 1))
+            den = np.sum(d * d, axis=(0, 1))
+            alpha = np.clip(np.divide(num, den, out=np.zeros_like(num), where=den > 0), 0, 1)
+            out[tile] = x[tile] + alpha * d
+    return out.astype(np.float32)
+
+
 def _progress(iterable, total: int | None, show: bool, what: str):
     if not show:
         return iterable
@@ -92,8 +113,9 @@ def _crop_count(dataset_dir, split) -> int:
 def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
                          seed: int = 0, num_probes: int = 4, spp: tuple[int, ...] | None = None,
                          progress: bool = False) -> list[dict[str, Any]]:
-    """One row per (crop, spp): errors of MC, the denoiser, the mixer without the t-test and
-    PD, each as ``{method}_{metric}`` (metrics :data:`PD_METRICS`), plus ``sure`` (image mean
+    """One row per (crop, spp): errors of MC, the denoiser, the mixer without the t-test, PD
+    and the reference-fitted :func:`oracle_mix` bound, each as ``{method}_{metric}`` (metrics
+    :data:`PD_METRICS`), plus ``sure`` (image mean
     of y's SURE), ``alpha`` / ``alpha_prime`` (means) and ``swap_gap`` (mean |alpha(x, y) -
     (1 - alpha(y, x))|).
 
@@ -119,7 +141,8 @@ def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
                 num_probes=num_probes)
             index += 1
             images = {"mc": frame.color, "denoiser": extras["denoised"],
-                      "mixed": extras["mixed"], "pd": z}
+                      "mixed": extras["mixed"], "pd": z,
+                      "oracle": oracle_mix(frame.color, extras["denoised"], reference.color)}
             row: dict[str, Any] = {"crop": crop.id, "scene": crop.scene, "spp": level}
             for method, image in images.items():
                 row |= {f"{method}_{k}": v for k, v in _errors(image, reference).items()}
@@ -179,6 +202,8 @@ def summarize_progressive(rows) -> dict[str, Any]:
 
     - ``pd_over_denoiser[metric]``: mean over spp of the per-spp ratio of crop-mean errors
       (RMSE: of crop-mean RMSE; relMSE: of crop-mean relMSE), the paper's Table 3 form;
+      ``pd_over_denoiser_paper_range``: the same over spp >= 32 only (the paper's range);
+      ``mixed_*`` and ``oracle_*``: the same for the mix without t-test and the oracle;
     - ``pd_over_mc_at_max_spp[metric]``: the same ratio against MC at the highest spp.
     """
     per_spp = {}
@@ -186,21 +211,23 @@ def summarize_progressive(rows) -> dict[str, Any]:
         keys = [k for k in group[0] if k not in ("crop", "scene", "spp")]
         per_spp[level] = {k: float(np.mean([r[k] for r in group])) for k in keys}
         per_spp[level]["crops"] = len(group)
-    ratios: dict[str, dict[str, float]] = {"pd_over_denoiser": {}, "mixed_over_denoiser": {},
-                                           "pd_over_mc_at_max_spp": {}}
+    ratios: dict[str, dict[str, float]] = defaultdict(dict)
     top = max(per_spp)
     for metric in ("rmse", "rmse_nc", "relmse", "flip"):
-        for name, method in (("pd_over_denoiser", "pd"), ("mixed_over_denoiser", "mixed")):
-            per = [m[f"{method}_{metric}"] / m[f"denoiser_{metric}"] for m in per_spp.values()
-                   if m[f"denoiser_{metric}"] > 0]
-            ratios[name][metric] = float(np.mean(per)) if per else float("nan")
+        for method in ("pd", "mixed", "oracle"):
+            for suffix, low in (("", 0), ("_paper_range", PAPER_MIN_SPP)):
+                per = [m[f"{method}_{metric}"] / m[f"denoiser_{metric}"]
+                       for level, m in per_spp.items()
+                       if level >= low and m[f"denoiser_{metric}"] > 0]
+                ratios[f"{method}_over_denoiser{suffix}"][metric] = (
+                    float(np.mean(per)) if per else float("nan"))
         mc = per_spp[top][f"mc_{metric}"]
         ratios["pd_over_mc_at_max_spp"][metric] = (per_spp[top][f"pd_{metric}"] / mc
                                                    if mc > 0 else float("nan"))
     for level, m in per_spp.items():
         m["pd_over_denoiser_rmse"] = m["pd_rmse"] / m["denoiser_rmse"]
         m["pd_over_mc_rmse"] = m["pd_rmse"] / m["mc_rmse"]
-    return {"per_spp": per_spp, "headline": ratios, "max_spp": top,
+    return {"per_spp": per_spp, "headline": dict(ratios), "max_spp": top,
             "crops": len({r["crop"] for r in rows})}
 
 
@@ -226,21 +253,30 @@ def summarize_sure(rows) -> dict[str, Any]:
 
 def markdown_progressive(summary: dict[str, Any], denoiser: str = "OIDN") -> str:
     """Table 3 / Fig. 10 on our data: per spp, mean over crops."""
-    names = {"mc": "MC", "denoiser": denoiser, "mixed": f"mix w/o t-test", "pd": f"PD({denoiser})"}
+    names = {"mc": "MC", "denoiser": denoiser, "mixed": "mix w/o t-test",
+             "pd": f"PD({denoiser})", "oracle": f"oracle mix ({ORACLE_BLOCK}² tiles)"}
     lines = ["| spp | method | RMSE | RMSE (noise-corr.) | relMSE | FLIP |",
              "|---:|---|---:|---:|---:|---:|"]
     for level, m in summary["per_spp"].items():
         for method in PD_METHODS:
+            if f"{method}_rmse" not in m:
+                continue  # reports from before the oracle was added
             lines.append(f"| {level} | {names[method]} | {m[f'{method}_rmse']:.5f} | "
                          f"{m[f'{method}_rmse_nc']:.5f} | {m[f'{method}_relmse']:.5f} | "
                          f"{m[f'{method}_flip']:.4f} |")
     lines.append("")
     lines.append("| ratio | RMSE | RMSE (noise-corr.) | relMSE | FLIP |")
     lines.append("|---|---:|---:|---:|---:|")
-    labels = {"pd_over_denoiser": f"PD({denoiser}) / {denoiser}, mean over spp",
-              "mixed_over_denoiser": f"mix w/o t-test / {denoiser}, mean over spp",
-              "pd_over_mc_at_max_spp": f"PD({denoiser}) / MC at {summary['max_spp']} spp"}
+    labels = {}
+    for method, name in (("pd", f"PD({denoiser})"), ("mixed", "mix w/o t-test"),
+                         ("oracle", names["oracle"])):
+        labels[f"{method}_over_denoiser"] = f"{name} / {denoiser}, mean over spp"
+        labels[f"{method}_over_denoiser_paper_range"] = (
+            f"{name} / {denoiser}, mean over spp >= {PAPER_MIN_SPP}")
+    labels["pd_over_mc_at_max_spp"] = f"PD({denoiser}) / MC at {summary['max_spp']} spp"
     for key, label in labels.items():
+        if key not in summary["headline"]:
+            continue
         r = summary["headline"][key]
         lines.append(f"| {label} | {r['rmse']:.3f} | {r['rmse_nc']:.3f} | {r['relmse']:.3f} | "
                      f"{r['flip']:.3f} |")

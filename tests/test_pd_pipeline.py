@@ -379,6 +379,12 @@ def test_pd_report_rows_match_direct_computation(trained):
         np.mean([r["pd_rmse"] for r in at_top]))
     ratio = np.mean([m["pd_rmse"] / m["denoiser_rmse"] for m in summary["per_spp"].values()])
     assert summary["headline"]["pd_over_denoiser"]["rmse"] == pytest.approx(ratio)
+    paper = np.mean([m["pd_rmse"] / m["denoiser_rmse"] for level, m in summary["per_spp"].items()
+                     if level >= 32])
+    assert summary["headline"]["pd_over_denoiser_paper_range"]["rmse"] == pytest.approx(paper)
+    # the reference-fitted oracle includes alpha = 0 and 1 on every tile
+    assert all(r["oracle_rmse"] <= min(r["mc_rmse"], r["denoiser_rmse"]) * (1 + 1e-5)
+               for r in rows)
     table = pdreport.markdown_progressive(summary)
     assert "PD(OIDN)" in table and f"| {top} | MC |" in table
 
@@ -409,3 +415,28 @@ def test_sure_accuracy_rows_and_summary(trained):
     manifest.save(broken)
     with pytest.raises(DatasetError, match="not complete"):
         next(pdreport.iter_crops(broken, "all"))
+
+
+def test_oracle_mix_is_the_best_tile_alpha():
+    """oracle_mix's alpha per tile and channel minimises the squared error against the
+    reference over alpha in [0, 1]: a brute-force search on a fine grid never does better,
+    and the oracle is never worse than x (alpha 0) or y (alpha 1) on any tile."""
+    from jaxden.pdreport import oracle_mix
+
+    rng = np.random.default_rng(5)
+    r = rng.uniform(0, 1, (10, 13, 3))
+    x = r + rng.normal(0, 0.3, r.shape)
+    y = r + rng.normal(0, 0.1, r.shape) + rng.choice([-0.5, 0.0, 0.5], size=(1, 1, 3))
+    z = oracle_mix(x, y, r, block=4)
+    grid = np.linspace(0, 1, 1001)
+    for top in range(0, 10, 4):
+        for left in range(0, 13, 4):
+            t = np.s_[top : top + 4, left : left + 4]
+            for c in range(3):
+                err = np.sum((z[t][..., c] - r[t][..., c]) ** 2)
+                brute = min(np.sum((x[t][..., c] + a * (y[t][..., c] - x[t][..., c])
+                                    - r[t][..., c]) ** 2) for a in grid)
+                assert err <= brute + 1e-4
+                assert err <= min(np.sum((x[t][..., c] - r[t][..., c]) ** 2),
+                                  np.sum((y[t][..., c] - r[t][..., c]) ** 2)) + 1e-4
+                assert brute <= err + 1e-3 * max(err, 1e-9) + 1e-6  # the grid finds it too
