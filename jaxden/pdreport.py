@@ -27,7 +27,7 @@ import numpy as np
 
 from jaxden.errors import DatasetError
 
-PD_METHODS = ("mc", "denoiser", "mixed", "pd", "oracle")
+PD_METHODS = ("mc", "denoiser", "mixed", "pd", "pd_pc", "oracle")
 ORACLE_BLOCK = 8
 PAPER_MIN_SPP = 32  # the paper averages its Table 3 over 32..8192 spp
 PD_METRICS = ("rmse", "rmse_nc", "relmse", "flip", "mse_nc")
@@ -113,8 +113,10 @@ def _crop_count(dataset_dir, split) -> int:
 def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
                          seed: int = 0, num_probes: int = 4, spp: tuple[int, ...] | None = None,
                          progress: bool = False) -> list[dict[str, Any]]:
-    """One row per (crop, spp): errors of MC, the denoiser, the mixer without the t-test, PD
-    and the reference-fitted :func:`oracle_mix` bound, each as ``{method}_{metric}`` (metrics
+    """One row per (crop, spp): errors of MC, the denoiser, the mixer without the t-test, PD,
+    PD with the per-channel t-statistic (``pd_pc``: the mixer's config with
+    ``tstat.per_channel = True``, same alpha) and the reference-fitted :func:`oracle_mix`
+    bound, each as ``{method}_{metric}`` (metrics
     :data:`PD_METRICS`), plus ``sure`` (image mean
     of y's SURE), ``alpha`` / ``alpha_prime`` (means) and ``swap_gap`` (mean |alpha(x, y) -
     (1 - alpha(y, x))|).
@@ -126,10 +128,14 @@ def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
     import jax
 
     from jaxden.denoisers import load_denoiser
-    from jaxden.progressive import load_mixer, progressive_denoise, swap_symmetry
+    import dataclasses
+
+    from jaxden.progressive import (load_mixer, mix, progressive_denoise, swap_symmetry,
+                                    t_statistic_scaling)
 
     model = load_denoiser(denoiser) if isinstance(denoiser, str) else denoiser
     params, config = load_mixer(mixer) if isinstance(mixer, (str, Path)) else mixer
+    per_channel = dataclasses.replace(config.tstat, per_channel=True)
     base = jax.random.PRNGKey(seed)
     rows, index = [], 0
     crops = iter_crops(dataset_dir, split, spp)
@@ -140,8 +146,11 @@ def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
                 frame, model, params, config, jax.random.fold_in(base, index),
                 num_probes=num_probes)
             index += 1
+            alpha_pc = t_statistic_scaling(extras["alpha"], frame.color, extras["mixed"],
+                                           frame.variance, per_channel)
             images = {"mc": frame.color, "denoiser": extras["denoised"],
                       "mixed": extras["mixed"], "pd": z,
+                      "pd_pc": mix(frame.color, extras["denoised"], alpha_pc),
                       "oracle": oracle_mix(frame.color, extras["denoised"], reference.color)}
             row: dict[str, Any] = {"crop": crop.id, "scene": crop.scene, "spp": level}
             for method, image in images.items():
@@ -214,7 +223,7 @@ def summarize_progressive(rows) -> dict[str, Any]:
     ratios: dict[str, dict[str, float]] = defaultdict(dict)
     top = max(per_spp)
     for metric in ("rmse", "rmse_nc", "relmse", "flip"):
-        for method in ("pd", "mixed", "oracle"):
+        for method in ("pd", "pd_pc", "mixed", "oracle"):
             for suffix, low in (("", 0), ("_paper_range", PAPER_MIN_SPP)):
                 per = [m[f"{method}_{metric}"] / m[f"denoiser_{metric}"]
                        for level, m in per_spp.items()
@@ -222,8 +231,9 @@ def summarize_progressive(rows) -> dict[str, Any]:
                 ratios[f"{method}_over_denoiser{suffix}"][metric] = (
                     float(np.mean(per)) if per else float("nan"))
         mc = per_spp[top][f"mc_{metric}"]
-        ratios["pd_over_mc_at_max_spp"][metric] = (per_spp[top][f"pd_{metric}"] / mc
-                                                   if mc > 0 else float("nan"))
+        for method in ("pd", "pd_pc"):
+            ratios[f"{method}_over_mc_at_max_spp"][metric] = (
+                per_spp[top][f"{method}_{metric}"] / mc if mc > 0 else float("nan"))
     for level, m in per_spp.items():
         m["pd_over_denoiser_rmse"] = m["pd_rmse"] / m["denoiser_rmse"]
         m["pd_over_mc_rmse"] = m["pd_rmse"] / m["mc_rmse"]
@@ -254,7 +264,8 @@ def summarize_sure(rows) -> dict[str, Any]:
 def markdown_progressive(summary: dict[str, Any], denoiser: str = "OIDN") -> str:
     """Table 3 / Fig. 10 on our data: per spp, mean over crops."""
     names = {"mc": "MC", "denoiser": denoiser, "mixed": "mix w/o t-test",
-             "pd": f"PD({denoiser})", "oracle": f"oracle mix ({ORACLE_BLOCK}² tiles)"}
+             "pd": f"PD({denoiser})", "pd_pc": f"PD({denoiser}), per-channel t",
+             "oracle": f"oracle mix ({ORACLE_BLOCK}² tiles)"}
     lines = ["| spp | method | RMSE | RMSE (noise-corr.) | relMSE | FLIP |",
              "|---:|---|---:|---:|---:|---:|"]
     for level, m in summary["per_spp"].items():
@@ -268,12 +279,13 @@ def markdown_progressive(summary: dict[str, Any], denoiser: str = "OIDN") -> str
     lines.append("| ratio | RMSE | RMSE (noise-corr.) | relMSE | FLIP |")
     lines.append("|---|---:|---:|---:|---:|")
     labels = {}
-    for method, name in (("pd", f"PD({denoiser})"), ("mixed", "mix w/o t-test"),
-                         ("oracle", names["oracle"])):
+    for method in ("pd", "pd_pc", "mixed", "oracle"):
+        name = names[method]
         labels[f"{method}_over_denoiser"] = f"{name} / {denoiser}, mean over spp"
         labels[f"{method}_over_denoiser_paper_range"] = (
             f"{name} / {denoiser}, mean over spp >= {PAPER_MIN_SPP}")
-    labels["pd_over_mc_at_max_spp"] = f"PD({denoiser}) / MC at {summary['max_spp']} spp"
+    for method in ("pd", "pd_pc"):
+        labels[f"{method}_over_mc_at_max_spp"] = f"{names[method]} / MC at {summary['max_spp']} spp"
     for key, label in labels.items():
         if key not in summary["headline"]:
             continue

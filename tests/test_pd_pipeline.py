@@ -10,6 +10,7 @@ scene (12 inputs of 32 x 32 at 2, 8, 32 spp); the mixer trains 40 steps on 16 x 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import shutil
 import sys
@@ -370,6 +371,11 @@ def test_pd_report_rows_match_direct_computation(trained):
     assert row["mc_mse_nc"] == pytest.approx(corrected, rel=1e-4, abs=1e-9)
     assert row["sure"] == pytest.approx(float(np.mean(np.asarray(extras["sure"]))), rel=1e-5)
     assert row["alpha_prime"] == pytest.approx(float(np.mean(np.asarray(alpha_prime))), rel=1e-5)
+    z_pc, _, _ = P.progressive_denoise(
+        frame, "oidn", params, config, jax.random.fold_in(jax.random.PRNGKey(3), 1),
+        tstat=dataclasses.replace(config.tstat, per_channel=True))
+    assert row["pd_pc_rmse"] == pytest.approx(
+        float(metrics.rmse(np.asarray(z_pc), reference.color)), rel=1e-5)
 
     summary = pdreport.summarize_progressive(rows)
     top = summary["max_spp"]
