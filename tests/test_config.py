@@ -285,3 +285,24 @@ def test_config_to_dict_and_diff():
 def test_nan_round_trip():
     text = dump_config(Experiment(name="n", optimizer=Optimizer(rate=math.nan)))
     assert math.isnan(load_config(tomllib.loads(text), Experiment).optimizer.rate)
+
+
+@pytest.mark.parametrize("path", sorted((Path(__file__).parent.parent / "experiments" / "configs").glob("*.toml")),
+                         ids=lambda p: p.name)
+def test_every_shipped_experiment_config_loads(path):
+    """Each committed config parses with its schema, model tables included (a wrong or stale key
+    in a config that a README command runs would otherwise only fail hours into a job)."""
+    from jaxden.config import load_config
+
+    if path.name.startswith("dataset-"):
+        from jaxden.data.config import load_dataset_config
+
+        assert load_dataset_config(path).spp
+        return
+    from jaxden.denoisers import get_definition
+    from jaxden.progressive import MixerConfig
+    from jaxden.train import load_train_config
+
+    config = load_train_config(path)
+    schema = MixerConfig if config.model == "mixer" else get_definition(config.model).config_cls
+    load_config(dict(config.model_config), schema)
