@@ -287,8 +287,10 @@ def test_nan_round_trip():
     assert math.isnan(load_config(tomllib.loads(text), Experiment).optimizer.rate)
 
 
-@pytest.mark.parametrize("path", sorted((Path(__file__).parent.parent / "experiments" / "configs").glob("*.toml")),
-                         ids=lambda p: p.name)
+EXPERIMENT_CONFIGS = sorted((Path(__file__).parent.parent / "experiments" / "configs").glob("*.toml"))
+
+
+@pytest.mark.parametrize("path", EXPERIMENT_CONFIGS, ids=lambda p: p.name)
 def test_every_shipped_experiment_config_loads(path):
     """Each committed config parses with its schema, model tables included (a wrong or stale key
     in a config that a README command runs would otherwise only fail hours into a job)."""
