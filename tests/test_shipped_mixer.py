@@ -29,6 +29,17 @@ def test_shipped_mixer_files_and_model_card():
     meta = json.loads(path.with_suffix(".json").read_text())
     assert meta["kind"] == "mixer" and meta["model_config"]["denoiser"] == "oidn"
     assert meta["trained_steps"] >= 100 and meta["dataset_manifest_sha256"]
+    # the card's retrain command (the committed config) reproduces these weights' recipe
+    from pathlib import Path
+
+    from jaxden.config import config_to_dict
+    from jaxden.train import load_train_config
+
+    committed = load_train_config(Path(__file__).parent.parent / "experiments" / "configs"
+                                  / "mixer-oidn.toml")
+    assert meta["trained_steps"] == committed.optim.steps and meta["seed"] == committed.seed
+    assert meta["train_config"]["optim"] == config_to_dict(committed.optim)
+    assert meta["train_config"]["model_config"] == committed.model_config
     card = path.with_suffix(".md").read_text()
     for needle in ("jaxden train experiments/configs/mixer-oidn.toml",
                    "dataset-default.toml", "## Measured", "PD(OIDN) / OIDN"):
