@@ -96,8 +96,8 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
         f"(y, SURE) with probability {mc['swap_probability']}); loss {cfg['optim']['loss']}; "
         f"Adam with a one-cycle schedule, peak lr {cfg['optim']['learning_rate']}.",
         f"- Validation {facts['val_metric']} (val split, {cfg['eval_batches']} batches): "
-        f"{facts['val_loss_initial']:.4f} untrained -> {facts['val_loss_final']:.4f} trained "
-        f"(OIDN alone: {facts['val_baseline_loss']:.4f}); "
+        f"{facts['val_loss_initial']:.5f} untrained -> {facts['val_loss_final']:.5f} trained "
+        f"(OIDN alone: {facts['val_baseline_loss']:.5f}); "
         f"{facts['seconds_logged'] / 60:.0f} min of logged step time on the 2-core project CPU "
         f"(2 XLA host devices).",
         "- Retrain: `jaxden dataset build experiments/configs/dataset-default.toml --out "
