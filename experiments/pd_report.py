@@ -42,11 +42,11 @@ def provenance(args: argparse.Namespace, extra: dict) -> dict:
                            capture_output=True, text=True, cwd=ROOT).stdout.strip()
     manifest = load_manifest(args.data)
     return {
-        "command": "python experiments/pd_report.py " + shlex.join(sys.argv[1:]),
+        "command": f"python experiments/{Path(sys.argv[0]).name} " + shlex.join(sys.argv[1:]),
         "commit": commit + ("+dirty" if dirty else ""),
         "date": datetime.date.today().isoformat(),
         "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.platform()}",
-        "dataset": {"dir": str(args.data), "split": args.split,
+        "dataset": {"dir": str(args.data), "split": getattr(args, "split", None),
                     "manifest_sha256": _sha256(manifest_path(args.data)),
                     "config": manifest.config},
         "seed": args.seed, "probes": args.probes,

@@ -1,0 +1,117 @@
+"""Is a denoiser's SURE unbiased *in expectation* on real Monte Carlo noise? Renders one crop
+of a dataset R times at the same spp with independent seeds, and compares the mean over the
+renders of the image-mean SURE with the mean of the noise-corrected true MSE against the
+dataset's reference (rendered with other seeds, so independent of every render here).
+
+    python experiments/sure_realizations.py --data data/test-high --crop s002-c000 --spp 64 \
+        --renders 32 --out experiments/results/sure-realizations-s002-64
+
+Reports the per-render SURE / MSE ratios (their spread is what one image-level estimate can
+be off by) and the ratio of means with a 95 % interval from the per-render differences
+(normal approximation over R renders). Writes OUT.json and OUT.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+SEED_BASE = 900_000  # render seeds SEED_BASE + i; checked against the dataset's seeds
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", required=True, help="complete dataset folder")
+    parser.add_argument("--crop", required=True, help="crop id, e.g. s002-c000")
+    parser.add_argument("--spp", type=int, required=True)
+    parser.add_argument("--renders", type=int, default=32)
+    parser.add_argument("--denoiser", default="oidn")
+    parser.add_argument("--probes", type=int, default=4)
+    parser.add_argument("--seed", type=int, default=0, help="probe seed")
+    parser.add_argument("--out", required=True, help="output path without suffix")
+    args = parser.parse_args(argv)
+
+    import jax
+
+    from jaxden import metrics
+    from jaxden.data.builder import render_cached
+    from jaxden.data.layout import load_manifest
+    from jaxden.denoisers import load_denoiser
+    from jaxden.errors import DatasetError
+    from jaxden.fileio import atomic_write_text
+    from jaxden.io.exr import read_frame
+    from jaxden.pdcache import denoise_with_sure
+    from pd_report import provenance
+
+    manifest = load_manifest(args.data)
+    crops = {c.id: c for c in manifest.crops}
+    if args.crop not in crops:
+        raise DatasetError(f"{args.data}: no crop {args.crop!r} (crops: {sorted(crops)})")
+    crop = crops[args.crop]
+    items = manifest.items_of(crop.id)
+    reference = [i for i in items if i.kind == "reference"][0]
+    used = {i.seed for i in items}
+    seeds = [SEED_BASE + i for i in range(args.renders)]
+    if used & set(seeds):
+        raise DatasetError(f"render seeds {SEED_BASE}.. collide with the dataset's {sorted(used)}")
+    ref = read_frame(Path(args.data) / reference.path)
+    size = tuple(manifest.config["size"])
+    model = load_denoiser(args.denoiser)
+    base = jax.random.PRNGKey(args.seed)
+    source = provenance(args, {"denoiser": args.denoiser, "crop": args.crop, "spp": args.spp,
+                                "render_seeds": [SEED_BASE, SEED_BASE + args.renders - 1]})
+    rows = []
+    for index, seed in enumerate(seeds):
+        frame = render_cached(crop.scene, args.spp, seed=seed, size=size, crop=crop.window).numpy()
+        result, _ = denoise_with_sure(model, frame, jax.random.fold_in(base, index),
+                                      num_probes=args.probes)
+        y = np.asarray(result.denoised, np.float32)
+        rows.append({"seed": seed, "sure": float(np.mean(np.asarray(result.sure))),
+                     "mse_nc": float(metrics.noise_corrected_mse(y, ref.color, ref.variance))})
+        print(f"render {index + 1}/{args.renders}: SURE {rows[-1]['sure']:.4g}, "
+              f"true {rows[-1]['mse_nc']:.4g}", flush=True)
+    sure = np.array([r["sure"] for r in rows])
+    true = np.array([r["mse_nc"] for r in rows])
+    diff = sure - true
+    half = 1.96 * diff.std(ddof=1) / np.sqrt(len(diff))
+    summary = {
+        "renders": len(rows), "mean_sure": float(sure.mean()), "mean_mse_nc": float(true.mean()),
+        "ratio_of_means": float(sure.mean() / true.mean()),
+        "ratio_of_means_95": [float((sure.mean() - half) / true.mean()),
+                              float((sure.mean() + half) / true.mean())],
+        "per_render_ratio_quantiles": {q: float(np.quantile(sure / true, float(q)))
+                                       for q in ("0.05", "0.25", "0.5", "0.75", "0.95")},
+        "per_render_within_10pct": float(np.mean(np.abs(sure / true - 1) <= 0.1)),
+    }
+    table = "\n".join([
+        f"{args.crop} ({crop.scene}) at {args.spp} spp, {args.denoiser}, {len(rows)} independent "
+        f"renders (seeds {SEED_BASE}..), reference {reference.spp} spp:",
+        "",
+        "| mean SURE | mean true MSE (noise-corr.) | ratio of means | 95 % interval | "
+        "per-render ratio 5/50/95 % | renders within ±10 % |",
+        "|---:|---:|---:|---|---|---:|",
+        f"| {summary['mean_sure']:.4g} | {summary['mean_mse_nc']:.4g} | "
+        f"{summary['ratio_of_means']:.3f} | {summary['ratio_of_means_95'][0]:.3f}.."
+        f"{summary['ratio_of_means_95'][1]:.3f} | "
+        f"{summary['per_render_ratio_quantiles']['0.05']:.2f} / "
+        f"{summary['per_render_ratio_quantiles']['0.5']:.2f} / "
+        f"{summary['per_render_ratio_quantiles']['0.95']:.2f} | "
+        f"{summary['per_render_within_10pct']:.0%} |",
+    ])
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out.with_suffix(".json"), json.dumps(
+        {"summary": summary, "rows": rows, "provenance": source}, indent=1) + "\n")
+    atomic_write_text(out.with_suffix(".md"), f"<!-- generated by: {source['command']} "
+                      f"(commit {source['commit']}) -->\n{table}\n")
+    print(table)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
