@@ -24,6 +24,32 @@ ROOT = Path(__file__).resolve().parent.parent
 SEED_BASE = 900_000  # render seeds SEED_BASE + i; checked against the dataset's seeds
 
 
+def crop_renders(data, crop_id: str, spp: int, renders: int):
+    """``(crop, reference_frame, frames)`` for crop ``crop_id`` of dataset ``data``: the
+    reference as stored, and a generator of ``renders`` new renders at ``spp`` with seeds
+    SEED_BASE + i (refused if any is a seed the dataset used for this crop)."""
+    from jaxden.data.builder import render_cached
+    from jaxden.data.layout import load_manifest
+    from jaxden.errors import DatasetError
+    from jaxden.io.exr import read_frame
+
+    manifest = load_manifest(data)
+    crops = {c.id: c for c in manifest.crops}
+    if crop_id not in crops:
+        raise DatasetError(f"{data}: no crop {crop_id!r} (crops: {sorted(crops)})")
+    crop = crops[crop_id]
+    items = manifest.items_of(crop.id)
+    used = {i.seed for i in items}
+    seeds = [SEED_BASE + i for i in range(renders)]
+    if used & set(seeds):
+        raise DatasetError(f"render seeds {SEED_BASE}.. collide with the dataset's {sorted(used)}")
+    reference = [i for i in items if i.kind == "reference"][0]
+    size = tuple(manifest.config["size"])
+    frames = (render_cached(crop.scene, spp, seed=seed, size=size, crop=crop.window).numpy()
+              for seed in seeds)
+    return crop, read_frame(Path(data) / reference.path), frames
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", required=True, help="complete dataset folder")
@@ -39,39 +65,23 @@ def main(argv=None) -> int:
     import jax
 
     from jaxden import metrics
-    from jaxden.data.builder import render_cached
-    from jaxden.data.layout import load_manifest
     from jaxden.denoisers import load_denoiser
-    from jaxden.errors import DatasetError
     from jaxden.fileio import atomic_write_text
-    from jaxden.io.exr import read_frame
     from jaxden.pdcache import denoise_with_sure
     from pd_report import provenance
 
-    manifest = load_manifest(args.data)
-    crops = {c.id: c for c in manifest.crops}
-    if args.crop not in crops:
-        raise DatasetError(f"{args.data}: no crop {args.crop!r} (crops: {sorted(crops)})")
-    crop = crops[args.crop]
-    items = manifest.items_of(crop.id)
-    reference = [i for i in items if i.kind == "reference"][0]
-    used = {i.seed for i in items}
-    seeds = [SEED_BASE + i for i in range(args.renders)]
-    if used & set(seeds):
-        raise DatasetError(f"render seeds {SEED_BASE}.. collide with the dataset's {sorted(used)}")
-    ref = read_frame(Path(args.data) / reference.path)
-    size = tuple(manifest.config["size"])
+    crop, ref, frames = crop_renders(args.data, args.crop, args.spp, args.renders)
+    reference_spp = int(np.asarray(ref.spp)) if ref.spp is not None else "?"
     model = load_denoiser(args.denoiser)
     base = jax.random.PRNGKey(args.seed)
     source = provenance(args, {"denoiser": args.denoiser, "crop": args.crop, "spp": args.spp,
                                 "render_seeds": [SEED_BASE, SEED_BASE + args.renders - 1]})
     rows = []
-    for index, seed in enumerate(seeds):
-        frame = render_cached(crop.scene, args.spp, seed=seed, size=size, crop=crop.window).numpy()
+    for index, frame in enumerate(frames):
         result, _ = denoise_with_sure(model, frame, jax.random.fold_in(base, index),
                                       num_probes=args.probes)
         y = np.asarray(result.denoised, np.float32)
-        rows.append({"seed": seed, "sure": float(np.mean(np.asarray(result.sure))),
+        rows.append({"seed": SEED_BASE + index, "sure": float(np.mean(np.asarray(result.sure))),
                      "mse_nc": float(metrics.noise_corrected_mse(y, ref.color, ref.variance))})
         print(f"render {index + 1}/{args.renders}: SURE {rows[-1]['sure']:.4g}, "
               f"true {rows[-1]['mse_nc']:.4g}", flush=True)
@@ -90,7 +100,7 @@ def main(argv=None) -> int:
     }
     table = "\n".join([
         f"{args.crop} ({crop.scene}) at {args.spp} spp, {args.denoiser}, {len(rows)} independent "
-        f"renders (seeds {SEED_BASE}..), reference {reference.spp} spp:",
+        f"renders (seeds {SEED_BASE}..), reference {reference_spp} spp:",
         "",
         "| mean SURE | mean true MSE (noise-corr.) | ratio of means | 95 % interval | "
         "per-render ratio 5/50/95 % | renders within ±10 % |",

@@ -30,9 +30,6 @@ from pathlib import Path
 
 import numpy as np
 
-SEED_BASE = 900_000  # the renders of sure_realizations.py (same seeds: same images)
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", required=True)
@@ -44,31 +41,20 @@ def main(argv=None) -> int:
     parser.add_argument("--out", required=True)
     args = parser.parse_args(argv)
 
-    from jaxden.data.builder import render_cached
-    from jaxden.data.layout import load_manifest
     from jaxden.denoisers import load_denoiser
-    from jaxden.errors import DatasetError
     from jaxden.fileio import atomic_write_text
     from jaxden.sure import sure_blackbox
     from pd_report import provenance
+    from sure_realizations import SEED_BASE, crop_renders
 
-    manifest = load_manifest(args.data)
-    crops = {c.id: c for c in manifest.crops}
-    if args.crop not in crops:
-        raise DatasetError(f"{args.data}: no crop {args.crop!r} (crops: {sorted(crops)})")
-    crop = crops[args.crop]
-    if {i.seed for i in manifest.items_of(crop.id)} & set(range(SEED_BASE, SEED_BASE + args.renders)):
-        raise DatasetError(f"render seeds {SEED_BASE}.. collide with the dataset's")
-    size = tuple(manifest.config["size"])
+    crop, _, frames = crop_renders(args.data, args.crop, args.spp, args.renders)
     oidn = load_denoiser("oidn")
     source = provenance(args, {"denoiser": "oidn", "crop": args.crop, "spp": args.spp,
                                "render_seeds": [SEED_BASE, SEED_BASE + args.renders - 1],
                                "eps": 1e-2})
     rng = np.random.default_rng(args.seed)
     xs, ys, diag, shared, var = [], [], [], [], []
-    for index in range(args.renders):
-        frame = render_cached(crop.scene, args.spp, seed=SEED_BASE + index, size=size,
-                              crop=crop.window).numpy()
+    for index, frame in enumerate(frames):
         sigma = np.sqrt(np.asarray(frame.variance, np.float64))
         independent = sigma * rng.standard_normal((args.probes,) + sigma.shape)
         common = sigma * rng.standard_normal((args.probes,) + sigma.shape[:-1] + (1,))
