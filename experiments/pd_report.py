@@ -65,7 +65,9 @@ def _weights_identity(spec: str) -> dict:
     return {"spec": spec}
 
 
-def _write(out: Path, result: dict, table: str) -> None:
+def write_report(out: Path, result: dict, table: str) -> None:
+    """OUT.json (``result``, with a ``provenance`` entry) and OUT.md (``table`` under a
+    generated-by line), both written atomically; the table is printed too."""
     from jaxden.fileio import atomic_write_text
 
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -89,7 +91,7 @@ def cmd_pd(args: argparse.Namespace) -> None:
     summary = pdreport.summarize_progressive(rows)
     name = "OIDN" if args.denoiser[0] == "oidn" else args.denoiser[0]
     result = {"summary": summary, "rows": rows, "provenance": source}
-    _write(Path(args.out), result, pdreport.markdown_progressive(summary, name))
+    write_report(Path(args.out), result, pdreport.markdown_progressive(summary, name))
 
 
 def cmd_sure(args: argparse.Namespace) -> None:
@@ -102,7 +104,7 @@ def cmd_sure(args: argparse.Namespace) -> None:
                                             num_probes=args.probes, spp=args.spp, progress=True)
         summaries[spec] = pdreport.summarize_sure(rows[spec])
     result = {"summary": summaries, "rows": rows, "provenance": source}
-    _write(Path(args.out), result, pdreport.markdown_sure(summaries))
+    write_report(Path(args.out), result, pdreport.markdown_sure(summaries))
 
 
 def main(argv=None) -> int:

@@ -57,7 +57,7 @@ def main(argv=None) -> int:
           "mean(SURE) - mean(true) |")
     print("|---:|---:|---:|---:|")
     for fraction in (0.001, 0.01, 0.05, 0.2, 1.0):
-        k = max(1, int(round(fraction * n)))
+        k = max(1, round(fraction * n))
         top = order[:k]
         print(f"| {fraction:.1%} | {k} | {variance[top].sum() / variance.sum():.2f} | "
               f"{excess[top].sum() / n:.3g} |")
