@@ -189,7 +189,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    # argparse gives a trailing ``overrides`` positional nothing once an option comes between
+    # it and the config (``CONFIG --out DIR key=value``); take key=value words left over.
+    if extra and hasattr(args, "overrides") and all("=" in w and not w.startswith("-")
+                                                    for w in extra):
+        args.overrides = [*args.overrides, *extra]
+    elif extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
     from jaxden.compile_cache import enable_compilation_cache
 
     enable_compilation_cache()

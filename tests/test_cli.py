@@ -59,6 +59,21 @@ def test_config_key_error_names_key_and_file(tmp_path, capsys):
     assert "crop_sise" in err and "bad.toml" in err and "crop_size" in err
 
 
+def test_overrides_are_taken_after_options_too(tmp_path, capsys):
+    """`jaxden dataset build CONFIG --out DIR key=value` (the order the dataset configs document)
+    applies the override just as `CONFIG key=value --out DIR` does: a bad key is reported by
+    the config loader, naming it, in both orders; a stray word is an argparse error."""
+    config = "experiments/configs/dataset-tiny.toml"
+    out = str(tmp_path / "d")
+    for argv in (["dataset", "build", config, "--out", out, "crop_sise=32"],
+                 ["dataset", "build", config, "crop_sise=32", "--out", out]):
+        assert main(argv) == 2
+        assert "crop_sise" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["dataset", "build", config, "--out", out, "stray"])
+    assert "unrecognized arguments: stray" in capsys.readouterr().err
+
+
 def test_dataset_build_verify_and_denoise_with_oidn(tmp_path, capsys):
     out = tmp_path / "tiny"
     assert main(["dataset", "build", "experiments/configs/dataset-tiny.toml", "--out", str(out),
