@@ -13,6 +13,7 @@ At ``prediction == target`` |x - y| has a subgradient; JAX returns sign(0) = 0 t
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 from jaxden import metrics
@@ -33,6 +34,21 @@ def relmse_loss(prediction, target, eps: float = metrics.EPS):
     return jnp.mean(metrics.relmse(prediction, target, eps))
 
 
+def relmse_sg_loss(prediction, target, eps: float = metrics.EPS):
+    """Mean of (x - y)^2 / (sg(x)^2 + eps), sg = stop_gradient: scalar.
+
+    relMSE normalised by the prediction instead of the target, with no gradient through the
+    denominator (Lehtinen et al. 2018, Noise2Noise, Sec. 3.3, for Monte Carlo targets). With a
+    noisy reference y = mu + n, E[n] = 0, the gradient 2 (x - y) / (sg(x)^2 + eps) has zero
+    mean exactly at x = mu, so reference noise does not move the optimum; ``relmse`` (target
+    in the denominator) and ``smape`` both pull x below mu where the reference noise is skewed
+    (fireflies).
+    """
+    pred, target = metrics._pair(prediction, target, "relmse_sg")
+    scale = jnp.square(jax.lax.stop_gradient(pred)) + eps
+    return jnp.mean(jnp.square(pred - target) / scale)
+
+
 def smape_loss(prediction, target, eps: float = metrics.EPS):
     """Mean of |x - y| / (|x| + |y| + eps): scalar (WSKP's and PDNet's training loss)."""
     return jnp.mean(metrics.smape(prediction, target, eps))
@@ -42,15 +58,18 @@ def smape_loss(prediction, target, eps: float = metrics.EPS):
 l1 = l1_loss
 l2 = l2_loss
 relmse = relmse_loss
+relmse_sg = relmse_sg_loss
 smape = smape_loss
 
 LOSSES = {
     "l1": l1_loss,
     "l2": l2_loss,
     "relmse": relmse_loss,
+    "relmse_sg": relmse_sg_loss,
     "smape": smape_loss,
 }
 
 __all__ = [
-    "LOSSES", "l1", "l1_loss", "l2", "l2_loss", "relmse", "relmse_loss", "smape", "smape_loss",
+    "LOSSES", "l1", "l1_loss", "l2", "l2_loss", "relmse", "relmse_loss", "relmse_sg",
+    "relmse_sg_loss", "smape", "smape_loss",
 ]

@@ -54,7 +54,7 @@ class OptimConfig:
     learning_rate: float = 1e-3  # the peak of the one-cycle schedule
     schedule: Literal["onecycle", "constant"] = "onecycle"
     warmup_fraction: float = 0.05
-    loss: Literal["smape", "relmse", "l1", "l2"] = "smape"
+    loss: Literal["smape", "relmse", "relmse_sg", "l1", "l2"] = "smape"
     grad_clip_norm: float | None = None
 
     def __post_init__(self):
@@ -175,7 +175,7 @@ def make_optimizer(optim: OptimConfig) -> optax.GradientTransformation:
 def loss_function(name: str) -> Callable[[jax.Array, jax.Array], jax.Array]:
     from jaxden import losses
 
-    table = {"smape": losses.smape, "relmse": losses.relmse, "l1": losses.l1, "l2": losses.l2}
+    table = losses.LOSSES
     if name not in table:
         raise ConfigError(f"unknown loss {name!r}; choose from {', '.join(table)}")
     return table[name]
