@@ -1,0 +1,222 @@
+"""The paper's Figure 10 on our data: convergence plots and a progressive image series.
+
+    # error vs spp (log-log), mean over the test crops, from pd_report.py's JSON (no rendering)
+    python experiments/pd_figure.py convergence --report experiments/results/pd-oidn-high.json \
+        --out experiments/results/fig10-convergence-high
+    # one held-out crop at several spp: MC | OIDN | PD(OIDN) | alpha' | reference (sRGB previews)
+    python experiments/pd_figure.py images --data data/test-high --crop s002-c000 \
+        --spp 64 512 4096 --out experiments/results/fig10-s002
+
+``convergence`` writes OUT.svg (RMSE and relMSE panels: MC, OIDN, PD(OIDN), the oracle mix)
+and OUT.json (the plotted means and the report's provenance). ``images`` writes OUT.png (rows:
+spp; columns as above, one exposure for the whole figure: 1 / the 99th percentile of the
+reference's channel values unless ``--exposure``; alpha' shown per channel as colour, 1 =
+all denoised) and OUT.json (provenance, per-panel RMSE against the reference). Previews are
+8-bit sRGB and clip; the numbers come from the float images.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+METHODS = (("mc", "MC", "#7f7f7f"), ("denoiser", "OIDN", "#1f77b4"),
+           ("pd", "PD(OIDN)", "#d62728"), ("oracle", "oracle mix (8x8 tiles)", "#2ca02c"))
+PANELS = (("rmse", "RMSE"), ("relmse", "relMSE"))
+
+
+def mean_curves(rows) -> dict:
+    """{metric: {method: [(spp, mean over crops), ...]}} from pd_report rows."""
+    levels = sorted({row["spp"] for row in rows})
+    curves = {}
+    for metric, _ in PANELS:
+        curves[metric] = {
+            method: [(spp, float(np.mean([r[f"{method}_{metric}"] for r in rows
+                                          if r["spp"] == spp]))) for spp in levels]
+            for method, _, _ in METHODS}
+    return curves
+
+
+def _log_ticks(lo: float, hi: float) -> list[float]:
+    return [10.0**k for k in range(int(np.floor(np.log10(lo))), int(np.ceil(np.log10(hi))) + 1)]
+
+
+def svg_plot(curves: dict, title: str) -> str:
+    """Two log-log panels side by side, as an SVG document (no plotting dependency)."""
+    pw, ph, ml, mr, mt, mb = 360, 280, 62, 14, 36, 46
+    width = 2 * (pw + ml + mr)
+    height = ph + mt + mb + 22 * len(METHODS)
+    out = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
+           f'font-family="sans-serif" font-size="12">',
+           f'<rect width="{width}" height="{height}" fill="white"/>',
+           f'<text x="{width / 2}" y="18" text-anchor="middle" font-size="14">{title}</text>']
+    for p, (metric, label) in enumerate(PANELS):
+        ox = p * (pw + ml + mr) + ml
+        data = curves[metric]
+        spps = [s for s, _ in next(iter(data.values()))]
+        values = [v for series in data.values() for _, v in series if v > 0]
+        x0, x1 = np.log2(min(spps)), np.log2(max(spps))
+        ticks = _log_ticks(min(values), max(values))
+        y0, y1 = np.log10(ticks[0]), np.log10(ticks[-1])
+
+        def px(spp, x0=x0, x1=x1, ox=ox):
+            return ox + (np.log2(spp) - x0) / max(x1 - x0, 1e-9) * pw
+
+        def py(v, y0=y0, y1=y1):
+            return mt + ph - (np.log10(v) - y0) / max(y1 - y0, 1e-9) * ph
+
+        out.append(f'<rect x="{ox}" y="{mt}" width="{pw}" height="{ph}" fill="none" '
+                   f'stroke="black"/>')
+        for t in ticks:
+            y = py(t)
+            out.append(f'<line x1="{ox}" y1="{y:.1f}" x2="{ox + pw}" y2="{y:.1f}" '
+                       f'stroke="#ddd"/>')
+            out.append(f'<text x="{ox - 4}" y="{y + 4:.1f}" text-anchor="end">{t:.0e}</text>')
+        for s in spps:
+            x = px(s)
+            out.append(f'<line x1="{x:.1f}" y1="{mt}" x2="{x:.1f}" y2="{mt + ph}" '
+                       f'stroke="#eee"/>')
+            out.append(f'<text x="{x:.1f}" y="{mt + ph + 16}" text-anchor="middle">{s}</text>')
+        out.append(f'<text x="{ox + pw / 2}" y="{mt + ph + 34}" text-anchor="middle">'
+                   f'samples per pixel</text>')
+        out.append(f'<text x="{ox + 8}" y="{mt + 16}">{label} (mean over crops)</text>')
+        for method, _, colour in METHODS:
+            points = " ".join(f"{px(s):.1f},{py(v):.1f}" for s, v in data[method] if v > 0)
+            dash = ' stroke-dasharray="5,3"' if method == "oracle" else ""
+            out.append(f'<polyline points="{points}" fill="none" stroke="{colour}" '
+                       f'stroke-width="2"{dash}/>')
+            for s, v in data[method]:
+                if v > 0:
+                    out.append(f'<circle cx="{px(s):.1f}" cy="{py(v):.1f}" r="2.5" '
+                               f'fill="{colour}"/>')
+    for i, (_, name, colour) in enumerate(METHODS):
+        y = mt + ph + mb + 14 + 22 * i
+        out.append(f'<line x1="{ml}" y1="{y - 4}" x2="{ml + 30}" y2="{y - 4}" '
+                   f'stroke="{colour}" stroke-width="2"/>')
+        out.append(f'<text x="{ml + 38}" y="{y}">{name}</text>')
+    out.append("</svg>")
+    return "\n".join(out) + "\n"
+
+
+def cmd_convergence(args) -> None:
+    from jaxden.fileio import atomic_write_text
+
+    report = json.loads(Path(args.report).read_text())
+    curves = mean_curves(report["rows"])
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    title = args.title or f"{report['provenance']['dataset']['config']['name']}: error vs spp"
+    atomic_write_text(out.with_suffix(".svg"), svg_plot(curves, title))
+    command = "python experiments/pd_figure.py " + " ".join(sys.argv[1:])
+    atomic_write_text(out.with_suffix(".json"), json.dumps(
+        {"curves": curves, "provenance": {"command": command, "report": str(args.report),
+                                          "report_provenance": report["provenance"]}},
+        indent=1, sort_keys=True) + "\n")
+    print(f"wrote {out.with_suffix('.svg')} and {out.with_suffix('.json')}")
+
+
+def cmd_images(args) -> None:
+    import jax
+
+    from pd_report import _weights_identity, provenance
+
+    from jaxden import metrics
+    from jaxden.denoisers import load_denoiser
+    from jaxden.fileio import atomic_write_text
+    from jaxden.io.png import preview, write_png
+    from jaxden.pdreport import iter_crops
+    from jaxden.progressive import load_mixer, progressive_denoise
+
+    found = None
+    for crop, reference, inputs in iter_crops(args.data, "all", tuple(args.spp)):
+        if crop.id == args.crop:
+            found = crop, reference, inputs
+            break
+    if found is None:
+        raise SystemExit(f"{args.data}: no crop {args.crop!r}")
+    crop, reference, inputs = found
+    missing = sorted(set(args.spp) - {spp for spp, _ in inputs})
+    if missing:
+        raise SystemExit(f"{args.data}: crop {args.crop} has no inputs at spp {missing}")
+    source = provenance(args, {"denoiser": args.denoiser, "mixer": _weights_identity(args.mixer),
+                               "crop": crop.id, "scene": crop.scene})
+    model = load_denoiser(args.denoiser)
+    params, config = load_mixer(args.mixer)
+    ref = np.asarray(reference.color, np.float64)
+    exposure = args.exposure or 1.0 / max(float(np.percentile(ref, 99)), 1e-6)
+    rows, errors = [], []
+    for index, (spp, frame) in enumerate(inputs):
+        z, alpha_prime, extras = progressive_denoise(
+            frame, model, params, config, jax.random.fold_in(jax.random.PRNGKey(args.seed), index),
+            num_probes=args.probes)
+        panels = {"MC": frame.color, "OIDN": extras["denoised"], "PD(OIDN)": z}
+        errors.append({"spp": spp, "alpha_prime_mean": float(np.mean(alpha_prime)),
+                       **{name: float(metrics.rmse(np.asarray(image, np.float64), ref))
+                          for name, image in panels.items()}})
+        tiles = [preview(np.asarray(image), exposure) for image in panels.values()]
+        tiles.append(preview(np.clip(np.asarray(alpha_prime, np.float64), 0, 1)))
+        tiles.append(preview(ref, exposure))
+        rows.append(_hstack(tiles))
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_png(out.with_suffix(".png"), _vstack(rows))
+    result = {"columns": ["MC", "OIDN", "PD(OIDN)", "alpha'", "reference"],
+              "rows_spp": [e["spp"] for e in errors], "exposure": exposure, "rmse": errors,
+              "provenance": source}
+    atomic_write_text(out.with_suffix(".json"), json.dumps(result, indent=1, sort_keys=True)
+                      + "\n")
+    for e in errors:
+        print(e)
+    print(f"wrote {out.with_suffix('.png')} and {out.with_suffix('.json')}")
+
+
+GAP = 4
+
+
+def _hstack(tiles):
+    h = tiles[0].shape[0]
+    gap = np.full((h, GAP, 3), 255, np.uint8)
+    parts = []
+    for tile in tiles:
+        parts += [tile, gap]
+    return np.concatenate(parts[:-1], axis=1)
+
+
+def _vstack(rows):
+    gap = np.full((GAP, rows[0].shape[1], 3), 255, np.uint8)
+    parts = []
+    for row in rows:
+        parts += [row, gap]
+    return np.concatenate(parts[:-1], axis=0)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("convergence", help="error vs spp from a pd_report.py JSON")
+    p.add_argument("--report", required=True)
+    p.add_argument("--title", default=None)
+    p.add_argument("--out", required=True, help="output path without suffix")
+    p.set_defaults(run=cmd_convergence)
+    p = sub.add_parser("images", help="one crop at several spp: MC, OIDN, PD, alpha', reference")
+    p.add_argument("--data", required=True)
+    p.add_argument("--crop", required=True)
+    p.add_argument("--spp", type=int, nargs="+", required=True)
+    p.add_argument("--denoiser", default="oidn")
+    p.add_argument("--mixer", default="oidn-pd")
+    p.add_argument("--seed", type=int, default=0, help="seed of the SURE probes")
+    p.add_argument("--probes", type=int, default=4)
+    p.add_argument("--exposure", type=float, default=None)
+    p.add_argument("--out", required=True, help="output path without suffix")
+    p.set_defaults(run=cmd_images)
+    args = parser.parse_args(argv)
+    args.run(args)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,58 @@
+"""Pure helpers of the experiment scripts (experiments/*.py), tested without data or renders."""
+
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent.parent / "experiments"))
+pd_figure = pytest.importorskip("pd_figure")
+sure_stein = pytest.importorskip("sure_stein")
+
+
+def _rows():
+    rows = []
+    for crop, scale in (("a", 1.0), ("b", 3.0)):
+        for spp in (32, 64, 128):
+            row = {"crop": crop, "spp": spp}
+            for i, (method, _, _) in enumerate(pd_figure.METHODS):
+                for metric, _ in pd_figure.PANELS:
+                    row[f"{method}_{metric}"] = scale * (i + 1) * 0.01 * 32 / spp
+            rows.append(row)
+    return rows
+
+
+def test_mean_curves_average_over_crops():
+    curves = pd_figure.mean_curves(_rows())
+    # mean of scale 1 and 3 = 2; MC is method 0
+    assert curves["rmse"]["mc"] == [(32, pytest.approx(0.02)), (64, pytest.approx(0.01)),
+                                     (128, pytest.approx(0.005))]
+    assert curves["relmse"]["oracle"][0] == (32, pytest.approx(0.08))
+
+
+def test_svg_plot_is_valid_and_maps_log_values_to_ticks():
+    svg = pd_figure.svg_plot(pd_figure.mean_curves(_rows()), "t")
+    root = ET.fromstring(svg)
+    ns = "{http://www.w3.org/2000/svg}"
+    lines = root.findall(f"{ns}polyline")
+    assert len(lines) == len(pd_figure.PANELS) * len(pd_figure.METHODS)
+    # the 1e-02 tick label and MC's point at 64 spp (value 0.01) sit at the same height
+    ticks = {t.text: float(t.get("y")) - 4 for t in root.findall(f"{ns}text")
+             if t.get("text-anchor") == "end"}
+    mc = [tuple(map(float, p.split(","))) for p in lines[0].get("points").split()]
+    assert mc[1][1] == pytest.approx(ticks["1e-02"], abs=0.06)
+    assert mc[0][0] < mc[1][0] < mc[2][0] and mc[0][1] < mc[1][1] < mc[2][1]  # falls with spp
+
+
+def test_neighbour_mean_excludes_the_centre():
+    rng = np.random.default_rng(0)
+    values = rng.random((5, 6, 3))
+    got = sure_stein.neighbour_mean(values)
+    padded = np.pad(values, ((1, 1), (1, 1), (0, 0)), mode="edge")
+    i, j = 2, 3
+    window = padded[i:i + 3, j:j + 3]
+    np.testing.assert_allclose(got[i, j], (window.sum((0, 1)) - values[i, j]) / 8)
+    corner = padded[0:3, 0:3]
+    np.testing.assert_allclose(got[0, 0], (corner.sum((0, 1)) - values[0, 0]) / 8)
