@@ -50,8 +50,8 @@ def svg_plot(curves: dict, title: str) -> str:
     pw, ph, ml, mr, mt, mb = 360, 280, 62, 14, 36, 46
     width = 2 * (pw + ml + mr)
     height = ph + mt + mb + 22 * len(METHODS)
-    out = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
-           f'font-family="sans-serif" font-size="12">',
+    out = [(f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
+            f'font-family="sans-serif" font-size="12">'),
            f'<rect width="{width}" height="{height}" fill="white"/>',
            f'<text x="{width / 2}" y="18" text-anchor="middle" font-size="14">{title}</text>']
     for p, (metric, label) in enumerate(PANELS):
@@ -121,7 +121,6 @@ def cmd_convergence(args) -> None:
 
 def cmd_images(args) -> None:
     import jax
-
     from pd_report import _weights_identity, provenance
 
     from jaxden import metrics

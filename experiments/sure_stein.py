@@ -113,12 +113,12 @@ def main(argv=None) -> int:
                "neighbour_var": stat(neighbour), "secant": stat(secant),
                "var_estimated": stat(var), "var_empirical": var_empirical}
     table = "\n".join([
-        f"{args.crop} ({crop.scene}) at {args.spp} spp, OIDN, {args.renders} independent renders; "
-        "image means per pixel and channel:",
+        (f"{args.crop} ({crop.scene}) at {args.spp} spp, OIDN, {args.renders} independent "
+         "renders; image means per pixel and channel:"),
         "",
-        "| empirical Cov(x, y) (bootstrap 95 %) | diagonal-probe term | shared-probe term | "
-        "oracle-variance term | neighbour-variance term | noise-scale secant | estimated var | "
-        "empirical var |",
+        ("| empirical Cov(x, y) (bootstrap 95 %) | diagonal-probe term | shared-probe term | "
+         "oracle-variance term | neighbour-variance term | noise-scale secant | estimated var | "
+         "empirical var |"),
         "|---:|---:|---:|---:|---:|---:|---:|---:|",
         f"| {empirical:.4g} ({empirical_95[0]:.3g}..{empirical_95[1]:.3g}) | "
         f"{summary['diagonal']['mean']:.4g} ± "

@@ -122,7 +122,7 @@ def test_bad_inputs():
     bufs = buffer_frames(firefly_samples(rng, rng.uniform(0.1, 1, (4, 4, 3)), 1, 8), 2)
     full = combine_buffers(bufs)
     xk = np.stack([b.color for b in bufs])
-    ident = lambda f: np.asarray(f.color)  # noqa: E731
+    ident = lambda f: np.asarray(f.color)
     with pytest.raises(FrameError, match="not the mean"):
         sure_buffers(ident, full, xk * 1.1)
     with pytest.raises(FrameError, match="K >= 2"):
