@@ -6,6 +6,10 @@
     # SURE accuracy: image-mean SURE vs noise-corrected true MSE, per denoiser and spp
     python experiments/pd_report.py sure --data data/test --denoiser oidn \
         --denoiser runs/wskp-default --out experiments/results/sure-accuracy
+    # the same on fresh renders made of 16 sub-buffers: Stein SURE vs sub-buffer SURE
+    python experiments/pd_report.py sure-buffers --data data/test-high --denoiser oidn \
+        --denoiser runs/wskp-default --buffers 16 --spp 64 128 256 512 1024 \
+        --out experiments/results/sure-buffers-high
 
 Each run writes OUT.json (per-crop rows, per-spp summary, headline ratios, provenance: the
 command, git commit, dataset manifest hash and config, seeds, weights hash) and OUT.md (the
@@ -107,10 +111,39 @@ def cmd_sure(args: argparse.Namespace) -> None:
     write_report(Path(args.out), result, pdreport.markdown_sure(summaries))
 
 
+def cmd_sure_buffers(args: argparse.Namespace) -> None:
+    from jaxden import pdreport
+
+    source = provenance(args, {"denoisers": [_weights_identity(s) for s in args.denoiser],
+                               "buffers": args.buffers,
+                               "renders": args.renders, "render_seed_base": pdreport.BUFFER_SEED_BASE})
+    rows = pdreport.sure_accuracy_buffers(args.data, args.denoiser, buffers=args.buffers,
+                                          renders=args.renders, split=args.split, seed=args.seed,
+                                          num_probes=args.probes, spp=args.spp, progress=True)
+    summaries = {name: {"stein": pdreport.summarize_sure(r),
+                        "buffers": pdreport.summarize_sure(r, key="sure_buffers")}
+                 for name, r in rows.items()}
+    lines = [f"{args.renders} fresh render(s) per crop and spp, each the mean of "
+             f"{args.buffers} independent sub-buffers; "
+             "estimate / noise-corrected true MSE (mean over crops of each, and the median "
+             "crop's ratio).", "",
+             "| denoiser | spp | true MSE | Stein SURE / MSE | sub-buffer SURE / MSE | "
+             "median crop, Stein | median crop, sub-buffer |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
+    for name, pair in summaries.items():
+        for level, st in pair["stein"]["per_spp"].items():
+            bu = pair["buffers"]["per_spp"][level]
+            lines.append(f"| {name} | {level} | {st['mse_nc']:.4g} | {st['ratio']:.3f} | "
+                         f"{bu['ratio']:.3f} | {st['median_crop_ratio']:.3f} | "
+                         f"{bu['median_crop_ratio']:.3f} |")
+    result = {"summary": summaries, "rows": rows, "provenance": source}
+    write_report(Path(args.out), result, "\n".join(lines))
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    for name, func in (("pd", cmd_pd), ("sure", cmd_sure)):
+    for name, func in (("pd", cmd_pd), ("sure", cmd_sure), ("sure-buffers", cmd_sure_buffers)):
         p = sub.add_parser(name)
         p.add_argument("--data", required=True, help="complete dataset folder (the test set)")
         p.add_argument("--split", default="test", help="split to evaluate (test, val, all)")
@@ -123,6 +156,11 @@ def main(argv=None) -> int:
         p.add_argument("--out", required=True, help="output path without suffix")
         if name == "pd":
             p.add_argument("--mixer", default="oidn-pd", help="mixer spec (default oidn-pd)")
+        if name == "sure-buffers":
+            p.add_argument("--buffers", type=int, default=16,
+                           help="independent sub-buffers per render (spp / buffers each)")
+            p.add_argument("--renders", type=int, default=1,
+                           help="independent renders per crop and spp")
         p.set_defaults(func=func)
     args = parser.parse_args(argv)
     from jaxden.compile_cache import enable_compilation_cache

@@ -25,7 +25,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from jaxden.errors import DatasetError
+from jaxden.errors import ConfigError, DatasetError
 
 PD_METHODS = ("mc", "denoiser", "mixed", "pd", "pd_pc", "oracle")
 ORACLE_BLOCK = 8
@@ -198,6 +198,92 @@ def sure_accuracy(dataset_dir, denoiser, *, split: str = "test", seed: int = 0,
     return rows
 
 
+BUFFER_SEED_BASE = 800_000
+
+
+def sure_accuracy_buffers(dataset_dir, denoisers, *, buffers: int = 16, renders: int = 1,
+                          split: str = "test",
+                          seed: int = 0, num_probes: int = 4, method: str = "auto",
+                          spp: tuple[int, ...] | None = None, render_fn=None,
+                          progress: bool = False) -> dict[str, list[dict[str, Any]]]:
+    """Stein SURE and sub-buffer SURE of each denoiser on the same fresh renders.
+
+    For every crop of ``split``, spp level (levels divisible by ``buffers`` into >= 2 spp
+    each) and each of ``renders`` independent renders r, renders ``buffers`` independent
+    sub-buffers at spp / buffers with render seeds ``BUFFER_SEED_BASE + 1000 * level_index +
+    buffers * r + k`` (refused if one collides with the dataset's seeds for that crop), combines them (:func:`jaxden.sure.combine_buffers`: the same image
+    as one render of all the samples) and computes, for each denoiser, ``sure`` (probes:
+    :func:`jaxden.pdcache.denoise_with_sure`, key ``fold_in(PRNGKey(seed), index)``),
+    ``sure_buffers`` (:func:`jaxden.sure.sure_buffers`) and the noise-corrected true MSE of
+    the output against the dataset's reference. ``render_fn(scene, spp, seed, size, crop)``
+    defaults to the dataset builder's renderer.
+
+    Returns {denoiser name: rows}, rows as in :func:`sure_accuracy` plus ``sure_buffers`` and
+    ``render`` (r); the summaries average over crops and renders alike.
+    """
+    import jax
+
+    from jaxden import metrics
+    from jaxden.data.layout import load_manifest
+    from jaxden.denoisers import load_denoiser
+    from jaxden.pdcache import denoise_with_sure
+    from jaxden.sure import combine_buffers, sure_buffers
+
+    if render_fn is None:
+        from jaxden.data.builder import render_cached
+
+        def render_fn(scene, level, seed, size, crop):
+            return render_cached(scene, level, seed=seed, size=size, crop=crop).numpy()
+
+    if not isinstance(buffers, int) or buffers < 2:
+        raise ConfigError(f"buffers must be an integer >= 2, got {buffers!r}")
+    if not isinstance(renders, int) or renders < 1 or buffers * renders > 1000:
+        raise ConfigError(f"renders must be an integer >= 1 with buffers * renders <= 1000, "
+                          f"got {renders!r}")
+    models = [load_denoiser(d) if isinstance(d, str) else d for d in denoisers]
+    manifest = load_manifest(dataset_dir)
+    size = tuple(manifest.config["size"])
+    base = jax.random.PRNGKey(seed)
+    rows: dict[str, list[dict[str, Any]]] = {m.name: [] for m in models}
+    index = 0
+    crops = iter_crops(dataset_dir, split, spp)
+    for crop, reference, inputs in _progress(crops, _crop_count(dataset_dir, split), progress,
+                                             f"buffer SURE ({buffers} buffers)"):
+        used = {item.seed for item in manifest.items_of(crop.id)}
+        for level_index, (level, _) in enumerate(inputs):
+            if level % buffers or level // buffers < 2:
+                continue
+            for r in range(renders):
+                seeds = [BUFFER_SEED_BASE + 1000 * level_index + buffers * r + k
+                         for k in range(buffers)]
+                if used & set(seeds):
+                    raise DatasetError(f"buffer render seeds {seeds[0]}.. collide with the "
+                                       f"dataset's seeds for {crop.id}")
+                parts = [render_fn(crop.scene, level // buffers, s, size, crop.window)
+                         for s in seeds]
+                frame = combine_buffers(parts).replace(spp=None)
+                frame = frame.replace(**{name: np.asarray(getattr(frame, name), np.float32)
+                                         for name in frame.features()})
+                colours = np.stack([np.asarray(p.color, np.float64) for p in parts])
+                for model in models:
+                    result, _ = denoise_with_sure(model, frame, jax.random.fold_in(base, index),
+                                                  num_probes=num_probes, method=method)
+                    jk = sure_buffers(model, frame, colours)
+                    y = np.asarray(result.denoised, np.float32)
+                    rows[model.name].append({
+                        "crop": crop.id, "scene": crop.scene, "spp": level, "buffers": buffers,
+                        "render": r,
+                        "sure": float(np.mean(np.asarray(result.sure))),
+                        "sure_buffers": float(np.mean(jk.sure)),
+                        "mse_nc": float(metrics.noise_corrected_mse(y, reference.color,
+                                                                    reference.variance)),
+                        "mse_raw": float(metrics.mse(y, reference.color)),
+                        "reference_var": float(np.mean(reference.variance)),
+                    })
+                index += 1
+    return rows
+
+
 def _by_spp(rows) -> dict[int, list[dict]]:
     groups: dict[int, list[dict]] = defaultdict(list)
     for row in rows:
@@ -241,13 +327,14 @@ def summarize_progressive(rows) -> dict[str, Any]:
             "crops": len({r["crop"] for r in rows})}
 
 
-def summarize_sure(rows) -> dict[str, Any]:
+def summarize_sure(rows, key: str = "sure") -> dict[str, Any]:
     """Per spp: ``sure`` and ``mse_nc`` means over crops, ``ratio`` = mean SURE / mean true MSE
     (noise-corrected), ``median_crop_ratio`` and the mean reference variance relative to the
-    true MSE (how much the correction matters)."""
+    true MSE (how much the correction matters). ``key``: the row field holding the estimate
+    (``sure_buffers`` for the sub-buffer estimator)."""
     per_spp = {}
     for level, group in _by_spp(rows).items():
-        sure = np.array([r["sure"] for r in group])
+        sure = np.array([r[key] for r in group])
         true = np.array([r["mse_nc"] for r in group])
         ref_var = np.array([r["reference_var"] for r in group])
         per_spp[level] = {

@@ -457,8 +457,9 @@ def combine_buffers(buffers) -> Frame:
     Colour: the mean of the buffers' colours. Variance of the mean: the pooled sample variance
     of all K * m samples over K * m, from each buffer's variance of its mean (m samples each;
     the frames must have ``spp``) and the spread of the buffer means, exactly as if one
-    render had taken all the samples. Features (albedo, normal, ...) and the other fields come
-    from the first buffer. Returns float64 NumPy arrays.
+    render had taken all the samples. Features (albedo, normal, ...): the mean over the
+    buffers (per-sample averages, as one render of all samples gives them; a present feature
+    must be present in every buffer). Returns float64 NumPy arrays.
     """
     frames = [b.numpy() if isinstance(b, Frame) else b for b in buffers]
     if len(frames) < 2 or not all(isinstance(f, Frame) for f in frames):
@@ -482,7 +483,15 @@ def combine_buffers(buffers) -> Frame:
     mean = means.mean(axis=0)
     squares = (var_means * m * (m - 1)).sum(axis=0) + m * np.square(means - mean).sum(axis=0)
     n = k * m
-    return frames[0].replace(color=mean, variance=squares / (n - 1) / n,
+    features = {}
+    for name in frames[0].features():
+        if name in ("color", "variance"):
+            continue
+        if any(getattr(f, name) is None for f in frames):
+            raise FrameError(f"combine_buffers: {name} is in buffer 0 but not in every buffer")
+        features[name] = np.mean([np.asarray(getattr(f, name), np.float64) for f in frames],
+                                 axis=0)
+    return frames[0].replace(color=mean, variance=squares / (n - 1) / n, **features,
                              spp=np.full(np.shape(frames[0].spp), n, np.float32))
 
 

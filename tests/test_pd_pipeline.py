@@ -446,3 +446,46 @@ def test_oracle_mix_is_the_best_tile_alpha():
                 assert err <= min(np.sum((x[t][..., c] - r[t][..., c]) ** 2),
                                   np.sum((y[t][..., c] - r[t][..., c]) ** 2)) + 1e-4
                 assert brute <= err + 1e-3 * max(err, 1e-9) + 1e-6  # the grid finds it too
+
+
+def test_sure_accuracy_buffers_rows(trained, monkeypatch):
+    """sure_accuracy_buffers with a stand-in renderer: the seeds it asks for, the combined
+    frame, the sub-buffer SURE equal to sure_buffers computed directly; seeds that collide
+    with the dataset's are refused."""
+    from jaxden import pdreport
+    from jaxden.data.layout import load_manifest
+    from jaxden.denoisers import load_denoiser
+    from jaxden.errors import DatasetError
+    from jaxden.sure import combine_buffers, sure_buffers
+
+    dataset, _ = trained
+    _, reference, levels = next(pdreport.iter_crops(dataset, "all", spp=(8,)))
+    template = levels[0][1]
+    calls = []
+
+    def fake_render(scene, spp, seed, size, crop):
+        calls.append((scene, spp, seed))
+        rng = np.random.default_rng(seed)
+        noise = rng.exponential(1.0, np.shape(reference.color)) - 1.0
+        return template.replace(color=(reference.color * (1 + 0.3 * noise)).astype(np.float32),
+                                variance=np.full(np.shape(reference.color), 0.01, np.float32),
+                                spp=np.float32(spp))
+
+    rows = pdreport.sure_accuracy_buffers(dataset, ["oidn"], buffers=4, renders=2, split="all",
+                                          spp=(8, 32), render_fn=fake_render)["oidn"]
+    assert len(rows) == 4 * 2 * 2  # crops x spp levels x renders
+    assert [c[1] for c in calls[:8]] == [2] * 8  # 8 spp = 4 buffers of 2
+    first_seeds = [c[2] for c in calls[:8]]
+    assert first_seeds == [pdreport.BUFFER_SEED_BASE + k for k in range(8)]
+    parts = [fake_render("x", 2, s, None, None) for s in first_seeds[:4]]
+    combined = combine_buffers(parts)
+    direct = sure_buffers(load_denoiser("oidn"), combined.replace(spp=None),
+                          np.stack([p.color for p in parts]))
+    assert rows[0]["sure_buffers"] == pytest.approx(float(np.mean(direct.sure)), rel=1e-4)
+    assert rows[0]["render"] == 0 and rows[1]["render"] == 1
+
+    used = min(i.seed for i in load_manifest(dataset).items)
+    monkeypatch.setattr(pdreport, "BUFFER_SEED_BASE", used)
+    with pytest.raises(DatasetError, match="collide"):
+        pdreport.sure_accuracy_buffers(dataset, ["oidn"], buffers=4, split="all", spp=(8,),
+                                       render_fn=fake_render)

@@ -42,6 +42,9 @@ def test_combine_buffers_equals_one_render_of_all_samples():
     full = combine_buffers(buffer_frames(samples, 4))
     np.testing.assert_allclose(full.color, samples.mean(-1), rtol=1e-6)
     np.testing.assert_allclose(full.variance, samples.var(-1, ddof=1) / 24, rtol=1e-5)
+    albedo = [np.full((5, 6, 3), i / 4.0) for i in range(4)]
+    with_albedo = [b.replace(albedo=a) for b, a in zip(buffer_frames(samples, 4), albedo)]
+    np.testing.assert_allclose(combine_buffers(with_albedo).albedo, 0.375)
     assert float(np.asarray(full.spp)) == 24
 
 
