@@ -100,6 +100,8 @@ def cmd_sure(args: argparse.Namespace) -> int:
     out = _exr_out(args.out, "--out")
     frame = read_input_frame(args, "jaxden sure")
     denoiser = load_denoiser(args.denoiser)
+    if args.buffers:
+        return _sure_from_buffers(args, frame, denoiser, out)
     method = resolve_method(args.method, denoiser)
     eps = args.eps if args.eps is not None else default_eps(method, denoiser.differentiable)
     result, _ = denoise_with_sure(
@@ -113,6 +115,38 @@ def cmd_sure(args: argparse.Namespace) -> int:
     mse = float(np.mean(np.asarray(result.sure)))
     print(f"wrote {out}: R,G,B = denoised by {denoiser.name}, sure.* = per-pixel SURE "
           f"({args.probes} probes, {method}); image SURE (MSE estimate) = {mse:.6g}")
+    return 0
+
+
+def _sure_from_buffers(args: argparse.Namespace, frame, denoiser, out: Path) -> int:
+    """``jaxden sure IN.exr --buffers B1.exr ... BK.exr``: sub-buffer SURE (no probes)."""
+    import numpy as np
+
+    from jaxden.io.exr import read_frame
+    from jaxden.pdcache import write_sure_exr
+    from jaxden.sure import sure_buffers
+
+    if len(args.buffers) < 2:
+        raise ConfigError(f"--buffers needs at least 2 files, got {len(args.buffers)}")
+    colours = []
+    for path in args.buffers:
+        buffer = read_frame(path, require=("color",), nonfinite=args.nonfinite)
+        if np.shape(buffer.color) != np.shape(frame.color):
+            raise FrameError(f"{path}: shape {np.shape(buffer.color)[:-1]}, but {args.input} "
+                             f"is {np.shape(frame.color)[:-1]}")
+        colours.append(np.asarray(buffer.color))
+    try:
+        result = sure_buffers(denoiser, frame, np.stack(colours), nonfinite=args.nonfinite)
+    except FrameError as error:
+        raise FrameError(f"{args.input} with --buffers {' '.join(map(str, args.buffers))}: "
+                         f"{error}") from None
+    write_sure_exr(out, result, attributes={
+        "source": str(args.input), "denoiser": denoiser.name, "method": "buffers",
+        "buffers": len(colours)})
+    mse = float(np.mean(result.sure))
+    print(f"wrote {out}: R,G,B = denoised by {denoiser.name}, sure.* = per-pixel SURE "
+          f"(sub-buffer covariance from {len(colours)} buffers); image SURE (MSE estimate) = "
+          f"{mse:.6g}")
     return 0
 
 
@@ -217,6 +251,11 @@ def add_pd_commands(subparsers, dataset_subparsers=None) -> None:
     )
     _input_options(p)
     p.add_argument("--out", required=True, help="output .exr (denoised + sure + divergence)")
+    p.add_argument("--buffers", nargs="+", default=None, metavar="BUFFER.exr",
+                   help="K >= 2 independent sub-buffer renders (equal spp) whose mean is IN: "
+                        "the covariance term comes from leave-one-buffer-out denoising instead "
+                        "of Stein's identity (no Gaussian assumption, K + 1 denoiser calls; "
+                        "see jaxden.sure.sure_buffers); divergence.* then holds that term")
     p.set_defaults(func=cmd_sure)
 
     p = subparsers.add_parser(

@@ -27,6 +27,7 @@ from jaxden.config import load_config
 from jaxden.data.builder import build_dataset, synthetic_render
 from jaxden.data.config import DatasetConfig
 from jaxden.denoisers import make_denoiser
+from jaxden.denoisers import load_denoiser
 from jaxden.errors import FrameError, JaxdenError
 from jaxden.io.exr import read_channels, read_header, read_image, write_channels, write_frame
 from jaxden.pdcache import SureCache, denoise_with_sure
@@ -221,6 +222,35 @@ def test_cli_sure_writes_denoised_and_sure(tmp_path, capsys):
     direct, _ = denoise_with_sure("oidn", frame, jax.random.PRNGKey(4))
     np.testing.assert_array_equal(read_image(out), direct.denoised)
     np.testing.assert_array_equal(read_image(out, ("sure.R", "sure.G", "sure.B")), direct.sure)
+
+
+def test_cli_sure_from_buffers(tmp_path, capsys):
+    """`jaxden sure IN.exr --buffers ...`: equals sure_buffers on the same arrays; buffers
+    that do not average to IN are refused by name."""
+    from jaxden.sure import combine_buffers, sure_buffers
+
+    parts = [small_frame(seed=20 + k, spp=4) for k in range(4)]
+    full = combine_buffers(parts).replace(spp=None)
+    full = full.replace(**{n: np.asarray(getattr(full, n), np.float32) for n in full.features()})
+    source = tmp_path / "full.exr"
+    write_frame(source, full)
+    paths = []
+    for k, part in enumerate(parts):
+        paths.append(tmp_path / f"b{k}.exr")
+        write_frame(paths[-1], part)
+    out = tmp_path / "sure.exr"
+    code, stdout, stderr = run_cli(["sure", source, "--buffers", *paths, "--denoiser", "oidn",
+                                    "--out", out], capsys)
+    assert code == 0, stderr
+    assert "4 buffers" in stdout
+    direct = sure_buffers(load_denoiser("oidn"), full, np.stack([p.color for p in parts]))
+    np.testing.assert_allclose(read_image(out, ("sure.R", "sure.G", "sure.B")), direct.sure,
+                               rtol=1e-5, atol=1e-9)
+    assert read_header(out)["method"] == "buffers"
+    code, _, stderr = run_cli(["sure", source, "--buffers", *paths[:3], "--denoiser", "oidn",
+                               "--out", tmp_path / "bad.exr"], capsys)
+    assert code != 0 and "not the mean" in stderr and "full.exr" in stderr
+    assert not (tmp_path / "bad.exr").exists()
 
 
 def test_cli_sure_reads_files_of_other_renderers(tmp_path, capsys):
