@@ -114,28 +114,47 @@ def cmd_sure(args: argparse.Namespace) -> None:
 def cmd_sure_buffers(args: argparse.Namespace) -> None:
     from jaxden import pdreport
 
-    source = provenance(args, {"denoisers": [_weights_identity(s) for s in args.denoiser],
-                               "buffers": args.buffers,
-                               "renders": args.renders, "render_seed_base": pdreport.BUFFER_SEED_BASE})
-    rows = pdreport.sure_accuracy_buffers(args.data, args.denoiser, buffers=args.buffers,
-                                          renders=args.renders, split=args.split, seed=args.seed,
-                                          num_probes=args.probes, spp=args.spp, progress=True)
+    if args.from_json:  # re-tabulate a finished run (its rows and provenance) without rerunning
+        previous = json.loads(Path(args.from_json).read_text())
+        rows, source = previous["rows"], previous["provenance"]
+        buffers, renders = source["buffers"], source.get("renders", 1)
+    else:
+        source = provenance(args, {"denoisers": [_weights_identity(s) for s in args.denoiser],
+                                   "buffers": args.buffers, "renders": args.renders,
+                                   "render_seed_base": pdreport.BUFFER_SEED_BASE})
+        rows = pdreport.sure_accuracy_buffers(args.data, args.denoiser, buffers=args.buffers,
+                                              renders=args.renders, split=args.split,
+                                              seed=args.seed, num_probes=args.probes,
+                                              spp=args.spp, progress=True)
+        buffers, renders = args.buffers, args.renders
     summaries = {name: {"stein": pdreport.summarize_sure(r),
                         "buffers": pdreport.summarize_sure(r, key="sure_buffers")}
                  for name, r in rows.items()}
-    lines = [f"{args.renders} fresh render(s) per crop and spp, each the mean of "
-             f"{args.buffers} independent sub-buffers; "
-             "estimate / noise-corrected true MSE (mean over crops of each, and the median "
-             "crop's ratio).", "",
-             "| denoiser | spp | true MSE | Stein SURE / MSE | sub-buffer SURE / MSE | "
-             "median crop, Stein | median crop, sub-buffer |",
-             "|---|---:|---:|---:|---:|---:|---:|"]
+    lines = [f"{renders} fresh render(s) per crop and spp, each the mean of {buffers} "
+             "independent sub-buffers. Estimate / noise-corrected true MSE: of the means over "
+             "all crop-renders, of the median crop-render, and the share of crop-renders "
+             "within ±10 % (Stein, probes / sub-buffers).", "",
+             "| denoiser | spp | true MSE | ratio of means | median | within ±10 % |",
+             "|---|---:|---:|---:|---:|---:|"]
     for name, pair in summaries.items():
         for level, st in pair["stein"]["per_spp"].items():
             bu = pair["buffers"]["per_spp"][level]
-            lines.append(f"| {name} | {level} | {st['mse_nc']:.4g} | {st['ratio']:.3f} | "
-                         f"{bu['ratio']:.3f} | {st['median_crop_ratio']:.3f} | "
-                         f"{bu['median_crop_ratio']:.3f} |")
+            lines.append(f"| {name} | {level} | {st['mse_nc']:.4g} | {st['ratio']:.3f} / "
+                         f"{bu['ratio']:.3f} | {st['median_crop_ratio']:.3f} / "
+                         f"{bu['median_crop_ratio']:.3f} | {st['within_10pct']:.0%} / "
+                         f"{bu['within_10pct']:.0%} |")
+    crops = sorted({r["crop"] for r in next(iter(rows.values()))})
+    lines += ["", "Per crop, all spp and renders pooled (ratio of means, Stein / sub-buffers):",
+              "", "| denoiser | " + " | ".join(crops) + " |",
+              "|---|" + "---:|" * len(crops)]
+    for name, r in rows.items():
+        cells = []
+        for crop in crops:
+            group = [row for row in r if row["crop"] == crop]
+            true = sum(row["mse_nc"] for row in group)
+            cells.append(f"{sum(row['sure'] for row in group) / true:.2f} / "
+                         f"{sum(row['sure_buffers'] for row in group) / true:.2f}")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
     result = {"summary": summaries, "rows": rows, "provenance": source}
     write_report(Path(args.out), result, "\n".join(lines))
 
@@ -161,6 +180,8 @@ def main(argv=None) -> int:
                            help="independent sub-buffers per render (spp / buffers each)")
             p.add_argument("--renders", type=int, default=1,
                            help="independent renders per crop and spp")
+            p.add_argument("--from-json", default=None,
+                           help="re-tabulate the rows of a finished run (OUT.json) instead")
         p.set_defaults(func=func)
     args = parser.parse_args(argv)
     from jaxden.compile_cache import enable_compilation_cache

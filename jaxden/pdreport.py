@@ -330,7 +330,8 @@ def summarize_progressive(rows) -> dict[str, Any]:
 def summarize_sure(rows, key: str = "sure") -> dict[str, Any]:
     """Per spp: ``sure`` and ``mse_nc`` means over crops, ``ratio`` = mean SURE / mean true MSE
     (noise-corrected), ``median_crop_ratio`` and the mean reference variance relative to the
-    true MSE (how much the correction matters). ``key``: the row field holding the estimate
+    true MSE (how much the correction matters); ``within_10pct``: the share of rows (images)
+    whose own ratio is within ±10 %. ``key``: the row field holding the estimate
     (``sure_buffers`` for the sub-buffer estimator)."""
     per_spp = {}
     for level, group in _by_spp(rows).items():
@@ -341,6 +342,8 @@ def summarize_sure(rows, key: str = "sure") -> dict[str, Any]:
             "sure": float(sure.mean()), "mse_nc": float(true.mean()),
             "ratio": float(sure.mean() / true.mean()) if true.mean() > 0 else float("nan"),
             "median_crop_ratio": float(np.median(sure / np.where(true > 0, true, np.nan))),
+            "within_10pct": float(np.mean(np.abs(sure / np.where(true > 0, true, np.nan) - 1)
+                                          <= 0.1)),
             "reference_var_over_mse": float(ref_var.mean() / true.mean())
             if true.mean() > 0 else float("nan"),
             "crops": len(group),
