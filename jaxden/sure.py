@@ -63,6 +63,10 @@ exact jvp is 3.5e-3 at eps = 1e-2, 7e-4 at 1e-3 (best), 5e-3 at 1e-4 (authors' d
 the denoiser is differentiable. (Using the realised perturbation fl(x + eps b) - x as the
 probe was tried: no measurable gain, since rounding of the outputs dominates; not kept.)
 
+``sure_buffers`` replaces the probe divergence by a covariance estimate from K independent
+sub-buffers of the render (no Gaussian assumption, no derivative; see the derivation above
+that function), for Monte Carlo noise that Stein's identity gets wrong.
+
 ``sure_blackbox`` does the ``"fd"`` method in NumPy (float64 arithmetic, float32 denoiser
 inputs) for non-JAX denoisers such as OIDN through ``pyoidn``.
 """
