@@ -128,6 +128,9 @@ def test_bad_inputs():
     ident = lambda f: np.asarray(f.color)
     with pytest.raises(FrameError, match="not the mean"):
         sure_buffers(ident, full, xk * 1.1)
+    # a colour stored as half floats (EXR half) still matches its float32 buffers
+    half = full.replace(color=np.asarray(full.color, np.float16).astype(np.float32))
+    assert np.isfinite(sure_buffers(ident, half, xk).sure).all()
     with pytest.raises(FrameError, match="K >= 2"):
         sure_buffers(ident, full, xk[:1] * 0 + full.color)
     with pytest.raises(FrameError, match="shape"):
