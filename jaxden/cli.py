@@ -55,10 +55,45 @@ def cmd_render(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix.lower() != ".exr":
         raise JaxdenError(f"--out must name an .exr file, got {out}")
+    if args.buffers is not None:
+        return _render_buffers(args, out)
     frame = render_frame(args.scene, spp=args.spp, seed=args.seed, size=args.size)
     write_frame(out, frame, half=args.half, attributes={"seed": args.seed, "scene": args.scene})
     print(f"wrote {out} ({frame.width}x{frame.height}, {args.spp} spp, channels: "
           f"{', '.join(frame.features())})")
+    return 0
+
+
+def _render_buffers(args: argparse.Namespace, out: Path) -> int:
+    """``jaxden render ... --buffers K``: K independent sub-buffers at spp / K (render seeds
+    seed * K + k) written as OUT.b<k>.exr, and their combination (one render of all samples)
+    as OUT; for ``jaxden sure OUT --buffers OUT.b*.exr``."""
+    import numpy as np
+
+    from jaxden.data.builder import render_cached
+    from jaxden.io.exr import write_frame
+    from jaxden.sure import combine_buffers
+
+    k = args.buffers
+    if k < 2 or args.spp % k or args.spp // k < 2:
+        raise JaxdenError(f"--buffers {k}: needs K >= 2 dividing --spp {args.spp} into >= 2 "
+                          f"samples per buffer")
+    seeds = [args.seed * k + i for i in range(k)]
+    parts = [render_cached(args.scene, args.spp // k, seed=s, size=args.size).numpy()
+             for s in seeds]
+    paths = [out.with_name(f"{out.stem}.b{i}.exr") for i in range(k)]
+    for i, (path, part) in enumerate(zip(paths, parts)):
+        write_frame(path, part, half=args.half, attributes={
+            "seed": seeds[i], "scene": args.scene, "buffer": i, "buffers": k})
+    full = combine_buffers(parts)
+    full = full.replace(**{name: np.asarray(getattr(full, name), np.float32)
+                           for name in full.features()}, spp=np.float32(args.spp))
+    write_frame(out, full, half=args.half, attributes={
+        "seed": args.seed, "scene": args.scene, "buffers": k})
+    print(f"wrote {out} ({full.width}x{full.height}, {args.spp} spp = {k} sub-buffers of "
+          f"{args.spp // k}) and {paths[0].name} .. {paths[-1].name}; sub-buffer SURE: jaxden "
+          f"sure {out} --buffers {' '.join(str(p) for p in paths)} --denoiser oidn --out "
+          f"{out.with_name(out.stem + '.sure.exr')}")
     return 0
 
 
@@ -145,6 +180,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", type=parse_size, default=None, help="WxH (default: the scene's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--half", action="store_true", help="store channels as float16")
+    p.add_argument("--buffers", type=positive_int, default=None, metavar="K",
+                   help="also keep K independent sub-buffers of spp / K samples each "
+                        "(OUT.b0.exr ..; OUT is their combination), for `jaxden sure --buffers`")
     p.add_argument("--out", required=True, help="output .exr")
     p.set_defaults(func=cmd_render)
 

@@ -23,6 +23,29 @@ def test_render_writes_every_feature_channel(tmp_path, capsys):
     assert "wrote" in capsys.readouterr().out
 
 
+def test_render_buffers_then_sure_from_buffers(tmp_path, capsys):
+    """`jaxden render --buffers 4` writes 4 sub-buffers and their combination, which
+    `jaxden sure --buffers` accepts."""
+    out = tmp_path / "f.exr"
+    assert main(["render", "cornell-box", "--spp", "8", "--size", "16x16", "--buffers", "4",
+                 "--seed", "3", "--out", str(out)]) == 0
+    buffers = [tmp_path / f"f.b{k}.exr" for k in range(4)]
+    parts = [read_frame(b) for b in buffers]
+    full = read_frame(out)
+    assert float(full.spp) == 8 and all(float(p.spp) == 2 for p in parts)
+    assert [read_header(b)["seed"] for b in buffers] == [12, 13, 14, 15]
+    np.testing.assert_allclose(full.color, np.mean([p.color for p in parts], axis=0),
+                               rtol=1e-5, atol=1e-7)
+    capsys.readouterr()
+    sure_out = tmp_path / "s.exr"
+    assert main(["sure", str(out), "--buffers", *map(str, buffers), "--denoiser", "oidn",
+                 "--out", str(sure_out)]) == 0
+    assert "4 buffers" in capsys.readouterr().out
+    assert main(["render", "cornell-box", "--spp", "6", "--buffers", "4",
+                 "--out", str(tmp_path / "g.exr")]) == 2
+    assert "--buffers 4" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize(
     "argv, message",
     [
