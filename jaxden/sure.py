@@ -91,6 +91,7 @@ __all__ = [
     "sure",
     "sure_blackbox",
     "sure_buffers",
+    "sure_buffers_jax",
     "sure_from_parts",
 ]
 
@@ -556,3 +557,29 @@ def sure_buffers(denoise: Callable[[Frame], Any], frame: Frame, buffers,
     result = SureResult(sure=residual_sq - var + 2.0 * covariance, residual_sq=residual_sq,
                         divergence_term=covariance, denoised=y)
     return SureResult(*(np.asarray(a, dtype=np.float32) for a in result))
+
+
+def sure_buffers_jax(denoise_fn: Callable, frame: Frame, buffers) -> SureResult:
+    """:func:`sure_buffers` for JAX denoisers, pure and jittable.
+
+    ``denoise_fn(frame) -> (..., H, W, 3)`` must be a JAX function (e.g.
+    ``Denoiser.function()``); ``buffers`` (K, ..., H, W, 3). The K leave-one-out passes run
+    one after another (``lax.map``), so memory stays at one denoiser pass. Shapes are checked;
+    values are not (call :func:`sure_buffers` for the checked NumPy path).
+    """
+    xk = jnp.asarray(buffers)
+    x = jnp.asarray(frame.color)
+    if frame.variance is None:
+        raise FrameError("sure_buffers_jax: SURE needs the variance of the pixel mean "
+                         "(Frame.variance)")
+    if xk.ndim != x.ndim + 1 or xk.shape[1:] != x.shape or xk.shape[0] < 2:
+        raise FrameError(f"sure_buffers_jax: buffers have shape {xk.shape}, expected (K >= 2, "
+                         f"*{x.shape})")
+    k = xk.shape[0]
+    y = denoise_fn(frame)
+    _check_output(jnp.shape(y), x.shape, "sure_buffers_jax")
+    rest = (k * jnp.mean(xk, axis=0) - xk) / (k - 1)
+    y_rest = jax.lax.map(lambda colour: denoise_fn(frame.replace(color=colour)), rest)
+    covariance = (k - 1) / k**2 * jnp.sum((xk - rest) * (y - y_rest), axis=0)
+    return SureResult(sure=sure_from_parts(x, y, frame.variance, covariance),
+                      residual_sq=jnp.square(y - x), divergence_term=covariance, denoised=y)

@@ -12,7 +12,7 @@ import pytest
 
 from jaxden.errors import FrameError
 from jaxden.frame import Frame
-from jaxden.sure import combine_buffers, sure_buffers
+from jaxden.sure import combine_buffers, sure_buffers, sure_buffers_jax
 
 
 def firefly_samples(rng, mu, draws, n, p=0.01, a=50.0):
@@ -141,3 +141,32 @@ def test_bad_inputs():
         combine_buffers([bufs[0], bufs[1].replace(spp=np.float32(5))])
     with pytest.raises(FrameError, match="at least 2"):
         combine_buffers(bufs[:1])
+
+
+def test_jax_version_matches_numpy_under_jit():
+    """sure_buffers_jax (jitted, a small random JAX conv net) equals the checked NumPy
+    sure_buffers on the same buffers to float32 round-off."""
+    import jax
+    import jax.numpy as jnp
+
+    rng = np.random.default_rng(4)
+    bufs = buffer_frames(firefly_samples(rng, rng.uniform(0.1, 1, (12, 10, 3)), 1, 6 * 3), 6)
+    full = combine_buffers(bufs)
+    full = full.replace(color=np.asarray(full.color, np.float32),
+                        variance=np.asarray(full.variance, np.float32), spp=None)
+    kernel = jnp.asarray(rng.normal(0, 0.3, (3, 3, 3, 3)), jnp.float32)
+
+    def net(frame):
+        c = jnp.asarray(frame.color, jnp.float32)  # (1, H, W, 3): one draw
+        h = jax.lax.conv_general_dilated(c, kernel, (1, 1), "SAME",
+                                         dimension_numbers=("NHWC", "HWIO", "NHWC"))
+        return c + jnp.tanh(h)
+
+    xk = np.stack([b.color for b in bufs]).astype(np.float32)
+    got = jax.jit(lambda f, b: sure_buffers_jax(net, f, b))(full, xk)
+    want = sure_buffers(lambda f: np.asarray(net(f)), full, xk)
+    for field in ("sure", "divergence_term", "denoised"):
+        np.testing.assert_allclose(np.asarray(getattr(got, field)), getattr(want, field),
+                                   rtol=2e-4, atol=2e-6, err_msg=field)
+    with pytest.raises(FrameError, match="K >= 2"):
+        sure_buffers_jax(net, full, xk[:1])
