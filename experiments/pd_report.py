@@ -127,34 +127,42 @@ def cmd_sure_buffers(args: argparse.Namespace) -> None:
                                               seed=args.seed, num_probes=args.probes,
                                               spp=args.spp, progress=True)
         buffers, renders = args.buffers, args.renders
-    summaries = {name: {"stein": pdreport.summarize_sure(r),
-                        "buffers": pdreport.summarize_sure(r, key="sure_buffers")}
+    keys = {"stein": "sure", "buffers": "sure_buffers", "extrapolated": "sure_buffers_rx"}
+    keys = {k: v for k, v in keys.items()
+            if all(row.get(v) is not None for r in rows.values() for row in r)}
+    summaries = {name: {kind: pdreport.summarize_sure(r, key=key) for kind, key in keys.items()}
                  for name, r in rows.items()}
+    names = " / ".join({"stein": "Stein (probes)", "buffers": "sub-buffers",
+                        "extrapolated": "sub-buffers extrapolated in 1/K"}[k] for k in keys)
     lines = [f"{renders} fresh render(s) per crop and spp, each the mean of {buffers} "
              "independent sub-buffers. Estimate / noise-corrected true MSE: of the means over "
              "all crop-renders, of the median crop-render, and the share of crop-renders "
-             "within ±10 % (Stein, probes / sub-buffers).", "",
+             f"within ±10 % ({names}).", "",
              "| denoiser | spp | true MSE | ratio of means | median | within ±10 % |",
              "|---|---:|---:|---:|---:|---:|"]
-    for name, pair in summaries.items():
-        for level, st in pair["stein"]["per_spp"].items():
-            bu = pair["buffers"]["per_spp"][level]
-            lines.append(f"| {name} | {level} | {st['mse_nc']:.4g} | {st['ratio']:.3f} / "
-                         f"{bu['ratio']:.3f} | {st['median_crop_ratio']:.3f} / "
-                         f"{bu['median_crop_ratio']:.3f} | {st['within_10pct']:.0%} / "
-                         f"{bu['within_10pct']:.0%} |")
+
+    def cells(per, field, fmt):
+        return " / ".join(format(per[kind][field], fmt) for kind in keys)
+
+    for name, by_kind in summaries.items():
+        for level in by_kind["stein"]["per_spp"]:
+            per = {kind: by_kind[kind]["per_spp"][level] for kind in keys}
+            lines.append(f"| {name} | {level} | {per['stein']['mse_nc']:.4g} | "
+                         f"{cells(per, 'ratio', '.3f')} | "
+                         f"{cells(per, 'median_crop_ratio', '.3f')} | "
+                         f"{cells(per, 'within_10pct', '.0%')} |")
     crops = sorted({r["crop"] for r in next(iter(rows.values()))})
-    lines += ["", "Per crop, all spp and renders pooled (ratio of means, Stein / sub-buffers):",
+    lines += ["", f"Per crop, all spp and renders pooled (ratio of means, {names}):",
               "", "| denoiser | " + " | ".join(crops) + " |",
               "|---|" + "---:|" * len(crops)]
     for name, r in rows.items():
-        cells = []
+        crop_cells = []
         for crop in crops:
             group = [row for row in r if row["crop"] == crop]
             true = sum(row["mse_nc"] for row in group)
-            cells.append(f"{sum(row['sure'] for row in group) / true:.2f} / "
-                         f"{sum(row['sure_buffers'] for row in group) / true:.2f}")
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+            crop_cells.append(" / ".join(f"{sum(row[key] for row in group) / true:.2f}"
+                                         for key in keys.values()))
+        lines.append(f"| {name} | " + " | ".join(crop_cells) + " |")
     result = {"summary": summaries, "rows": rows, "provenance": source}
     write_report(Path(args.out), result, "\n".join(lines))
 

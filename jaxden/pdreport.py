@@ -218,8 +218,10 @@ def sure_accuracy_buffers(dataset_dir, denoisers, *, buffers: int = 16, renders:
     the output against the dataset's reference. ``render_fn(scene, spp, seed, size, crop)``
     defaults to the dataset builder's renderer.
 
-    Returns {denoiser name: rows}, rows as in :func:`sure_accuracy` plus ``sure_buffers`` and
-    ``render`` (r); the summaries average over crops and renders alike.
+    Returns {denoiser name: rows}, rows as in :func:`sure_accuracy` plus ``sure_buffers``,
+    ``sure_buffers_rx`` (Richardson-extrapolated from K and K/2 merged pairs, as
+    ``sure_buffers(..., extrapolate=True)``; None for odd K) and ``render`` (r); the summaries
+    average over crops and renders alike.
     """
     import jax
 
@@ -227,7 +229,7 @@ def sure_accuracy_buffers(dataset_dir, denoisers, *, buffers: int = 16, renders:
     from jaxden.data.layout import load_manifest
     from jaxden.denoisers import load_denoiser
     from jaxden.pdcache import denoise_with_sure
-    from jaxden.sure import combine_buffers, sure_buffers
+    from jaxden.sure import combine_buffers, merge_buffer_pairs, sure_buffers
 
     if render_fn is None:
         from jaxden.data.builder import render_cached
@@ -269,12 +271,17 @@ def sure_accuracy_buffers(dataset_dir, denoisers, *, buffers: int = 16, renders:
                     result, _ = denoise_with_sure(model, frame, jax.random.fold_in(base, index),
                                                   num_probes=num_probes, method=method)
                     jk = sure_buffers(model, frame, colours)
+                    rx = None
+                    if buffers % 2 == 0 and buffers >= 4:  # Richardson in 1/K: 2 S_K - S_K/2
+                        half = sure_buffers(model, frame, merge_buffer_pairs(colours))
+                        rx = 2.0 * float(np.mean(jk.sure)) - float(np.mean(half.sure))
                     y = np.asarray(result.denoised, np.float32)
                     rows[model.name].append({
                         "crop": crop.id, "scene": crop.scene, "spp": level, "buffers": buffers,
                         "render": r,
                         "sure": float(np.mean(np.asarray(result.sure))),
                         "sure_buffers": float(np.mean(jk.sure)),
+                        "sure_buffers_rx": rx,
                         "mse_nc": float(metrics.noise_corrected_mse(y, reference.color,
                                                                     reference.variance)),
                         "mse_raw": float(metrics.mse(y, reference.color)),

@@ -12,7 +12,7 @@ import pytest
 
 from jaxden.errors import FrameError
 from jaxden.frame import Frame
-from jaxden.sure import combine_buffers, sure_buffers, sure_buffers_jax
+from jaxden.sure import combine_buffers, merge_buffer_pairs, sure_buffers, sure_buffers_jax
 
 
 def firefly_samples(rng, mu, draws, n, p=0.01, a=50.0):
@@ -170,3 +170,34 @@ def test_jax_version_matches_numpy_under_jit():
                                    rtol=2e-4, atol=2e-6, err_msg=field)
     with pytest.raises(FrameError, match="K >= 2"):
         sure_buffers_jax(net, full, xk[:1])
+
+
+def test_extrapolation_cancels_the_one_over_k_bias():
+    """Saturating denoiser, firefly noise, 32 spp, 1600 draws of 8 x 8 x 3, seed 0. Measured
+    bias of the image-mean SURE: -0.95 % (K = 8), -0.51 % (K = 16), -0.07 % extrapolated from
+    (16, 8), one standard error 0.45 %. Asserted: extrapolated within 2 standard errors of the
+    true MSE, and closer to it than K = 8; extrapolation equals 2 S_K - S_K/2 exactly."""
+    rng = np.random.default_rng(0)
+    mu = rng.uniform(0.2, 1.0, (8, 8, 3))
+    draws, n, c = 1600, 32, 0.5
+    samples = firefly_samples(rng, mu, draws, n)
+    bufs = buffer_frames(samples, 16)
+    full = combine_buffers(bufs)
+    xk = np.stack([b.color for b in bufs])
+
+    def saturate(frame):
+        v = np.asarray(frame.color, np.float64)
+        return v / (1 + v / c)
+
+    true = np.square(saturate(full) - mu).mean(axis=(1, 2, 3))
+    k16 = sure_buffers(saturate, full, xk).sure.astype(np.float64).mean(axis=(1, 2, 3))
+    k8 = sure_buffers(saturate, full, merge_buffer_pairs(xk)).sure.astype(np.float64)
+    k8 = k8.mean(axis=(1, 2, 3))
+    rx = sure_buffers(saturate, full, xk, extrapolate=True).sure.astype(np.float64)
+    rx = rx.mean(axis=(1, 2, 3))
+    np.testing.assert_allclose(rx, 2 * k16 - k8, rtol=1e-4, atol=1e-7)
+    stderr = (rx - true).std(ddof=1) / np.sqrt(draws)
+    assert abs(rx.mean() - true.mean()) < 2 * stderr
+    assert abs(rx.mean() - true.mean()) < abs(k8.mean() - true.mean())
+    with pytest.raises(FrameError, match="even K"):
+        sure_buffers(saturate, full.replace(color=xk[:3].mean(0)), xk[:3], extrapolate=True)
