@@ -102,6 +102,8 @@ def cmd_sure(args: argparse.Namespace) -> int:
     denoiser = load_denoiser(args.denoiser)
     if args.buffers:
         return _sure_from_buffers(args, frame, denoiser, out)
+    if args.extrapolate:
+        raise ConfigError("--extrapolate needs --buffers")
     method = resolve_method(args.method, denoiser)
     eps = args.eps if args.eps is not None else default_eps(method, denoiser.differentiable)
     result, _ = denoise_with_sure(
@@ -136,12 +138,14 @@ def _sure_from_buffers(args: argparse.Namespace, frame, denoiser, out: Path) -> 
                              f"is {np.shape(frame.color)[:-1]}")
         colours.append(np.asarray(buffer.color))
     try:
-        result = sure_buffers(denoiser, frame, np.stack(colours), nonfinite=args.nonfinite)
+        result = sure_buffers(denoiser, frame, np.stack(colours), extrapolate=args.extrapolate,
+                              nonfinite=args.nonfinite)
     except FrameError as error:
         raise FrameError(f"{args.input} with --buffers {' '.join(map(str, args.buffers))}: "
                          f"{error}") from None
     write_sure_exr(out, result, attributes={
-        "source": str(args.input), "denoiser": denoiser.name, "method": "buffers",
+        "source": str(args.input), "denoiser": denoiser.name,
+        "method": "buffers-extrapolated" if args.extrapolate else "buffers",
         "buffers": len(colours)})
     mse = float(np.mean(result.sure))
     print(f"wrote {out}: R,G,B = denoised by {denoiser.name}, sure.* = per-pixel SURE "
@@ -256,6 +260,9 @@ def add_pd_commands(subparsers, dataset_subparsers=None) -> None:
                         "the covariance term comes from leave-one-buffer-out denoising instead "
                         "of Stein's identity (no Gaussian assumption, K + 1 denoiser calls; "
                         "see jaxden.sure.sure_buffers); divergence.* then holds that term")
+    p.add_argument("--extrapolate", action="store_true",
+                   help="with --buffers (even K >= 4): cancel the O(1/K) bias of nonlinear "
+                        "denoisers by Richardson extrapolation from K and K/2 merged buffers")
     p.set_defaults(func=cmd_sure)
 
     p = subparsers.add_parser(

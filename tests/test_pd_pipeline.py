@@ -247,6 +247,16 @@ def test_cli_sure_from_buffers(tmp_path, capsys):
     np.testing.assert_allclose(read_image(out, ("sure.R", "sure.G", "sure.B")), direct.sure,
                                rtol=1e-5, atol=1e-9)
     assert read_header(out)["method"] == "buffers"
+    code, _, stderr = run_cli(["sure", source, "--buffers", *paths, "--extrapolate",
+                               "--denoiser", "oidn", "--out", tmp_path / "rx.exr"], capsys)
+    assert code == 0, stderr
+    extrapolated = sure_buffers(load_denoiser("oidn"), full, np.stack([p.color for p in parts]),
+                                extrapolate=True)
+    np.testing.assert_allclose(read_image(tmp_path / "rx.exr", ("sure.R", "sure.G", "sure.B")),
+                               extrapolated.sure, rtol=1e-5, atol=1e-9)
+    code, _, stderr = run_cli(["sure", source, "--extrapolate", "--denoiser", "oidn", "--out",
+                               tmp_path / "x.exr"], capsys)
+    assert code != 0 and "--extrapolate needs --buffers" in stderr
     code, _, stderr = run_cli(["sure", source, "--buffers", *paths[:3], "--denoiser", "oidn",
                                "--out", tmp_path / "bad.exr"], capsys)
     assert code != 0 and "not the mean" in stderr and "full.exr" in stderr
