@@ -1,7 +1,7 @@
 """Export a trained mixer into the package (jaxden/weights/NAME.msgpack + .json) and write its
 model card (NAME.md) from the training run and, when given, the PD report on the test set.
 
-    python experiments/ship_mixer.py --workdir runs/mixer-oidn --name oidn-pd \
+    python experiments/ship_mixer.py --workdir runs/mixer-oidn --name oidn-pd [--swap-average] \
         [--report experiments/results/pd-oidn.json --report experiments/results/pd-oidn-high.json]
 
 The weights are the run's final checkpoint; the .json meta record gets the training config,
@@ -12,6 +12,7 @@ rewrites the same weights (bit-identical) and adds the measured metrics to the c
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import json
 import subprocess
@@ -65,8 +66,11 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
         f"`{mc['head']}` (f_act, one alpha per colour channel). It mixes the Monte Carlo input x "
         f"and OIDN's output y per pixel; at inference the t-statistic scaling (window "
         f"{mc['tstat']['window']}, a = {mc['tstat']['a']}, c = {mc['tstat']['c']}, "
-        f"per_channel = {str(mc['tstat']['per_channel']).lower()}) makes the result consistent. "
-        f"{size / 1024:.0f} KiB of float32 parameters.",
+        f"per_channel = {str(mc['tstat']['per_channel']).lower()}) makes the result consistent"
+        + (" and alpha is the mean of the mixer's alpha and 1 - alpha of its swapped call "
+           "(`swap_average`, a second mixer call; our addition, see `MixerConfig`). "
+           if mc.get("swap_average") else ". ")
+        + f"{size / 1024:.0f} KiB of float32 parameters.",
         "",
         "Use: `jaxden progressive IN.exr --denoiser oidn --out OUT.exr` (the mixer defaults to "
         f"`{name}` for OIDN), or `jaxden.progressive.shipped_progressive_denoiser('oidn')`. "
@@ -104,7 +108,7 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
         "data/default` then `XLA_FLAGS=--xla_force_host_platform_device_count=2 jaxden train "
         "experiments/configs/mixer-oidn.toml data.dataset=data/default --workdir "
         "runs/mixer-oidn`, then `python experiments/ship_mixer.py --workdir runs/mixer-oidn "
-        f"--name {name} --report experiments/results/pd-oidn.json --report "
+        f"--name {name}{' --swap-average' if mc.get('swap_average') else ''} --report experiments/results/pd-oidn.json --report "
         "experiments/results/pd-oidn-high.json`.",
         "",
     ]
@@ -158,6 +162,8 @@ def main(argv=None) -> int:
     parser.add_argument("--name", default="oidn-pd", help="weights name in jaxden/weights/")
     parser.add_argument("--report", action="append", default=[],
                         help="pd_report.py pd JSON for the card (repeatable)")
+    parser.add_argument("--swap-average", action="store_true",
+                        help="ship with MixerConfig.swap_average = true (inference option)")
     args = parser.parse_args(argv)
 
     from jaxden.config import config_to_dict
@@ -167,6 +173,8 @@ def main(argv=None) -> int:
 
     workdir = Path(args.workdir)
     params, config = load_mixer(workdir)
+    if args.swap_average:
+        config = dataclasses.replace(config, swap_average=True)
     facts = _training_facts(workdir)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
                             text=True, cwd=ROOT).stdout.strip()

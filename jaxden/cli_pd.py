@@ -185,9 +185,12 @@ def cmd_progressive(args: argparse.Namespace) -> int:
         frame, denoiser, params, config, jax.random.PRNGKey(args.seed), num_probes=args.probes,
         method=args.method, eps=args.eps, probe_batch=args.probe_batch,
         tstat=None if args.no_tstat else config.tstat, nonfinite=args.nonfinite,
+        swap_average=args.swap_average,
     )
+    swap_average = config.swap_average if args.swap_average is None else args.swap_average
     attributes = {"source": str(args.input), "denoiser": denoiser.name, "mixer": str(args.mixer),
-                  "probes": args.probes, "seed": args.seed, "tstat": int(not args.no_tstat)}
+                  "probes": args.probes, "seed": args.seed, "tstat": int(not args.no_tstat),
+                  "swap_average": int(swap_average)}
     write_image(out, np.asarray(z), attributes=attributes)
     message = f"wrote {out} (progressive denoising: {denoiser.name} + mixer {args.mixer})"
     if alpha_out is not None:
@@ -279,6 +282,9 @@ def add_pd_commands(subparsers, dataset_subparsers=None) -> None:
     p.add_argument("--alpha", default=None, help="also write the mixing weights to this .exr")
     p.add_argument("--no-tstat", action="store_true",
                    help="skip the t-statistic scaling (the paper's 'w/o t-test' ablation)")
+    p.add_argument("--swap-average", action=argparse.BooleanOptionalAction, default=None,
+                   help="average alpha with 1 - alpha of the swapped inputs (a second mixer "
+                        "call); default: the mixer's config (on for oidn-pd)")
     p.set_defaults(func=cmd_progressive)
 
     if dataset_subparsers is None:

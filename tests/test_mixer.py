@@ -242,6 +242,7 @@ def test_mixer_config_from_toml_dict_with_nested_tstat():
         ({"features": ("hdr", "albedo")}, "albedo"),
         ({"head": "softmax"}, "softmax"),
         ({"swap_probability": 1.5}, "swap_probability"),
+        ({"swap_average": "yes"}, "swap_average"),
         ({"width": 0}, "width"),
         ({"sure_probes": 0}, "sure_probes"),
         ({"denoiser": ""}, "denoiser"),

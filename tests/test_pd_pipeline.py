@@ -180,6 +180,21 @@ def test_progressive_denoise_with_oidn_end_to_end(trained):
     z0, alpha0, _ = P.progressive_denoise(frame, "oidn", params, config, key, tstat=None)
     np.testing.assert_array_equal(np.asarray(alpha0), a)
     np.testing.assert_allclose(np.asarray(z0), np.asarray(extras["mixed"]), atol=1e-6)
+    # swap_average: alpha is the mean of the mixer and 1 - its swapped call (y <-> x, SURE <->
+    # var), and the t-test and mix use that alpha.
+    z2, alpha2, extras2 = P.progressive_denoise(frame, "oidn", params, config, key,
+                                                swap_average=True)
+    swapped = np.asarray(P.mixer_alpha(params, config, y, x, direct.sure, var))
+    np.testing.assert_allclose(np.asarray(extras2["alpha"]), 0.5 * (alpha + 1 - swapped),
+                               atol=1e-6)
+    assert np.abs(np.asarray(extras2["alpha"]) - alpha).max() > 1e-4  # the option did something
+    want2 = P.t_statistic_scaling(extras2["alpha"], x, extras2["mixed"], var, config.tstat)
+    np.testing.assert_allclose(np.asarray(alpha2), np.asarray(want2), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(z2), x + np.asarray(alpha2) * (y - x), atol=1e-5)
+    # ... and the config's flag is the default.
+    on = dataclasses.replace(config, swap_average=True)
+    _, alpha3, _ = P.progressive_denoise(frame, "oidn", params, on, key)
+    np.testing.assert_array_equal(np.asarray(alpha3), np.asarray(alpha2))
 
 
 def test_progressive_denoise_input_errors(trained):
@@ -303,6 +318,14 @@ def test_cli_progressive_and_sure_cache(trained, tmp_path, capsys):
     np.testing.assert_allclose(read_image(alpha), np.asarray(alpha_prime), atol=1e-6)
     np.testing.assert_allclose(read_image(alpha, ("unscaled.R", "unscaled.G", "unscaled.B")),
                                np.asarray(extras["alpha"]), atol=1e-6)
+    assert read_header(out)["swap_average"] == 0  # the tiny mixer's config
+    code, stdout, stderr = run_cli(["progressive", source, "--denoiser", "oidn", "--mixer",
+                                    workdir, "--out", out, "--seed", 2, "--swap-average"], capsys)
+    assert code == 0, stderr
+    z2, _, _ = P.progressive_denoise(frame, "oidn", params, config, jax.random.PRNGKey(2),
+                                     swap_average=True)
+    np.testing.assert_allclose(read_image(out), np.asarray(z2), rtol=1e-6, atol=1e-6)
+    assert read_header(out)["swap_average"] == 1
     code, stdout, stderr = run_cli(["dataset", "sure-cache", dataset, "--denoiser", "oidn",
                                     "--quiet"], capsys)
     assert code == 0, stderr
