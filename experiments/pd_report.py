@@ -87,13 +87,19 @@ def write_report(out: Path, result: dict, table: str) -> None:
 def cmd_pd(args: argparse.Namespace) -> None:
     from jaxden import pdreport
 
-    source = provenance(args, {"denoiser": args.denoiser[0],
-                               "mixer": _weights_identity(args.mixer)})
-    rows = pdreport.evaluate_progressive(args.data, args.denoiser[0], args.mixer,
-                                         split=args.split, seed=args.seed,
-                                         num_probes=args.probes, spp=args.spp, progress=True)
+    if args.from_json:  # re-tabulate a finished run (its rows and provenance) without rerunning
+        previous = json.loads(Path(args.from_json).read_text())
+        rows, source = previous["rows"], previous["provenance"]
+        denoiser = source["denoiser"]
+    else:
+        source = provenance(args, {"denoiser": args.denoiser[0],
+                                   "mixer": _weights_identity(args.mixer)})
+        rows = pdreport.evaluate_progressive(args.data, args.denoiser[0], args.mixer,
+                                             split=args.split, seed=args.seed,
+                                             num_probes=args.probes, spp=args.spp, progress=True)
+        denoiser = args.denoiser[0]
     summary = pdreport.summarize_progressive(rows)
-    name = "OIDN" if args.denoiser[0] == "oidn" else args.denoiser[0]
+    name = "OIDN" if denoiser == "oidn" else denoiser
     result = {"summary": summary, "rows": rows, "provenance": source}
     write_report(Path(args.out), result, pdreport.markdown_progressive(summary, name))
 
@@ -188,6 +194,7 @@ def main(argv=None) -> int:
                            help="independent sub-buffers per render (spp / buffers each)")
             p.add_argument("--renders", type=int, default=1,
                            help="independent renders per crop and spp")
+        if name in ("pd", "sure-buffers"):
             p.add_argument("--from-json", default=None,
                            help="re-tabulate the rows of a finished run (OUT.json) instead")
         p.set_defaults(func=func)

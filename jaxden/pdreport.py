@@ -306,7 +306,10 @@ def summarize_progressive(rows) -> dict[str, Any]:
       (RMSE: of crop-mean RMSE; relMSE: of crop-mean relMSE), the paper's Table 3 form;
       ``pd_over_denoiser_paper_range``: the same over spp >= 32 only (the paper's range);
       ``mixed_*`` and ``oracle_*``: the same for the mix without t-test and the oracle;
-    - ``pd_over_mc_at_max_spp[metric]``: the same ratio against MC at the highest spp.
+    - ``pd_over_mc_at_max_spp[metric]``: the same ratio against MC at the highest spp;
+    - ``per_crop[crop]``: RMSE of PD and of the oracle over the denoiser's (mean over spp of the
+      per-spp ratio) and over MC at the highest spp, and the denoiser's mean RMSE over spp
+      (how much the crop weighs in the crop-mean headline): where the gains are lost.
     """
     per_spp = {}
     for level, group in _by_spp(rows).items():
@@ -330,8 +333,20 @@ def summarize_progressive(rows) -> dict[str, Any]:
     for level, m in per_spp.items():
         m["pd_over_denoiser_rmse"] = m["pd_rmse"] / m["denoiser_rmse"]
         m["pd_over_mc_rmse"] = m["pd_rmse"] / m["mc_rmse"]
+    per_crop = {}
+    for crop in dict.fromkeys(r["crop"] for r in rows):
+        group = [r for r in rows if r["crop"] == crop]
+        at_top = [r for r in group if r["spp"] == top]
+        entry = {"denoiser_rmse": float(np.mean([r["denoiser_rmse"] for r in group]))}
+        for method in ("pd", "oracle"):
+            entry[f"{method}_over_denoiser_rmse"] = float(np.mean(
+                [r[f"{method}_rmse"] / r["denoiser_rmse"] for r in group]))
+            entry[f"{method}_over_mc_rmse_at_max_spp"] = (
+                float(at_top[0][f"{method}_rmse"] / at_top[0]["mc_rmse"]) if at_top
+                else float("nan"))
+        per_crop[crop] = entry
     return {"per_spp": per_spp, "headline": dict(ratios), "max_spp": top,
-            "crops": len({r["crop"] for r in rows})}
+            "crops": len({r["crop"] for r in rows}), "per_crop": per_crop}
 
 
 def summarize_sure(rows, key: str = "sure") -> dict[str, Any]:
@@ -395,6 +410,20 @@ def markdown_progressive(summary: dict[str, Any], denoiser: str = "OIDN") -> str
     for level, m in summary["per_spp"].items():
         lines.append(f"| {level} | {m['alpha']:.3f} | {m['alpha_prime']:.3f} | "
                      f"{m['swap_gap']:.3f} |")
+    if summary.get("per_crop"):
+        top = summary["max_spp"]
+        lines += ["", f"Per crop, RMSE: {names['pd']} and the oracle over {denoiser} (mean over "
+                  f"spp of the per-spp ratio), {denoiser}'s mean RMSE (its weight in the "
+                  f"crop-mean ratios above), and PD and the oracle over MC at {top} spp.", "",
+                  f"| crop | {denoiser} RMSE | PD / {denoiser} | oracle / {denoiser} | "
+                  f"PD / MC at {top} | oracle / MC at {top} |",
+                  "|---|---:|---:|---:|---:|---:|"]
+        for crop, c in summary["per_crop"].items():
+            lines.append(f"| {crop} | {c['denoiser_rmse']:.5f} | "
+                         f"{c['pd_over_denoiser_rmse']:.3f} | "
+                         f"{c['oracle_over_denoiser_rmse']:.3f} | "
+                         f"{c['pd_over_mc_rmse_at_max_spp']:.3f} | "
+                         f"{c['oracle_over_mc_rmse_at_max_spp']:.3f} |")
     return "\n".join(lines)
 
 

@@ -454,8 +454,19 @@ def test_pd_report_rows_match_direct_computation(trained):
     # the reference-fitted oracle includes alpha = 0 and 1 on every tile
     assert all(r["oracle_rmse"] <= min(r["mc_rmse"], r["denoiser_rmse"]) * (1 + 1e-5)
                for r in rows)
+    # per crop: the mean over spp of the crop's own ratios, and the ratio to MC at the top spp
+    crop = rows[0]["crop"]
+    mine = [r for r in rows if r["crop"] == crop]
+    per_crop = summary["per_crop"][crop]
+    assert per_crop["pd_over_denoiser_rmse"] == pytest.approx(
+        np.mean([r["pd_rmse"] / r["denoiser_rmse"] for r in mine]))
+    last = next(r for r in mine if r["spp"] == top)
+    assert per_crop["oracle_over_mc_rmse_at_max_spp"] == pytest.approx(
+        last["oracle_rmse"] / last["mc_rmse"])
+    assert per_crop["oracle_over_mc_rmse_at_max_spp"] <= 1 + 1e-5
     table = pdreport.markdown_progressive(summary)
     assert "PD(OIDN)" in table and f"| {top} | MC |" in table
+    assert f"| {crop} | {per_crop['denoiser_rmse']:.5f} |" in table
 
 
 def test_sure_accuracy_rows_and_summary(trained):
