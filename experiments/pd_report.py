@@ -42,7 +42,9 @@ def provenance(args: argparse.Namespace, extra: dict) -> dict:
 
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
                             text=True, cwd=ROOT).stdout.strip()
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+    # Code changes make a run "+dirty"; finished results being rewritten do not.
+    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
+                            ":(exclude)experiments/results"],
                            capture_output=True, text=True, cwd=ROOT).stdout.strip()
     manifest = load_manifest(args.data)
     return {
