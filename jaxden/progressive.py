@@ -570,11 +570,11 @@ class MixerConfig:
       swap_average: use (alpha(x, y, var, SURE) + 1 - alpha(y, x, SURE, var)) / 2, the mean
         of the mixer and its swapped call (test-time symmetrisation of the swap invariance the
         training encourages; our addition, not in the paper; costs a second mixer call).
-        Measured with the shipped OIDN mixer before the t-statistic scaling, PD(OIDN) / OIDN
+        Measured with the shipped OIDN mixer (with the t-statistic scaling), PD(OIDN) / OIDN
         mean over spp went from 0.928 / 0.893 to 0.923 / 0.887 (RMSE / relMSE, test set,
-        2..1024 spp) and from 0.807 / 0.788 to 0.806 / 0.781 (test-high, 32..4096 spp);
-        the 8 dihedral flips on top gave less than 0.001 more. Default off, so a mixer
-        trained and evaluated before this option behaves as it did.
+        2..1024 spp) and from 0.807 / 0.788 to 0.806 / 0.780 (test-high, 32..4096 spp;
+        experiments/results/pd-oidn*.md). Default off, so a mixer trained and evaluated
+        before this option behaves as it did; the shipped ``oidn-pd`` turns it on.
 
     SURE cache (the denoised images and SURE maps the mixer is trained on, computed once per
     dataset item by :func:`jaxden.pdcache.build_sure_cache`):
