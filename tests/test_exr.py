@@ -181,6 +181,10 @@ def test_stack_and_crop():
     frames = [make_frame(seed=i) for i in range(3)]
     batch = stack(frames)
     assert batch.color.shape == (3, 6, 7, 3) and batch.spp.shape == (3,)
+    for i, frame in enumerate(frames):  # in order, every field
+        for name in frame.features():
+            np.testing.assert_array_equal(getattr(batch, name)[i], getattr(frame, name))
+        assert batch.spp[i] == frame.spp
     crop = frames[0].crop(1, 2, 3, 4)
     np.testing.assert_array_equal(crop.motion, frames[0].motion[1:4, 2:6])
     with pytest.raises(FrameError, match="does not fit"):

@@ -158,7 +158,7 @@ def test_centred_head_gives_alpha_one_half_without_output_weights(head, expected
     np.testing.assert_array_equal(np.asarray(alpha), 0.5 if head == "sigmoid" else 0.0)
 
 
-@settings(max_examples=15, deadline=None)
+@settings(max_examples=15, deadline=None, derandomize=True)
 @given(seed=st.integers(0, 2**31 - 1), scale=st.sampled_from([0.1, 1.0, 30.0]),
        head=st.sampled_from(["f_act", "sigmoid", "clip"]))
 def test_alpha_is_in_the_unit_interval(seed, scale, head):
@@ -177,11 +177,26 @@ def test_mixer_is_differentiable_in_params():
 
     def loss(p):
         z, _ = P.mixer_apply(p, config, x, y, var, sure)
-        return jnp.mean(jnp.abs(z - ref))
+        return jnp.mean((z - ref) ** 2)
 
     grads = jax.grad(loss)(params)
     norms = [float(jnp.linalg.norm(g)) for g in jax.tree_util.tree_leaves(grads)]
     assert all(np.isfinite(norms)) and max(norms) > 0
+    # The gradient's directional derivative equals a central difference along a random
+    # direction in parameter space. 92 % of these alphas sit on the [0, 1] clip, whose kinks
+    # a large step crosses: float32, eps 1e-4 measured 0.8 % apart (1e-5: 0.07 %, 1e-3: 10 %);
+    # bound 3 %.
+    leaves, treedef = jax.tree_util.tree_flatten(params)
+    keys = jax.random.split(jax.random.PRNGKey(7), len(leaves))
+    direction = treedef.unflatten([jax.random.normal(k, a.shape) for k, a in zip(keys, leaves)])
+    along = sum(float(jnp.vdot(g, d)) for g, d in zip(jax.tree_util.tree_leaves(grads),
+                                                       jax.tree_util.tree_leaves(direction)))
+    eps = 1e-4
+    shifted = [jax.tree_util.tree_map(lambda p, d, s=s: p + s * eps * d, params, direction)
+               for s in (1.0, -1.0)]
+    central = (float(loss(shifted[0])) - float(loss(shifted[1]))) / (2 * eps)
+    assert abs(along) > 1e-6
+    assert abs(central - along) < 0.03 * abs(along), (central, along)
 
 
 # ------------------------------------------------------------------------ swap symmetry

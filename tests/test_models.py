@@ -29,6 +29,13 @@ def test_models_denoise_any_size_and_batch(name):
     for frame in (random_frame(13, 9), random_frame(8, 8, batch=(2,))):
         out = den(frame)
         assert out.shape == frame.color.shape and bool(jnp.all(jnp.isfinite(out)))
+    # a batch is denoised image by image: each output equals the single-frame call
+    batch = random_frame(8, 8, seed=3, batch=(2,))
+    out = np.asarray(den(batch))
+    for i in range(2):
+        single = jax.tree_util.tree_map(lambda a, i=i: a[i], batch)
+        np.testing.assert_allclose(out[i], np.asarray(den(single)), rtol=1e-5, atol=1e-6)
+    assert np.abs(out[0] - out[1]).max() > 1e-3  # two different frames, two different outputs
 
 
 def test_per_pixel_kernels_match_unfold_reference():
@@ -46,6 +53,20 @@ def test_per_pixel_kernels_match_unfold_reference():
     np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-6)
 
 
+def _box(image, k):
+    """Zero-padded, renormalised k x k box filter of an (H, W, C) image (NumPy reference)."""
+    r = k // 2
+    num = np.pad(image, ((r, r), (r, r), (0, 0)))
+    den = np.pad(np.ones(image.shape[:2] + (1,)), ((r, r), (r, r), (0, 0)))
+    h, w = image.shape[:2]
+    total = lambda a: sum(a[dy : dy + h, dx : dx + w] for dy in range(k) for dx in range(k))
+    return total(num) / total(den)
+
+
+def _safe_albedo(albedo, floor):
+    return np.where(albedo >= floor, albedo, 1.0 - (1.0 - floor) * albedo / floor)
+
+
 def test_wskp_with_zero_network_is_fused_box_filter_on_irradiance():
     """With all network weights 0 the importance maps and logits are 0: every kernel is a
     plain (zero-padded, renormalised) box filter and the fusion an equal average."""
@@ -53,19 +74,10 @@ def test_wskp_with_zero_network_is_fused_box_filter_on_irradiance():
     params = jax.tree_util.tree_map(jnp.zeros_like, wskp.wskp_init(jax.random.PRNGKey(0), config))
     frame = random_frame(9, 8)
     out = np.asarray(wskp.wskp_denoise(params, config, frame))
-    f = config.albedo_floor
-    albedo = np.where(frame.albedo >= f, frame.albedo, 1.0 - (1.0 - f) * frame.albedo / f)
-    assert (frame.albedo < f).any()  # the draw exercises the ramp
+    albedo = _safe_albedo(frame.albedo, config.albedo_floor)
+    assert (frame.albedo < config.albedo_floor).any()  # the draw exercises the ramp
     irr = frame.color / albedo
-
-    def box(image, k):
-        r = k // 2
-        num = np.pad(image, ((r, r), (r, r), (0, 0)))
-        den = np.pad(np.ones(image.shape[:2] + (1,)), ((r, r), (r, r), (0, 0)))
-        s = lambda a: sum(a[dy : dy + image.shape[0], dx : dx + image.shape[1]] for dy in range(k) for dx in range(k))  # noqa: E731
-        return s(num) / s(den)
-
-    expected = 0.5 * (box(irr, 3) + box(irr, 5)) * albedo
+    expected = 0.5 * (_box(irr, 3) + _box(irr, 5)) * albedo
     np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-6)
 
 
@@ -82,15 +94,34 @@ def test_safe_albedo_is_continuous_and_bounds_the_amplification(floor):
     assert np.abs(np.diff(safe[order])).max() < 2e-4 / floor + 1e-6
 
 
-def test_multiresolution_combination_eq7_with_constant_alpha():
-    """Eq. 7 keeps the fine level's detail and takes the coarse level's low frequencies: with
-    a constant image every level agrees and the output is that constant."""
-    config = wskp.WSKPMRConfig()
-    params = wskp.wskp_mr_init(jax.random.PRNGKey(3), config)
-    frame = random_frame(16, 12)
-    frame = frame.replace(color=np.full_like(frame.color, 0.7), albedo=np.ones_like(frame.albedo))
+def test_multiresolution_combination_eq7_with_zero_network():
+    """Eq. 7 with all network weights 0: every level is the equal fusion of box filters of its
+    (2x2-averaged) irradiance, alpha = sigmoid(0) = 1/2, and levels combine from the coarsest up
+    as o = f - alpha U(D(f)) + alpha U(c); checked against that NumPy form on a noisy image
+    (a constant image would pass any combination rule)."""
+    config = wskp.WSKPMRConfig(levels=3, kernel_sizes=(3, 5))
+    params = jax.tree_util.tree_map(jnp.zeros_like,
+                                    wskp.wskp_mr_init(jax.random.PRNGKey(3), config))
+    frame = random_frame(16, 12, seed=5)  # a multiple of 2^(levels-1): no padding
     out = np.asarray(wskp.wskp_mr_denoise(params, config, frame))
-    np.testing.assert_allclose(out, 0.7, rtol=1e-5)
+    albedo = _safe_albedo(frame.albedo.astype(np.float64), config.albedo_floor)
+
+    def down(x):
+        return x.reshape(x.shape[0] // 2, 2, x.shape[1] // 2, 2, -1).mean(axis=(1, 3))
+
+    def up(x):
+        return x.repeat(2, axis=0).repeat(2, axis=1)
+
+    irradiance = [frame.color / albedo]
+    for _ in range(config.levels - 1):
+        irradiance.append(down(irradiance[-1]))
+    filtered = [0.5 * (_box(irr, 3) + _box(irr, 5)) for irr in irradiance]
+    result = filtered[-1]
+    for fine in filtered[-2::-1]:
+        result = fine - 0.5 * up(down(fine)) + 0.5 * up(result)
+    np.testing.assert_allclose(out, result * albedo, rtol=1e-4, atol=1e-5)
+    # ... and not what the finest level alone gives (the coarse levels matter)
+    assert np.abs(out - filtered[0] * albedo).max() > 1e-2
 
 
 def test_missing_features_are_named():

@@ -16,7 +16,6 @@ import shutil
 import sys
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -26,8 +25,7 @@ from jaxden.checkpoint import save_weights
 from jaxden.config import load_config
 from jaxden.data.builder import build_dataset, synthetic_render
 from jaxden.data.config import DatasetConfig
-from jaxden.denoisers import make_denoiser
-from jaxden.denoisers import load_denoiser
+from jaxden.denoisers import load_denoiser, make_denoiser
 from jaxden.errors import FrameError, JaxdenError
 from jaxden.io.exr import read_channels, read_header, read_image, write_channels, write_frame
 from jaxden.pdcache import SureCache, denoise_with_sure
@@ -107,7 +105,11 @@ def test_training_lowers_the_loss_and_swap_symmetry_is_measured(trained):
           f"logged {[round(e['loss'], 4) for e in log if 'loss' in e]}")
     assert after < 0.9 * before
 
-    # Swap symmetry on the (unswapped) validation crops, reported, not required to be 0.
+    # Swap symmetry on the (unswapped) validation crops: a report, not a property. The
+    # centred head starts every alpha near 1/2, so the untrained gap is small (0.08 here) and
+    # this short run raises it (0.36); the trained OIDN mixer's gap on real renders is in
+    # experiments/results/pd-oidn*.md, and the definition is checked in
+    # test_swap_symmetry_of_the_trained_mixer_on_a_frame.
     gaps = {}
     for name, p in (("init", initial), ("trained", params)):
         values = []
@@ -116,7 +118,6 @@ def test_training_lowers_the_loss_and_swap_symmetry_is_measured(trained):
             values.append(P.swap_symmetry(p, mixer_config, b["x"], b["y"], b["var"], b["sure"]))
         gaps[name] = float(np.mean(values))
     print(f"swap symmetry mean |alpha(x,y) - (1 - alpha(y,x))|: {gaps}")
-    assert all(0.0 <= g <= 1.0 for g in gaps.values())
 
 
 def test_training_batches_swap_reproducibly(trained):
@@ -392,14 +393,16 @@ def test_swap_symmetry_of_the_trained_mixer_on_a_frame(trained):
     params, config = P.load_mixer(workdir)
     frame = small_frame(seed=13)
     result, _ = denoise_with_sure("oidn", frame, jax.random.PRNGKey(0))
-    gap = P.swap_symmetry(params, config, frame.color, result.denoised, frame.variance,
-                          result.sure)
-    per_pixel = np.asarray(P.swap_symmetry(params, config, frame.color, result.denoised,
-                                           frame.variance, result.sure, per_pixel=True))
+    x, y, var, sure = frame.color, result.denoised, frame.variance, result.sure
+    gap = P.swap_symmetry(params, config, x, y, var, sure)
+    per_pixel = np.asarray(P.swap_symmetry(params, config, x, y, var, sure, per_pixel=True))
+    # the definition, from two direct mixer calls: the swapped call exchanges x with y and
+    # var with SURE
+    alpha = np.asarray(P.mixer_alpha(params, config, x, y, var, sure))
+    swapped = np.asarray(P.mixer_alpha(params, config, y, x, sure, var))
+    np.testing.assert_allclose(per_pixel, np.abs(alpha - (1 - swapped)), atol=1e-6)
     assert gap == pytest.approx(float(per_pixel.mean()), rel=1e-5)
-    assert np.all(per_pixel >= 0) and np.all(per_pixel <= 1)
     print(f"\nswap symmetry of the tiny trained mixer on a 24 x 20 frame: {gap:.4f}")
-    assert jnp.isfinite(gap)
 
 
 # ------------------------------------------------------------------------ reports

@@ -162,6 +162,15 @@ def test_scaling_is_tiny_change_without_difference_and_shrinks_alpha():
     np.testing.assert_allclose(same, alpha, rtol=1e-6)
     scaled = np.asarray(P.t_statistic_scaling(alpha, x, z, var))
     assert np.all(scaled <= alpha) and np.all(scaled >= 0)
+    # ... and it does shrink: alpha' = alpha (1 - Phi(a (|t| - c))), so where |t| >= c + 3 / a
+    # alpha' <= (1 - Phi(3)) alpha = 0.00135 alpha, and where |t| <= c - 3 / a alpha is kept
+    # to 0.14 %.
+    config = P.TStatConfig()
+    t = np.broadcast_to(np.abs(np.asarray(P.t_statistic(x, z, var))), alpha.shape)
+    large, small = t >= config.c + 3 / config.a, t <= config.c - 3 / config.a
+    assert large.any() and small.any()  # the scene spreads t over both regimes
+    assert np.all(scaled[large] <= 0.002 * alpha[large])
+    np.testing.assert_allclose(scaled[small], alpha[small], rtol=2e-3)
 
 
 def test_consistent_mix_composes_mix_and_scaling():

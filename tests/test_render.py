@@ -7,20 +7,29 @@ JIT compiles each new kernel once (a few hundred ms), then renders are quick.
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
 import textwrap
 
+import mitsuba as mi  # a hard dependency: a broken install must fail loudly, not skip
 import numpy as np
 import pytest
 
 from jaxden.errors import JaxdenError, SceneError
 from jaxden.frame import Frame
-from jaxden.render import choose_variant, list_scenes, load_scene, prepare_scene, render_frame
-from jaxden.render import core, integrators, scenes, variant
-
-mi = pytest.importorskip("mitsuba")
+from jaxden.render import (
+    choose_variant,
+    core,
+    integrators,
+    list_scenes,
+    load_scene,
+    prepare_scene,
+    render_frame,
+    scenes,
+    variant,
+)
 
 BUILTIN = ("cornell-box", "texture-bump", "glossy-glass", "env-sun", "small-lights")
 # Reflectances of mi.cornell_box()'s three diffuse materials.
@@ -293,7 +302,16 @@ def test_crop_of_an_orthographic_camera_uses_the_film_crop(cornell):
     assert crop.depth.shape == (6, 8, 1)
     # Orthographic rays start on the near plane and run along -z: depth = 3 - 0.01 - z.
     np.testing.assert_allclose(crop.depth[..., 0], 2.99 - crop.position[..., 2], atol=1e-4)
-    np.testing.assert_allclose(crop.albedo, full.albedo[4:10, 2:10], atol=0.25)
+    # The crop lands where the film crop says: its x, y positions match the full render's
+    # window (orthographic: position x, y is the pixel's place on the film plane) better than
+    # any window shifted by one pixel.
+    def mismatch(dy, dx):
+        window = full.position[4 + dy:10 + dy, 2 + dx:10 + dx, :2]
+        return np.abs(crop.position[..., :2] - window).mean()
+
+    errors = {(dy, dx): mismatch(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)}
+    best = errors.pop((0, 0))
+    assert best < 0.5 * min(errors.values())
 
 
 def test_size_override_and_sensor_override(cornell):
@@ -639,4 +657,6 @@ def test_render_bench_quick(capsys):
 
     result = bench.run("render", as_json=True, quick=True)
     last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert last["ratio"] == pytest.approx(result["ratio"]) and 0.5 < result["ratio"] < 5
+    # Structure only: speed is the benchmark's business, never a unit test's.
+    assert last == json.loads(json.dumps(result))
+    assert all(math.isfinite(result[k]) and result[k] > 0 for k in ("ratio", "cpu_ratio"))

@@ -36,6 +36,14 @@ def buffer_frames(samples, k):
     return out
 
 
+
+def _saturating(c):
+    """The denoiser y = x / (1 + x / c) (NumPy, float64): nonlinear, derivative 1 / (1 + x/c)^2."""
+    def saturate(frame):
+        v = np.asarray(frame.color, np.float64)
+        return v / (1 + v / c)
+    return saturate
+
 def test_combine_buffers_equals_one_render_of_all_samples():
     rng = np.random.default_rng(0)
     samples = firefly_samples(rng, rng.uniform(0.1, 1, (5, 6, 3)), 2, 4 * 6)
@@ -107,9 +115,7 @@ def test_nonlinear_denoiser_firefly_noise_buffers_beat_stein():
     full = combine_buffers(bufs)
     x, var = np.asarray(full.color, np.float64), np.asarray(full.variance, np.float64)
 
-    def saturate(frame):
-        v = np.asarray(frame.color, np.float64)
-        return v / (1 + v / c)
+    saturate = _saturating(c)
 
     y = saturate(full)
     true = np.mean(np.square(y - mu))
@@ -185,9 +191,7 @@ def test_extrapolation_cancels_the_one_over_k_bias():
     full = combine_buffers(bufs)
     xk = np.stack([b.color for b in bufs])
 
-    def saturate(frame):
-        v = np.asarray(frame.color, np.float64)
-        return v / (1 + v / c)
+    saturate = _saturating(c)
 
     true = np.square(saturate(full) - mu).mean(axis=(1, 2, 3))
     k16 = sure_buffers(saturate, full, xk).sure.astype(np.float64).mean(axis=(1, 2, 3))
