@@ -110,9 +110,16 @@ class Checkpointer:
                 step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract))
             )
         except Exception as error:  # orbax raises many types for structure mismatches
+            text = str(error).splitlines()[0] if str(error) else type(error).__name__
+            if "TensorStore" in text or "reading array" in text:  # the data files themselves
+                raise CheckpointError(
+                    f"{self.directory / str(step)}: the saved arrays cannot be read (a corrupt "
+                    f"or incomplete checkpoint; delete that step folder to resume from an "
+                    f"earlier one): {text.split('See full TensorStore details')[0][:200]}"
+                ) from None
             raise CheckpointError(
                 f"{self.directory / str(step)}: the saved state does not match the model: "
-                f"{str(error).splitlines()[0][:300]}"
+                f"{text[:300]}"
             ) from None
         state = restored.state
         if target is not None:

@@ -52,11 +52,11 @@ def cmd_render(args: argparse.Namespace) -> int:
     from jaxden.io.exr import write_frame
     from jaxden.render.core import render_frame
 
-    out = Path(args.out)
-    if out.suffix.lower() != ".exr":
-        raise JaxdenError(f"--out must name an .exr file, got {out}")
+    from jaxden.cli_pd import exr_outputs
+
     if args.buffers is not None:
-        return _render_buffers(args, out)
+        return _render_buffers(args, Path(args.out))
+    (out,) = exr_outputs(("--out", args.out))
     frame = render_frame(args.scene, spp=args.spp, seed=args.seed, size=args.size)
     write_frame(out, frame, half=args.half, attributes={"seed": args.seed, "scene": args.scene})
     print(f"wrote {out} ({frame.width}x{frame.height}, {args.spp} spp, channels: "
@@ -70,7 +70,9 @@ def _render_buffers(args: argparse.Namespace, out: Path) -> int:
     as OUT; for ``jaxden sure OUT --buffers OUT.b*.exr``."""
     import numpy as np
 
+    from jaxden.cli_pd import exr_outputs
     from jaxden.data.builder import render_cached
+    from jaxden.fileio import all_or_nothing
     from jaxden.io.exr import write_frame
     from jaxden.sure import combine_buffers
 
@@ -78,18 +80,21 @@ def _render_buffers(args: argparse.Namespace, out: Path) -> int:
     if k < 2 or args.spp % k or args.spp // k < 2:
         raise JaxdenError(f"--buffers {k}: needs K >= 2 dividing --spp {args.spp} into >= 2 "
                           f"samples per buffer")
+    paths = [out.with_name(f"{out.stem}.b{i}.exr") for i in range(k)]
+    out, *paths = exr_outputs(("--out", out), *((f"sub-buffer {i}", p)
+                                                 for i, p in enumerate(paths)))
     seeds = [args.seed * k + i for i in range(k)]
     parts = [render_cached(args.scene, args.spp // k, seed=s, size=args.size).numpy()
              for s in seeds]
-    paths = [out.with_name(f"{out.stem}.b{i}.exr") for i in range(k)]
-    for i, (path, part) in enumerate(zip(paths, parts)):
-        write_frame(path, part, half=args.half, attributes={
-            "seed": seeds[i], "scene": args.scene, "buffer": i, "buffers": k})
     full = combine_buffers(parts)
     full = full.replace(**{name: np.asarray(getattr(full, name), np.float32)
                            for name in full.features()}, spp=np.float32(args.spp))
-    write_frame(out, full, half=args.half, attributes={
-        "seed": args.seed, "scene": args.scene, "buffers": k})
+    with all_or_nothing():  # the sub-buffers and their combination: all or none
+        for i, (path, part) in enumerate(zip(paths, parts)):
+            write_frame(path, part, half=args.half, attributes={
+                "seed": seeds[i], "scene": args.scene, "buffer": i, "buffers": k})
+        write_frame(out, full, half=args.half, attributes={
+            "seed": args.seed, "scene": args.scene, "buffers": k})
     print(f"wrote {out} ({full.width}x{full.height}, {args.spp} spp = {k} sub-buffers of "
           f"{args.spp // k}) and {paths[0].name} .. {paths[-1].name}; sub-buffer SURE: jaxden "
           f"sure {out} --buffers {' '.join(str(p) for p in paths)} --denoiser oidn --out "
@@ -133,14 +138,16 @@ def cmd_train(args: argparse.Namespace) -> int:
 def cmd_denoise(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from jaxden.cli_pd import exr_outputs
     from jaxden.denoisers import load_denoiser
     from jaxden.io.exr import read_frame, write_image
 
+    (out,) = exr_outputs(("--out", args.out))
     denoiser = load_denoiser(args.model)
     required = denoiser.definition.required(denoiser.config)
     frame = read_frame(args.input, require=required, nonfinite=args.nonfinite)
     image = np.asarray(denoiser(frame))
-    write_image(args.out, image, attributes={"denoiser": denoiser.name, "source": str(args.input)})
+    write_image(out, image, attributes={"denoiser": denoiser.name, "source": str(args.input)})
     print(f"wrote {args.out} (denoised by {denoiser.name})")
     return 0
 
@@ -242,6 +249,10 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except JaxdenError as error:
         print(f"jaxden: error: {error}", file=sys.stderr)
+        return 2
+    except OSError as error:  # e.g. an output folder that cannot be made: name the path
+        where = f"{error.filename}: " if error.filename else ""
+        print(f"jaxden: error: {where}{error.strerror or error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("jaxden: interrupted (finished work is kept; run the same command to resume)",

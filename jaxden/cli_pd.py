@@ -50,13 +50,18 @@ def _channel_names(text: str) -> tuple[str, str, str]:
     return names  # type: ignore[return-value]
 
 
-def _exr_out(path: str, option: str) -> Path:
-    out = Path(path)
-    if out.suffix.lower() != ".exr":
-        raise ConfigError(f"{option} must name an .exr file, got {out}")
-    if not out.parent.exists():
-        raise ConfigError(f"{option}: the folder {out.parent} does not exist")
-    return out
+def exr_outputs(*outputs: tuple[str, str | None]) -> list[Path | None]:
+    """Check the output .exr files of a command, given as ``(option, path or None)`` pairs,
+    before any work: .exr names, distinct, not folders, in existing writable folders
+    (:func:`jaxden.fileio.check_outputs`). Returns the paths (None where not given)."""
+    from jaxden.fileio import check_outputs
+
+    given = [(option, path) for option, path in outputs if path is not None]
+    for option, path in given:
+        if Path(path).suffix.lower() != ".exr":
+            raise ConfigError(f"{option} must name an .exr file, got {path}")
+    checked = iter(check_outputs(*given))
+    return [None if path is None else next(checked) for _, path in outputs]
 
 
 def read_input_frame(args: argparse.Namespace, who: str):
@@ -97,7 +102,7 @@ def cmd_sure(args: argparse.Namespace) -> int:
     from jaxden.denoisers import load_denoiser
     from jaxden.pdcache import default_eps, denoise_with_sure, resolve_method, write_sure_exr
 
-    out = _exr_out(args.out, "--out")
+    (out,) = exr_outputs(("--out", args.out))
     frame = read_input_frame(args, "jaxden sure")
     denoiser = load_denoiser(args.denoiser)
     if args.buffers:
@@ -130,13 +135,18 @@ def _sure_from_buffers(args: argparse.Namespace, frame, denoiser, out: Path) -> 
 
     if len(args.buffers) < 2:
         raise ConfigError(f"--buffers needs at least 2 files, got {len(args.buffers)}")
-    colours = []
+    colours, counts = [], {}
     for path in args.buffers:
         buffer = read_frame(path, require=("color",), nonfinite=args.nonfinite)
         if np.shape(buffer.color) != np.shape(frame.color):
             raise FrameError(f"{path}: shape {np.shape(buffer.color)[:-1]}, but {args.input} "
                              f"is {np.shape(frame.color)[:-1]}")
+        if buffer.spp is not None:
+            counts.setdefault(float(buffer.spp), path)
         colours.append(np.asarray(buffer.color))
+    if len(counts) > 1:
+        raise FrameError(f"--buffers: the sub-buffers must have equal spp, but their headers "
+                         f"say {', '.join(f'{c:g} ({p})' for c, p in sorted(counts.items()))}")
     try:
         result = sure_buffers(denoiser, frame, np.stack(colours), extrapolate=args.extrapolate,
                               nonfinite=args.nonfinite)
@@ -160,11 +170,11 @@ def cmd_progressive(args: argparse.Namespace) -> int:
     import numpy as np
 
     from jaxden.denoisers import load_denoiser
+    from jaxden.fileio import all_or_nothing
     from jaxden.io.exr import write_channels, write_image
     from jaxden.progressive import load_mixer, progressive_denoise
 
-    out = _exr_out(args.out, "--out")
-    alpha_out = _exr_out(args.alpha, "--alpha") if args.alpha else None
+    out, alpha_out = exr_outputs(("--out", args.out), ("--alpha", args.alpha))
     if args.mixer is None:
         from jaxden.progressive import SHIPPED_MIXERS, shipped_mixer_path
 
@@ -191,16 +201,17 @@ def cmd_progressive(args: argparse.Namespace) -> int:
     attributes = {"source": str(args.input), "denoiser": denoiser.name, "mixer": str(args.mixer),
                   "probes": args.probes, "seed": args.seed, "tstat": int(not args.no_tstat),
                   "swap_average": int(swap_average)}
-    write_image(out, np.asarray(z), attributes=attributes)
     message = f"wrote {out} (progressive denoising: {denoiser.name} + mixer {args.mixer})"
-    if alpha_out is not None:
-        alpha_prime = np.asarray(alpha_prime)
-        alpha = np.asarray(extras["alpha"])
-        channels = {name: alpha_prime[..., i] for i, name in enumerate(("R", "G", "B"))}
-        channels |= {f"unscaled.{c}": alpha[..., i] for i, c in enumerate("RGB")}
-        write_channels(alpha_out, channels, attributes=attributes)
-        message += (f"; alpha in {alpha_out} (mean alpha {alpha.mean():.4f}, after the t-test "
-                    f"{alpha_prime.mean():.4f})")
+    with all_or_nothing():  # --out and --alpha: both or neither
+        write_image(out, np.asarray(z), attributes=attributes)
+        if alpha_out is not None:
+            alpha_prime = np.asarray(alpha_prime)
+            alpha = np.asarray(extras["alpha"])
+            channels = {name: alpha_prime[..., i] for i, name in enumerate(("R", "G", "B"))}
+            channels |= {f"unscaled.{c}": alpha[..., i] for i, c in enumerate("RGB")}
+            write_channels(alpha_out, channels, attributes=attributes)
+            message += (f"; alpha in {alpha_out} (mean alpha {alpha.mean():.4f}, after the "
+                        f"t-test {alpha_prime.mean():.4f})")
     print(message)
     return 0
 

@@ -269,7 +269,11 @@ def load_denoiser(spec: str | os.PathLike) -> Denoiser:
             f"{path}: holds a {meta.get('kind', 'unknown')!r} checkpoint "
             f"(model {meta.get('model')!r}), not a denoiser"
         )
-    definition = get_definition(meta.get("model", "?"))
+    try:
+        definition = get_definition(meta.get("model", "?"))
+    except ConfigError as error:
+        raise CheckpointError(f"{path}: its meta record names model {meta.get('model')!r}: "
+                              f"{error}") from None
     try:
         config = load_config(meta.get("model_config", {}), definition.config_cls)
     except ConfigError as error:

@@ -31,5 +31,10 @@ class DatasetError(JaxdenError, ValueError):
     """A dataset directory or manifest is inconsistent."""
 
 
+class OutputError(JaxdenError, OSError):
+    """An output file or folder cannot be written there (a folder in the way, no permission,
+    a missing parent folder, two outputs on the same path)."""
+
+
 class CheckpointError(JaxdenError, ValueError):
     """A checkpoint is missing, corrupt, or belongs to another model or config."""

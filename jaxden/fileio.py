@@ -14,10 +14,52 @@ import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-from jaxden.errors import JaxdenError
+from jaxden.errors import JaxdenError, OutputError
 
 _UMASK = os.umask(0)
 os.umask(_UMASK)
+
+# Files written by atomic_write inside all_or_nothing() blocks, innermost block last.
+_GROUPS: list[list[Path]] = []
+
+
+def check_outputs(*outputs: tuple[str, str | os.PathLike]) -> list[Path]:
+    """Check ``(option, path)`` output files before any work is done: distinct paths, none an
+    existing folder, each in an existing, writable folder. Returns the paths; raises
+    :class:`OutputError` naming the option and the path."""
+    paths, seen = [], {}
+    for option, path in outputs:
+        path = Path(path)
+        key = os.path.realpath(path)
+        if key in seen:
+            raise OutputError(f"{option} {path}: the same file as {seen[key]}; give another name")
+        seen[key] = f"{option} {path}"
+        if path.is_dir():
+            raise OutputError(f"{option} {path}: is a folder; give a file name")
+        parent = path.parent
+        if not parent.is_dir():
+            raise OutputError(f"{option} {path}: the folder {parent} does not exist")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise OutputError(f"{option} {path}: no permission to write into {parent}")
+        paths.append(path)
+    return paths
+
+
+@contextlib.contextmanager
+def all_or_nothing() -> Iterator[None]:
+    """Files that :func:`atomic_write` completes inside the block are removed again if the
+    block raises: a command writing several files leaves all of them or none."""
+    written: list[Path] = []
+    _GROUPS.append(written)
+    try:
+        yield
+    except BaseException:
+        for path in written:
+            with contextlib.suppress(OSError):
+                path.unlink()
+        raise
+    finally:
+        _GROUPS.remove(written)
 
 
 def atomic_write(path: str | os.PathLike, write: Callable[[str], None], suffix: str = "") -> None:
@@ -26,16 +68,27 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None], suffix: 
     The file gets the usual permissions (0666 less the umask; mkstemp's are 0600).
     """
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{suffix}", dir=path.parent)
+    if path.is_dir():
+        raise OutputError(f"{path}: is a folder; cannot write a file there")
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{suffix}",
+                                   dir=path.parent)
+    except OSError as error:
+        raise OutputError(f"cannot write {path}: {error.strerror or error}") from None
     os.close(fd)
     try:
         write(tmp)
         os.chmod(tmp, 0o666 & ~_UMASK)
-        os.replace(tmp, path)
+        try:
+            os.replace(tmp, path)
+        except OSError as error:
+            raise OutputError(f"cannot write {path}: {error.strerror or error}") from None
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+    if _GROUPS:
+        _GROUPS[-1].append(path)
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
@@ -77,4 +130,5 @@ def folder_lock(directory: str | os.PathLike, name: str, what: str) -> Iterator[
         handle.close()
 
 
-__all__ = ["JaxdenError", "atomic_write", "atomic_write_bytes", "atomic_write_text", "folder_lock"]
+__all__ = ["JaxdenError", "OutputError", "all_or_nothing", "atomic_write", "atomic_write_bytes",
+           "atomic_write_text", "check_outputs", "folder_lock"]

@@ -158,8 +158,8 @@ class Frame:
                     index = tuple(int(i) for i in np.argwhere(bad)[0])
                     raise FrameError(
                         f"{where}: field '{name}' has {int(bad.sum())} non-finite value(s) "
-                        f"(first at index {index}: {array[index]}); pass nonfinite='zero' to "
-                        f"replace them by 0"
+                        f"(first at index {index}: {array[index]}); pass nonfinite='zero' "
+                        f"(CLI: --nonfinite zero) to replace them by 0"
                     )
                 array = np.where(bad, 0.0, array).astype(array.dtype)
                 repaired[name] = array
@@ -174,7 +174,8 @@ class Frame:
                     raise FrameError(
                         f"{where}: variance must be >= 0 but {int(negative.sum())} value(s) are "
                         f"negative (first at index {index}: {variance[index]:.6g})"
-                        + ("; pass nonfinite='zero' to clip round-off" if nonfinite == "error" else "")
+                        + ("; pass nonfinite='zero' (CLI: --nonfinite zero) to clip round-off"
+                           if nonfinite == "error" else "")
                     )
                 repaired["variance"] = np.maximum(variance, 0.0).astype(variance.dtype)
         if self.spp is not None:

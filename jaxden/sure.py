@@ -74,6 +74,7 @@ inputs) for non-JAX denoisers such as OIDN through ``pyoidn``.
 from __future__ import annotations
 
 import functools
+import hashlib
 import math
 from typing import Any, Callable, Literal, NamedTuple
 
@@ -542,6 +543,10 @@ def sure_buffers(denoise: Callable[[Frame], Any], frame: Frame, buffers,
     frame = _checked_frame(frame.numpy() if isinstance(frame, Frame) else frame, "sure_buffers",
                            nonfinite)
     if isinstance(buffers, (list, tuple)) and buffers and isinstance(buffers[0], Frame):
+        counts = {float(b.spp) for b in buffers if b.spp is not None}
+        if len(counts) > 1:
+            raise FrameError(f"sure_buffers: the sub-buffers must have equal spp, got "
+                             f"{sorted(counts)}")
         buffers = [np.asarray(b.color) for b in buffers]
     xk = np.asarray(buffers, dtype=np.float64)
     x = np.asarray(frame.color, dtype=np.float64)
@@ -552,6 +557,13 @@ def sure_buffers(denoise: Callable[[Frame], Any], frame: Frame, buffers,
         raise FrameError(f"sure_buffers: need K >= 2 sub-buffers, got {k}")
     if not np.all(np.isfinite(xk)):
         raise FrameError("sure_buffers: the sub-buffers have NaN or infinite values")
+    first_seen: dict[bytes, int] = {}
+    for i in range(k):  # a buffer given twice is not independent: the covariance would be wrong
+        digest = hashlib.sha1(np.ascontiguousarray(xk[i]).tobytes()).digest()
+        if digest in first_seen:
+            raise FrameError(f"sure_buffers: sub-buffers {first_seen[digest]} and {i} are "
+                             f"identical; the buffers must be independent renders (other seeds)")
+        first_seen[digest] = i
     scale = max(float(np.max(np.abs(x))), 1e-12)
     gap = float(np.max(np.abs(xk.mean(axis=0) - x)))
     if gap > rtol * scale:

@@ -323,7 +323,8 @@ def train_and_evaluate(
     from jaxden.config import config_diff, config_to_dict, dump_config
 
     workdir = Path(workdir)
-    workdir.mkdir(parents=True, exist_ok=True)
+    if workdir.exists() and not workdir.is_dir():
+        raise ConfigError(f"--workdir {workdir} is a file, not a folder")
     resolved = config_to_dict(config)
     config_file = workdir / "config.toml"
     saved_json = workdir / "config.json"
@@ -335,12 +336,9 @@ def train_and_evaluate(
                 f"{workdir} holds a run with another config ({'; '.join(differences[:5])}); "
                 f"use a new --workdir"
             )
-    else:
-        from jaxden.fileio import atomic_write_text
 
-        atomic_write_text(config_file, dump_config(config, header="resolved training config"))
-        atomic_write_text(saved_json, json.dumps(resolved, indent=2))
-
+    # Everything the config can get wrong fails here, before the workdir records the config
+    # (a failed start must not leave a workdir that refuses the corrected config).
     task = make_task(config)
     loss_fn = loss_function(config.optim.loss)
     optimizer = make_optimizer(config.optim)
@@ -355,6 +353,13 @@ def train_and_evaluate(
     first = task.prepare(next(iter(train_loader.epoch(0))))
     params = task.init(key, first)
     state = TrainState(params, optimizer.init(params), jnp.asarray(0, jnp.int32))
+
+    workdir.mkdir(parents=True, exist_ok=True)
+    if not saved_json.exists():
+        from jaxden.fileio import atomic_write_text
+
+        atomic_write_text(config_file, dump_config(config, header="resolved training config"))
+        atomic_write_text(saved_json, json.dumps(resolved, indent=2))
     meta = {**task.meta, "train_config": resolved}
     checkpointer = Checkpointer(workdir, max_to_keep=config.keep_checkpoints)
     start = 0

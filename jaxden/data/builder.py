@@ -377,11 +377,14 @@ def build_dataset(
     directory = Path(out_dir)
     if directory.exists() and not directory.is_dir():
         raise DatasetError(f"{directory} exists and is not a folder")
-    directory.mkdir(parents=True, exist_ok=True)
     planned = plan_dataset(config)
     planned.renderer = _renderer_name(render_fn)
-    if render_fn is None:
-        check_scenes(config.scene_ids())
+    if render_fn is None:  # before the output folder exists: nothing left behind
+        try:
+            check_scenes(config.scene_ids())
+        except SceneError as error:
+            raise SceneError(f"dataset config 'scenes': {error}") from None
+    directory.mkdir(parents=True, exist_ok=True)
 
     with _build_lock(directory):
         manifest_file = directory / MANIFEST_NAME

@@ -226,7 +226,8 @@ def load_manifest(directory: str | os.PathLike) -> Manifest:
     """Read ``DIR/manifest.json``; DatasetError if the folder or manifest is missing/invalid."""
     directory = Path(directory)
     if not directory.is_dir():
-        raise DatasetError(f"dataset folder {directory} does not exist")
+        raise DatasetError(f"{directory} is a file, not a dataset folder" if directory.exists()
+                           else f"dataset folder {directory} does not exist")
     path = directory / MANIFEST_NAME
     if not path.exists():
         raise DatasetError(

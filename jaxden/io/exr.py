@@ -72,7 +72,16 @@ def write_channels(
             raise ExrError(f"{path}: channel '{name}' has shape {array.shape}, others {shape}")
         dtype = np.float16 if name in half_names else np.float32
         # A copy: OpenEXR.File replaces the values of the dict it is given (PLATFORM-NOTES).
-        pixels[name] = np.ascontiguousarray(array, dtype=dtype).copy()
+        with np.errstate(over="ignore"):
+            pixels[name] = np.ascontiguousarray(array, dtype=dtype).copy()
+        overflow = np.isinf(pixels[name]) & np.isfinite(array)
+        if overflow.any():
+            peak = float(np.abs(np.asarray(array, np.float64)[overflow]).max())
+            raise ExrError(
+                f"{path}: channel '{name}' has {int(overflow.sum())} value(s) beyond the "
+                f"{'float16' if dtype == np.float16 else 'float32'} range (largest {peak:.4g}; "
+                f"float16 stops at 65504): store it as float32 (no --half / half = false)"
+            )
     header: dict[str, Any] = {
         "compression": OpenEXR.ZIP_COMPRESSION,
         "type": OpenEXR.scanlineimage,
@@ -273,11 +282,15 @@ def read_frame(
             sample_count = float(sample_count)
         except (TypeError, ValueError):
             raise ExrError(f"{path}: header attribute spp is not a number: {sample_count!r}") from None
+        if not (np.isfinite(sample_count) and sample_count > 0):
+            source = "spp=" if spp is not None else "header attribute jaxden.spp"
+            raise ExrError(f"{path}: {source} must be a positive sample count, got "
+                           f"{sample_count:g}")
     if variance_is_sample_variance and "variance" in fields:
         if sample_count is None:
             raise ExrError(
                 f"{path}: variance_is_sample_variance needs the sample count: the header has no "
-                f"jaxden.spp; pass spp="
+                f"jaxden.spp; pass spp= (CLI: --spp N)"
             )
         fields["variance"] = fields["variance"] / np.float32(sample_count)
     frame = Frame(

@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxden import kernels
-from jaxden.errors import FrameError
+from jaxden.errors import ConfigError, FrameError
 from jaxden.frame import Frame
 from jaxden.nn.layers import RepVGGBlock, RepVGGDeployBlock
 
@@ -104,6 +104,11 @@ class RepVGGStack(nn.Module):
         return x
 
 
+def _check_config_kernels(field: str, sizes) -> None:
+    if not sizes or any(not isinstance(k, int) or k < 1 or k % 2 == 0 for k in sizes):
+        raise ConfigError(f"{field}: kernel sizes must be odd integers >= 1, got {sizes!r}")
+
+
 @dataclasses.dataclass(frozen=True)
 class WSKPConfig:
     """ImportanceNet + weight-sharing kernel decoder (paper Sec. 4)."""
@@ -115,6 +120,9 @@ class WSKPConfig:
     albedo_floor: float = 0.05
     decoder: Literal["box", "unfold"] = "box"
     deploy: bool = False  # re-parameterised single-conv blocks (inference)
+
+    def __post_init__(self):
+        _check_config_kernels("WSKPConfig.kernel_sizes", self.kernel_sizes)
 
 
 def wskp_denoise(params, config: WSKPConfig, frame: Frame) -> jax.Array:
@@ -150,6 +158,9 @@ class KPConfig:
     tonemap: Literal["gamma", "reinhard_gamma"] = "reinhard_gamma"
     albedo_floor: float = 0.05
     deploy: bool = False
+
+    def __post_init__(self):
+        _check_config_kernels("KPConfig.kernel_size", (self.kernel_size,))
 
 
 def apply_per_pixel_kernels(color: jax.Array, weights: jax.Array, kernel_size: int) -> jax.Array:
@@ -205,6 +216,9 @@ class WSKPMRConfig:
     tonemap: Literal["gamma", "reinhard_gamma"] = "reinhard_gamma"
     albedo_floor: float = 0.05
     deploy: bool = False
+
+    def __post_init__(self):
+        _check_config_kernels("WSKPMRConfig.kernel_sizes", self.kernel_sizes)
 
 
 def downsample(x: jax.Array) -> jax.Array:
