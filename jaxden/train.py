@@ -89,9 +89,29 @@ class TrainConfig:
 
 
 def load_train_config(source, overrides=()) -> TrainConfig:
+    """Load a training config and check its ``model`` and ``[model_config]`` now, so that a
+    typo there is reported with the file's name before any work starts."""
     from jaxden.config import load_config
 
-    return load_config(source, TrainConfig, overrides)
+    config = load_config(source, TrainConfig, overrides)
+    where = f"{source}: " if isinstance(source, (str, os.PathLike)) else ""
+    if config.model == "mixer":
+        from jaxden.progressive import MixerConfig
+
+        config_cls = MixerConfig
+    else:
+        from jaxden.denoisers import get_definition
+
+        try:
+            config_cls = get_definition(config.model).config_cls
+        except ConfigError as error:
+            raise ConfigError(f"{where}model = {config.model!r}: {error} (or 'mixer')") from None
+    if config_cls is not None:
+        try:
+            load_config(dict(config.model_config), config_cls)
+        except ConfigError as error:
+            raise ConfigError(f"{where}[model_config] of model '{config.model}': {error}") from None
+    return config
 
 
 # ------------------------------------------------------------------------------------- tasks

@@ -197,3 +197,16 @@ def test_even_kernel_sizes_are_a_config_error():
                  lambda: KPConfig(kernel_size=6)):
         with pytest.raises(ConfigError, match="kernel sizes must be odd"):
             make()
+
+
+def test_model_config_errors_name_the_file(tmp_path, capsys):
+    source = Path(__file__).parent.parent / "experiments" / "configs" / "train-wskp.toml"
+    bad = tmp_path / "bad.toml"
+    bad.write_text(source.read_text() + "\n")
+    code = main(["train", str(bad), "model_config.widht=8", "--workdir", str(tmp_path / "w")])
+    err = capsys.readouterr().err
+    assert code == 2 and "bad.toml" in err and "widht" in err and "model_config" in err
+    code = main(["train", str(bad), "model=wskpp", "--workdir", str(tmp_path / "w")])
+    err = capsys.readouterr().err
+    assert code == 2 and "bad.toml" in err and "model = 'wskpp'" in err
+    assert not (tmp_path / "w").exists()
