@@ -529,3 +529,15 @@ def test_progress_bar_counts_samples(tmp_path, capsys):
     err = capsys.readouterr().err
     total = 3 * (2 + 4 + 16 + 256) * 8 * 8  # scenes x spp x pixels
     assert "build small" in err and "100%" in err and f"{total / 1000:.1f}k" in err
+
+
+def test_verify_refuses_manifest_paths_outside_the_dataset(tmp_path):
+    directory = tmp_path / "d"
+    manifest, _ = build(directory)
+    outside = tmp_path / "outside.exr"
+    outside.write_bytes((directory / manifest.items[1].path).read_bytes())
+    data = json.loads((directory / "manifest.json").read_text())
+    data["items"][1]["path"] = "../outside.exr"
+    (directory / "manifest.json").write_text(json.dumps(data))
+    problems = [str(p) for p in verify_dataset(directory).problems]
+    assert any("'../outside.exr' leaves the dataset folder" in p for p in problems)

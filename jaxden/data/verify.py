@@ -127,6 +127,10 @@ def verify_dataset(
     for item in iterator:
         path = directory / item.path
         shown = str(path)
+        if Path(item.path).is_absolute() or ".." in Path(item.path).parts:
+            problems.append(Problem(shown, item.id, f"the manifest's path {item.path!r} leaves "
+                                    f"the dataset folder"))
+            continue
         if not item.done:
             problems.append(
                 Problem(shown, item.id, "not built yet (no checksum in the manifest): run the "
