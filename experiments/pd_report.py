@@ -109,12 +109,15 @@ def cmd_pd(args: argparse.Namespace) -> None:
 def cmd_sure(args: argparse.Namespace) -> None:
     from jaxden import pdreport
 
-    source = provenance(args, {"denoisers": [_weights_identity(s) for s in args.denoiser]})
-    summaries, rows = {}, {}
-    for spec in args.denoiser:
-        rows[spec] = pdreport.sure_accuracy(args.data, spec, split=args.split, seed=args.seed,
-                                            num_probes=args.probes, spp=args.spp, progress=True)
-        summaries[spec] = pdreport.summarize_sure(rows[spec])
+    if args.from_json:  # re-tabulate a finished run (its rows and provenance) without rerunning
+        previous = json.loads(Path(args.from_json).read_text())
+        rows, source = previous["rows"], previous["provenance"]
+    else:
+        source = provenance(args, {"denoisers": [_weights_identity(s) for s in args.denoiser]})
+        rows = {spec: pdreport.sure_accuracy(args.data, spec, split=args.split, seed=args.seed,
+                                             num_probes=args.probes, spp=args.spp, progress=True)
+                for spec in args.denoiser}
+    summaries = {spec: pdreport.summarize_sure(r) for spec, r in rows.items()}
     result = {"summary": summaries, "rows": rows, "provenance": source}
     write_report(Path(args.out), result, pdreport.markdown_sure(summaries))
 
@@ -145,18 +148,24 @@ def cmd_sure_buffers(args: argparse.Namespace) -> None:
     lines = [f"{renders} fresh render(s) per crop and spp, each the mean of {buffers} "
              "independent sub-buffers. Estimate / noise-corrected true MSE: of the means over "
              "all crop-renders, of the median crop-render, and the share of crop-renders "
-             f"within ±10 % ({names}).", "",
-             "| denoiser | spp | true MSE | ratio of means | median | within ±10 % |",
-             "|---|---:|---:|---:|---:|---:|"]
+             f"within ±10 % ({names}); the 95 % interval of the ratio of means is a crop "
+             f"bootstrap ({pdreport.BOOTSTRAP_RESAMPLES} resamples of the crops with all their "
+             "renders, seed 0).", "",
+             "| denoiser | spp | true MSE | ratio of means | 95 % interval | median | "
+             "within ±10 % |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
 
     def cells(per, field, fmt):
         return " / ".join(format(per[kind][field], fmt) for kind in keys)
+
+    def intervals(per):
+        return " / ".join("{:.2f}..{:.2f}".format(*per[kind]["ratio_ci95"]) for kind in keys)
 
     for name, by_kind in summaries.items():
         for level in by_kind["stein"]["per_spp"]:
             per = {kind: by_kind[kind]["per_spp"][level] for kind in keys}
             lines.append(f"| {name} | {level} | {per['stein']['mse_nc']:.4g} | "
-                         f"{cells(per, 'ratio', '.3f')} | "
+                         f"{cells(per, 'ratio', '.3f')} | {intervals(per)} | "
                          f"{cells(per, 'median_crop_ratio', '.3f')} | "
                          f"{cells(per, 'within_10pct', '.0%')} |")
     crops = sorted({r["crop"] for r in next(iter(rows.values()))})
@@ -196,7 +205,7 @@ def main(argv=None) -> int:
                            help="independent sub-buffers per render (spp / buffers each)")
             p.add_argument("--renders", type=int, default=1,
                            help="independent renders per crop and spp")
-        if name in ("pd", "sure-buffers"):
+        if name in ("pd", "sure", "sure-buffers"):
             p.add_argument("--from-json", default=None,
                            help="re-tabulate the rows of a finished run (OUT.json) instead")
         p.set_defaults(func=func)

@@ -349,11 +349,16 @@ def summarize_progressive(rows) -> dict[str, Any]:
             "crops": len({r["crop"] for r in rows}), "per_crop": per_crop}
 
 
+#: Crop-bootstrap resamples of :func:`ratio_interval`.
+BOOTSTRAP_RESAMPLES = 2000
+
+
 def summarize_sure(rows, key: str = "sure") -> dict[str, Any]:
     """Per spp: ``sure`` and ``mse_nc`` means over crops, ``ratio`` = mean SURE / mean true MSE
     (noise-corrected), ``median_crop_ratio`` and the mean reference variance relative to the
     true MSE (how much the correction matters); ``within_10pct``: the share of rows (images)
-    whose own ratio is within ±10 %. ``key``: the row field holding the estimate
+    whose own ratio is within ±10 %; ``ratio_ci95``: a crop-bootstrap 95 % interval of the
+    ratio (:func:`ratio_interval`). ``key``: the row field holding the estimate
     (``sure_buffers`` for the sub-buffer estimator)."""
     per_spp = {}
     for level, group in _by_spp(rows).items():
@@ -368,9 +373,29 @@ def summarize_sure(rows, key: str = "sure") -> dict[str, Any]:
                                           <= 0.1)),
             "reference_var_over_mse": float(ref_var.mean() / true.mean())
             if true.mean() > 0 else float("nan"),
+            "ratio_ci95": ratio_interval(group, key),
             "crops": len(group),
         }
     return {"per_spp": per_spp, "crops": len({r["crop"] for r in rows})}
+
+
+def ratio_interval(rows, key: str = "sure", *, resamples: int = BOOTSTRAP_RESAMPLES,
+                   seed: int = 0) -> list[float]:
+    """95 % interval of the ratio of means (sum of ``key`` / sum of ``mse_nc``) by a crop
+    bootstrap: draw the crops with replacement (each with all its renders), ``resamples``
+    times with ``default_rng(seed)``; percentiles 2.5 and 97.5. Renders of one crop share its
+    content, so crops, not renders, are the independent units."""
+    crops: dict[str, list[tuple[float, float]]] = defaultdict(list)
+    for row in rows:
+        crops[row["crop"]].append((row[key], row["mse_nc"]))
+    sums = np.array([[sum(v for v, _ in pairs), sum(t for _, t in pairs)]
+                     for pairs in crops.values()])
+    rng = np.random.default_rng(seed)
+    draws = rng.integers(0, len(sums), size=(resamples, len(sums)))
+    totals = sums[draws].sum(axis=1)
+    ratios = totals[:, 0] / np.where(totals[:, 1] > 0, totals[:, 1], np.nan)
+    low, high = np.nanpercentile(ratios, [2.5, 97.5])
+    return [float(low), float(high)]
 
 
 def markdown_progressive(summary: dict[str, Any], denoiser: str = "OIDN") -> str:
@@ -429,11 +454,13 @@ def markdown_progressive(summary: dict[str, Any], denoiser: str = "OIDN") -> str
 
 def markdown_sure(summaries: dict[str, dict[str, Any]]) -> str:
     """One table: per denoiser and spp, mean SURE vs noise-corrected true MSE."""
-    lines = ["| denoiser | spp | mean SURE | true MSE (noise-corr.) | SURE / MSE | median crop "
-             "ratio | ref. var / MSE |", "|---|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| denoiser | spp | mean SURE | true MSE (noise-corr.) | SURE / MSE | 95 % interval "
+             "(crop bootstrap) | median crop ratio | ref. var / MSE |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
     for name, summary in summaries.items():
         for level, m in summary["per_spp"].items():
+            low, high = m.get("ratio_ci95", (float("nan"), float("nan")))
             lines.append(f"| {name} | {level} | {m['sure']:.4g} | {m['mse_nc']:.4g} | "
-                         f"{m['ratio']:.3f} | {m['median_crop_ratio']:.3f} | "
-                         f"{m['reference_var_over_mse']:.3f} |")
+                         f"{m['ratio']:.3f} | {low:.2f}..{high:.2f} | "
+                         f"{m['median_crop_ratio']:.3f} | {m['reference_var_over_mse']:.3f} |")
     return "\n".join(lines)

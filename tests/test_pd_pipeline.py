@@ -500,6 +500,23 @@ def test_sure_accuracy_rows_and_summary(trained):
         next(pdreport.iter_crops(broken, "all"))
 
 
+def test_ratio_interval_is_a_crop_bootstrap():
+    """With two crops the crop bootstrap has three outcomes ({a, a}, {a, b}, {b, b}, with
+    probabilities 1/4, 1/2, 1/4), so its 2.5-97.5 % interval spans the two crops' own ratios;
+    every crop at ratio 1 gives [1, 1]; renders of one crop move together."""
+    from jaxden import pdreport
+
+    rows = [{"crop": "a", "sure": 2.0, "mse_nc": 1.0}, {"crop": "a", "sure": 1.0, "mse_nc": 1.0},
+            {"crop": "b", "sure": 1.0, "mse_nc": 2.0}]
+    low, high = pdreport.ratio_interval(rows, "sure")
+    assert (low, high) == (pytest.approx(0.5), pytest.approx(1.5))  # crop b 1/2, crop a 3/2
+    assert pdreport.ratio_interval(rows, "sure") == [low, high]  # seeded
+    same = [{"crop": c, "sure": v, "mse_nc": v} for c, v in (("a", 1.0), ("b", 5.0), ("c", 2.0))]
+    assert pdreport.ratio_interval(same, "sure") == [pytest.approx(1.0), pytest.approx(1.0)]
+    summary = pdreport.summarize_sure([{**r, "spp": 64, "reference_var": 0.0} for r in rows])
+    assert summary["per_spp"][64]["ratio_ci95"] == [low, high]
+
+
 def test_oracle_mix_is_the_best_tile_alpha():
     """oracle_mix's alpha per tile and channel minimises the squared error against the
     reference over alpha in [0, 1]: a brute-force search on a fine grid never does better,
