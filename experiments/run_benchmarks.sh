@@ -1,12 +1,12 @@
 #!/usr/bin/env bash
 # Runs every benchmark (or those named) and stores each one's JSON result, with the machine it
 # ran on, in experiments/results/bench-NAME.json. Run on an otherwise idle machine:
-#   experiments/run_benchmarks.sh [render decoder denoisers sharding sure]
+#   experiments/run_benchmarks.sh [render decoder denoisers sharding sure progressive]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 jaxden=${JAXDEN:-.venv/bin/jaxden}
 names=("$@")
-[ ${#names[@]} -gt 0 ] || names=(render decoder denoisers sharding sure)
+[ ${#names[@]} -gt 0 ] || names=(render decoder denoisers sharding sure progressive)
 mkdir -p experiments/results
 for name in "${names[@]}"; do
   echo "== jaxden bench $name --json"

@@ -95,3 +95,15 @@ def test_demo_writes_frames_and_oidn_beats_the_noisy_input(tmp_path):
 def test_mixer_name_that_does_not_exist_is_a_clear_error():
     with pytest.raises(CheckpointError, match="no-such-mixer: no such checkpoint"):
         P.load_mixer("no-such-mixer")
+
+
+@pytest.mark.slow
+def test_progressive_bench_quick():
+    """`jaxden bench progressive` runs end to end on the quick size (structure only: speed is
+    the benchmark's business, not a unit test's)."""
+    from jaxden import bench
+
+    result = bench.run("progressive", quick=True)
+    keys = ("pd_over_oidn", "pd_single_over_oidn", "mixer_over_oidn", "tstat_over_oidn")
+    assert all(np.isfinite(result[k]) and result[k] > 0 for k in keys)
+    assert (result["width"], result["height"]) == (320, 180)

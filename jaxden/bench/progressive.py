@@ -1,0 +1,77 @@
+"""Benchmark ``progressive``: what progressive denoising costs on top of the denoiser it wraps.
+
+On one 1280 x 720 frame (the Cornell box at 4 spp with its features and variance; 320 x 180
+with ``quick``), OIDN on the CPU ('high' quality) and the shipped mixer ``oidn-pd``, everything
+compiled and warmed up before timing, timed alternately, median of the repeats:
+
+- ``pd_over_oidn``: the whole pipeline (OIDN for y, SURE by forward differences with 4 probes,
+  i.e. 4 more OIDN calls, the mixer as shipped (``swap_average``: two mixer calls), the
+  t-statistic scaling) / one OIDN call. The finite-difference SURE of a black box dominates:
+  expect about 1 + K;
+- ``pd_single_over_oidn``: the same with one mixer call (``swap_average`` off, the paper's form);
+- ``mixer_over_oidn``: one mixer call (PDNet on the 18 input channels) / one OIDN call;
+- ``tstat_over_oidn``: the t-statistic scaling alone / one OIDN call.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+from jaxden.bench import register
+
+
+@register("progressive")
+def bench_progressive(quick: bool) -> dict:
+    import jax
+    import numpy as np
+
+    from jaxden.denoisers import load_denoiser
+    from jaxden.pdcache import denoise_with_sure
+    from jaxden.progressive import (load_mixer, mixer_alpha, progressive_denoise,
+                                    shipped_mixer_path, t_statistic_scaling)
+    from jaxden.render.core import render_frame
+
+    size = (320, 180) if quick else (1280, 720)
+    repeats = 2 if quick else 3
+    frame = render_frame("cornell-box", 4, seed=1, size=size)
+    oidn = load_denoiser("oidn")
+    params, config = load_mixer(str(shipped_mixer_path("oidn")))
+    key = jax.random.PRNGKey(0)
+    result, _ = denoise_with_sure(oidn, frame, key, num_probes=4)
+    x, var = np.asarray(frame.color), np.asarray(frame.variance)
+    y, sure_map = np.asarray(result.denoised), np.asarray(result.sure)
+    alpha = mixer_alpha(params, config, x, y, var, sure_map)
+    mixed = np.asarray(x + alpha * (y - x))
+
+    def pd(swap_average: bool):
+        return progressive_denoise(frame, oidn, params, config, key, num_probes=4,
+                                   swap_average=swap_average)[0]
+
+    runners = {
+        "oidn": lambda: oidn(frame),
+        "pd": lambda: pd(True),
+        "pd_single": lambda: pd(False),
+        "mixer": lambda: mixer_alpha(params, config, x, y, var, sure_map),
+        "tstat": lambda: t_statistic_scaling(alpha, x, mixed, var, config.tstat),
+    }
+    for run in runners.values():
+        jax.block_until_ready(run())  # compile and warm up
+    times: dict[str, list[float]] = {name: [] for name in runners}
+    for _ in range(repeats):
+        for name, run in runners.items():
+            start = time.perf_counter()
+            jax.block_until_ready(run())
+            times[name].append(time.perf_counter() - start)
+    median = {name: statistics.median(values) for name, values in times.items()}
+    return {
+        **{f"{name}_over_oidn": median[name] / median["oidn"]
+           for name in ("pd", "pd_single", "mixer", "tstat")},
+        **{f"{name}_s": value for name, value in median.items()},
+        "denoiser": "oidn (CPU, high quality)",
+        "mixer": "oidn-pd",
+        "sure": "forward differences, 4 probes",
+        "width": size[0],
+        "height": size[1],
+        "repeats": repeats,
+    }
