@@ -79,7 +79,10 @@ def read_input_frame(args: argparse.Namespace, who: str):
     )
     if frame.variance is None:
         names = ", ".join(args.variance_channels or ("variance.R", "variance.G", "variance.B"))
-        found = ", ".join(read_header(args.input)["channels"])
+        header = read_header(args.input)
+        found = ", ".join(header["channels"])
+        if header["parts"] > 1:
+            found += f" in the first of its {header['parts']} parts, the one jaxden reads"
         raise FrameError(
             f"{args.input}: {who} needs SURE, and SURE needs the variance of the pixel mean "
             f"(channels {names}), which the file lacks (it has {found}); name your renderer's "

@@ -210,3 +210,19 @@ def test_model_config_errors_name_the_file(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and "bad.toml" in err and "model = 'wskpp'" in err
     assert not (tmp_path / "w").exists()
+
+
+def test_multi_part_exr_without_variance_in_its_first_part_is_explained(tmp_path, capsys):
+    import OpenEXR
+
+    plane = np.ones((4, 5), np.float32)
+    def header():
+        return {"type": OpenEXR.scanlineimage, "compression": OpenEXR.ZIP_COMPRESSION}
+
+    parts = [OpenEXR.Part(header(), {c: plane.copy() for c in "RGB"}, "color"),
+             OpenEXR.Part(header(), {f"variance.{c}": plane.copy() for c in "RGB"}, "variance")]
+    path = tmp_path / "multi.exr"
+    OpenEXR.File(parts).write(str(path))
+    code = main(["sure", str(path), "--denoiser", "oidn", "--out", str(tmp_path / "s.exr")])
+    err = capsys.readouterr().err
+    assert code == 2 and "first of its 2 parts" in err and "variance" in err

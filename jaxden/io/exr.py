@@ -142,6 +142,7 @@ def read_header(path: str | os.PathLike) -> dict[str, Any]:
     header["channels"] = sorted(c.name for c in raw["channels"])
     lo, hi = raw["dataWindow"]
     header["size"] = (int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1))
+    header["parts"] = len(exr.parts)  # jaxden reads the first part of a multi-part file
     return header
 
 
