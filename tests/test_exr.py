@@ -68,15 +68,23 @@ def test_incomplete_feature_is_an_error(tmp_path):
         exr.read_frame(path)
 
 
-def test_truncated_file_is_a_clear_error(tmp_path):
+def test_truncated_file_is_a_clear_error(tmp_path, capfd):
+    """One ExrError naming the file (with libOpenEXR's reason), and none of the library's own
+    prints on stdout / stderr around it."""
     path = tmp_path / "t.exr"
     exr.write_frame(path, make_frame(32, 32))
     data = path.read_bytes()
+    capfd.readouterr()
     for cut in (len(data) // 3, len(data) - 20):
         bad = tmp_path / f"cut{cut}.exr"
         bad.write_bytes(data[:cut])
-        with pytest.raises(ExrError, match=str(bad.name)):
+        with pytest.raises(ExrError, match=str(bad.name)) as info:
             exr.read_frame(bad)
+        assert "truncated or corrupt" in str(info.value) and "\n" not in str(info.value)
+    out, err = capfd.readouterr()
+    assert out == "" and err == ""
+    exr.read_frame(path)  # the intact file still reads, with nothing printed
+    assert capfd.readouterr() == ("", "")
 
 
 def test_non_exr_missing_and_folder(tmp_path):
@@ -193,3 +201,20 @@ def test_stack_and_crop():
         stack([make_frame(full=False), make_frame()])
     with pytest.raises(FrameError, match="needs the frame feature"):
         make_frame(full=False).require("albedo", "normal", who="WSKP")
+
+
+def test_reading_from_a_worker_thread_works(tmp_path):
+    """Reads outside the main thread do not touch the process's stdout / stderr descriptors
+    (the noise hold is main-thread only) and give the same data and errors."""
+    import concurrent.futures
+
+    path = tmp_path / "t.exr"
+    exr.write_frame(path, make_frame(16, 16))
+    bad = tmp_path / "bad.exr"
+    bad.write_bytes(path.read_bytes()[:200])
+    with concurrent.futures.ThreadPoolExecutor(2) as pool:
+        colours = list(pool.map(lambda _: exr.read_frame(path).color, range(4)))
+        with pytest.raises(ExrError, match="bad.exr"):
+            pool.submit(exr.read_frame, bad).result()
+    for colour in colours:
+        np.testing.assert_array_equal(colour, exr.read_frame(path).color)

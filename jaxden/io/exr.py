@@ -13,7 +13,10 @@ an :class:`~jaxden.errors.ExrError` naming the file and the problem.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
+import tempfile
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
@@ -106,6 +109,56 @@ def write_channels(
     _atomic_write(path, write)
 
 
+@contextlib.contextmanager
+def _native_output_held(native: dict[str, str] | None = None):
+    """Hold what libOpenEXR and its binding print themselves while a file is decoded (on the
+    stdout / stderr file descriptors, or through Python's sys.stdout). On success it is passed
+    on to stderr; on failure it is dropped, kept in ``native["text"]`` for the caller's
+    one-line ExrError. Only in the main thread (other threads decode without holding)."""
+    import io
+    import threading
+
+    native = {} if native is None else native
+    if threading.current_thread() is not threading.main_thread():
+        yield native  # the descriptors are process-wide: only the main thread redirects them
+        return
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    python_held = io.StringIO()
+    with tempfile.TemporaryFile() as held:
+        saved = [os.dup(1), os.dup(2)]
+        streams = sys.stdout, sys.stderr
+        failed = True
+        try:
+            os.dup2(held.fileno(), 1)
+            os.dup2(held.fileno(), 2)
+            sys.stdout = sys.stderr = python_held
+            yield native
+            failed = False
+        finally:
+            sys.stdout, sys.stderr = streams
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+            held.seek(0)
+            text = held.read().decode(errors="replace") + python_held.getvalue()
+            native["text"] = text
+            if not failed and text:
+                sys.stderr.write(text)
+
+
+def _decode_error(error: Exception, native: str = "") -> str:
+    """libOpenEXR's own reason (its "(EXR_ERR_...)" line) when it printed or raised one, else
+    the first line of the binding's message."""
+    for text in (str(error), native):
+        if "(EXR_ERR" in text:
+            return text[text.index("(EXR_ERR"):].splitlines()[0]
+    text = str(error)
+    return text.splitlines()[0] if text else type(error).__name__
+
+
 def _open(path: Path, header_only: bool = False):
     OpenEXR = _openexr()
     if not path.exists():
@@ -117,9 +170,11 @@ def _open(path: Path, header_only: bool = False):
     if magic != b"\x76\x2f\x31\x01":
         raise ExrError(f"{path}: not an OpenEXR file (bad magic number)")
     try:
-        return OpenEXR.File(str(path), separate_channels=True, header_only=header_only)
+        with _native_output_held():
+            return OpenEXR.File(str(path), separate_channels=True, header_only=header_only)
     except Exception as error:  # the binding raises RuntimeError for every decode failure
-        raise ExrError(f"{path}: cannot be read as EXR (truncated or corrupt?): {error}") from None
+        raise ExrError(f"{path}: cannot be read as EXR (truncated or corrupt?): "
+                       f"{_decode_error(error)}") from None
 
 
 def _plain_header(raw: Mapping[str, Any]) -> dict[str, Any]:
@@ -154,11 +209,16 @@ def read_channels(
     Raises ExrError naming the missing channels and listing those present.
     """
     path = Path(path)
-    exr = _open(path)
+    native: dict[str, str] = {}
     try:
-        available = {name: channel.pixels for name, channel in exr.channels().items()}
+        with _native_output_held(native):  # the pixels are decoded here, noise and all
+            exr = _open(path)
+            available = {name: channel.pixels for name, channel in exr.channels().items()}
+    except ExrError:
+        raise
     except Exception as error:
-        raise ExrError(f"{path}: pixel data cannot be decoded (truncated?): {error}") from None
+        raise ExrError(f"{path}: pixel data cannot be decoded (truncated or corrupt?): "
+                       f"{_decode_error(error, native.get('text', ''))}") from None
     wanted = list(available) if names is None else list(names)
     missing = [n for n in wanted if n not in available]
     if missing:
