@@ -28,8 +28,13 @@ def bench_progressive(quick: bool) -> dict:
 
     from jaxden.denoisers import load_denoiser
     from jaxden.pdcache import denoise_with_sure
-    from jaxden.progressive import (load_mixer, mixer_alpha, progressive_denoise,
-                                    shipped_mixer_path, t_statistic_scaling)
+    from jaxden.progressive import (
+        load_mixer,
+        mixer_alpha,
+        progressive_denoise,
+        shipped_mixer_path,
+        t_statistic_scaling,
+    )
     from jaxden.render.core import render_frame
 
     size = (320, 180) if quick else (1280, 720)
