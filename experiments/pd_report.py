@@ -94,9 +94,17 @@ def cmd_pd(args: argparse.Namespace) -> None:
         rows, source = previous["rows"], previous["provenance"]
         denoiser = source["denoiser"]
     else:
+        import dataclasses
+
+        from jaxden.progressive import load_mixer
+
+        params, config = load_mixer(args.mixer)
+        if args.swap_average is not None:
+            config = dataclasses.replace(config, swap_average=args.swap_average)
         source = provenance(args, {"denoiser": args.denoiser[0],
-                                   "mixer": _weights_identity(args.mixer)})
-        rows = pdreport.evaluate_progressive(args.data, args.denoiser[0], args.mixer,
+                                   "mixer": _weights_identity(args.mixer),
+                                   "swap_average": config.swap_average})
+        rows = pdreport.evaluate_progressive(args.data, args.denoiser[0], (params, config),
                                              split=args.split, seed=args.seed,
                                              num_probes=args.probes, spp=args.spp, progress=True)
         denoiser = args.denoiser[0]
@@ -200,6 +208,8 @@ def main(argv=None) -> int:
         p.add_argument("--out", required=True, help="output path without suffix")
         if name == "pd":
             p.add_argument("--mixer", default="oidn-pd", help="mixer spec (default oidn-pd)")
+            p.add_argument("--swap-average", action=argparse.BooleanOptionalAction,
+                           default=None, help="override the mixer config's swap_average")
         if name == "sure-buffers":
             p.add_argument("--buffers", type=int, default=16,
                            help="independent sub-buffers per render (spp / buffers each)")
