@@ -41,6 +41,26 @@ def _discover() -> None:
         _discovered = True
 
 
+def median_times(runners: dict[str, Callable[[], object]], repeats: int) -> dict[str, float]:
+    """Median wall-clock seconds of each runner: every runner is called once first (compile,
+    warm-up), then all are timed alternately ``repeats`` times (so a slow phase of the machine
+    hits them alike). Runners' results are waited for with ``jax.block_until_ready``."""
+    import statistics
+    import time
+
+    import jax
+
+    for run in runners.values():
+        jax.block_until_ready(run())
+    times: dict[str, list[float]] = {name: [] for name in runners}
+    for _ in range(repeats):
+        for name, run in runners.items():
+            start = time.perf_counter()
+            jax.block_until_ready(run())
+            times[name].append(time.perf_counter() - start)
+    return {name: statistics.median(values) for name, values in times.items()}
+
+
 def names() -> list[str]:
     """Names of all registered benchmarks, sorted."""
     _discover()

@@ -10,12 +10,9 @@ Keys ``<model>_over_oidn`` = model time / OIDN time (the issue's target: WSKP-6 
 
 from __future__ import annotations
 
-import statistics
-import time
-
 import numpy as np
 
-from jaxden.bench import register
+from jaxden.bench import median_times, register
 
 MODELS = {"wskp3": "wskp3", "wskp6": "wskp", "kp": "kp", "unet": "unet"}
 
@@ -38,15 +35,7 @@ def bench_denoisers(quick: bool) -> dict:
         runners[key] = (lambda f=function: jax.block_until_ready(f(device_frame)))
     oidn = make_denoiser("oidn")
     runners["oidn"] = lambda: oidn(frame)
-    for run in runners.values():
-        run()  # compile / warm up
-    times: dict[str, list[float]] = {key: [] for key in runners}
-    for _ in range(repeats):
-        for key, run in runners.items():
-            start = time.perf_counter()
-            run()
-            times[key].append(time.perf_counter() - start)
-    median = {key: statistics.median(values) for key, values in times.items()}
+    median = median_times(runners, repeats)
     result: dict = {f"{key}_over_oidn": median[key] / median["oidn"] for key in MODELS}
     result.update({f"{key}_s": value for key, value in median.items()})
     result.update({"width": size[0], "height": size[1], "repeats": repeats,

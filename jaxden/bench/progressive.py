@@ -15,10 +15,7 @@ compiled and warmed up before timing, timed alternately, median of the repeats:
 
 from __future__ import annotations
 
-import statistics
-import time
-
-from jaxden.bench import register
+from jaxden.bench import median_times, register
 
 
 @register("progressive")
@@ -60,15 +57,7 @@ def bench_progressive(quick: bool) -> dict:
         "mixer": lambda: mixer_alpha(params, config, x, y, var, sure_map),
         "tstat": lambda: t_statistic_scaling(alpha, x, mixed, var, config.tstat),
     }
-    for run in runners.values():
-        jax.block_until_ready(run())  # compile and warm up
-    times: dict[str, list[float]] = {name: [] for name in runners}
-    for _ in range(repeats):
-        for name, run in runners.items():
-            start = time.perf_counter()
-            jax.block_until_ready(run())
-            times[name].append(time.perf_counter() - start)
-    median = {name: statistics.median(values) for name, values in times.items()}
+    median = median_times(runners, repeats)
     return {
         **{f"{name}_over_oidn": median[name] / median["oidn"]
            for name in ("pd", "pd_single", "mixer", "tstat")},

@@ -12,10 +12,7 @@ values), all jitted and compiled before timing, timed alternately, median of the
 
 from __future__ import annotations
 
-import statistics
-import time
-
-from jaxden.bench import register
+from jaxden.bench import median_times, register
 
 
 @register("sure")
@@ -48,15 +45,7 @@ def bench_sure(quick: bool) -> dict:
         "jvp_k4": lambda: jvp_k4(params, frame, key),
         "fd_k4": lambda: fd_k4(params, frame, key),
     }
-    for run in runners.values():
-        jax.block_until_ready(run())  # compile
-    times: dict[str, list[float]] = {name: [] for name in runners}
-    for _ in range(repeats):
-        for name, run in runners.items():
-            start = time.perf_counter()
-            jax.block_until_ready(run())
-            times[name].append(time.perf_counter() - start)
-    median = {name: statistics.median(values) for name, values in times.items()}
+    median = median_times(runners, repeats)
     return {
         "jvp_k1_over_forward": median["jvp_k1"] / median["forward"],
         "jvp_over_fd_k4": median["jvp_k4"] / median["fd_k4"],
