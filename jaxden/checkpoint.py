@@ -20,6 +20,7 @@ Released weights (shipped inside the package) are one ``.msgpack`` file of param
 from __future__ import annotations
 
 import json
+import logging
 import os
 from pathlib import Path
 from typing import Any
@@ -28,6 +29,17 @@ import jax
 import numpy as np
 
 from jaxden.errors import CheckpointError
+
+
+class _QuietOrbaxMetadata(logging.Filter):
+    """Orbax warns on every restore of a checkpoint saved without its optional metadata file
+    (all of ours): noise for users, so that one message is dropped."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "Metadata file does not exist" not in record.getMessage()
+
+
+logging.getLogger("absl").addFilter(_QuietOrbaxMetadata())
 
 CHECKPOINT_SUBDIR = "checkpoints"
 

@@ -135,6 +135,25 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from jaxden.sweep import load_sweep, plan_runs, run_sweep
+
+    if args.dry_run:
+        config, axes, base = load_sweep(args.config, tuple(args.overrides))
+        runs = plan_runs(config, axes)
+        print(f"{len(runs)} run(s) of {base} ({config.mode} over {', '.join(axes)}):")
+        for run in runs:
+            print(f"  {run.name}: {' '.join(run.overrides)}")
+        return 0
+    results = run_sweep(args.config, args.workdir, args.overrides, executor=args.executor,
+                        workers=args.workers)
+    done = sum(not r["skipped"] for r in results)
+    print(f"sweep complete: {len(results)} run(s) ({done} run now, {len(results) - done} "
+          f"already finished); {Path(args.workdir) / 'summary.md'}:")
+    print((Path(args.workdir) / "summary.md").read_text())
+    return 0
+
+
 def cmd_denoise(args: argparse.Namespace) -> int:
     import numpy as np
 
@@ -215,6 +234,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("overrides", nargs="*", help="key=value overrides, e.g. optim.steps=500")
     p.add_argument("--workdir", required=True, help="run folder: config, metrics.jsonl, checkpoints")
     p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("sweep", help="train (and evaluate) every run of a sweep file (resumable)")
+    p.add_argument("config", help="sweep .toml: base training config, [axes], [evaluate]")
+    p.add_argument("overrides", nargs="*", help="key=value overrides for every run")
+    p.add_argument("--workdir", required=True, help="sweep folder: one run folder per point, "
+                   "summary.json and summary.md")
+    p.add_argument("--executor", choices=("serial", "local", "ray"), default="serial",
+                   help="serial (default: one run at a time in this process), local processes "
+                        "or a Ray cluster")
+    p.add_argument("--workers", type=positive_int, default=None, help="runs at once (local / ray)")
+    p.add_argument("--dry-run", action="store_true", help="list the runs and their overrides")
+    p.set_defaults(func=cmd_sweep)
 
     p = sub.add_parser("denoise", help="denoise an EXR with a registered or trained denoiser")
     p.add_argument("input", help="input EXR (colour and the features the model needs)")

@@ -1,0 +1,283 @@
+"""Sweeps: a base training config plus axes of overrides, one run folder per point.
+
+A sweep file (TOML, e.g. ``experiments/sweeps/pd-ablations.toml``)::
+
+    base = "../configs/mixer-oidn.toml"   # the training config, relative to this file
+    mode = "grid"                          # every combination of the axes ("zip": i-th together)
+    overrides = ["optim.steps=3200"]       # for every run; CLI key=value words add to these
+
+    [axes]                                 # override key -> the values it takes
+    "model_config.head" = ["f_act", "sigmoid"]
+    seed = [0, 1]
+    # name = [...]                         # optional: run names (no override)
+
+    [evaluate]                             # optional, for mixer runs
+    pd = ["data/test-high"]                # PD report of each run on these datasets
+    spp = [64, 256, 1024]                  # only these spp levels (default: all)
+
+``jaxden sweep FILE --workdir DIR`` trains every run in ``DIR/<run name>/`` (its resolved config,
+checkpoints and ``metrics.jsonl``, as ``jaxden train`` writes them), evaluates it, and writes the
+run's ``result.json`` (its overrides, resolved config, final training metrics and evaluations).
+``DIR/summary.json`` and ``DIR/summary.md`` tabulate all runs, with the mean and spread over
+seeds when ``seed`` is an axis. A rerun skips every run whose ``result.json`` records the same
+resolved config, and an interrupted run resumes from its last checkpoint, so a sweep is
+resumable as a whole. Runs go through :mod:`jaxden.executor` (``serial`` by default: each
+training run already uses every core of a small machine; ``local`` / ``ray`` to spread them).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+import math
+import re
+import tomllib
+from collections import defaultdict
+from pathlib import Path
+from typing import Any, Literal
+
+from jaxden.config import _toml_value, config_to_dict, load_config
+from jaxden.errors import ConfigError
+
+__all__ = ["EvaluateConfig", "Run", "SweepConfig", "load_sweep", "plan_runs", "run_sweep",
+           "summarize"]
+
+RESULT_NAME = "result.json"
+#: An axis that only names runs (no override): with mode = "zip" it is the whole folder name.
+NAME_AXIS = "name"
+
+
+@dataclasses.dataclass(frozen=True)
+class EvaluateConfig:
+    """What to measure after each run's training (mixer runs: the PD report per dataset)."""
+
+    pd: tuple[str, ...] = ()  # dataset folders for jaxden.pdreport.evaluate_progressive
+    spp: tuple[int, ...] | None = None
+    split: str = "test"
+    probes: int = 4
+    seed: int = 0
+    denoiser: str = ""  # default: the mixer's own denoiser
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepConfig:
+    """A sweep file without its ``[axes]`` table (kept apart: its values are any TOML value)."""
+
+    base: str
+    mode: Literal["grid", "zip"] = "grid"
+    overrides: tuple[str, ...] = ()
+    evaluate: EvaluateConfig = EvaluateConfig()
+
+
+@dataclasses.dataclass(frozen=True)
+class Run:
+    """One point of the sweep: its folder name, its axis values and all its overrides."""
+
+    name: str
+    values: dict[str, Any]
+    overrides: tuple[str, ...]
+
+
+def load_sweep(path: str | Path, overrides: tuple[str, ...] | list[str] = ()):
+    """``(SweepConfig, axes, base path)`` from a sweep file; ``overrides`` (CLI key=value
+    words) are appended to the file's ``overrides`` for every run. Errors name the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"sweep file {path} does not exist")
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as error:
+        raise ConfigError(f"{path}: not valid TOML: {error}") from None
+    axes = data.pop("axes", None)
+    if not isinstance(axes, dict) or not axes:
+        raise ConfigError(f"{path}: needs an [axes] table with at least one key = [values]")
+    for key, values in axes.items():
+        if not isinstance(values, list) or not values:
+            raise ConfigError(f"{path}: [axes] {key!r} must be a non-empty list of values, got "
+                              f"{values!r}")
+    try:
+        config = load_config(data, SweepConfig)
+    except ConfigError as error:
+        raise ConfigError(f"{path}: {error}") from None
+    config = dataclasses.replace(config, overrides=(*config.overrides, *overrides))
+    base = (path.parent / config.base).resolve() if not Path(config.base).is_absolute() \
+        else Path(config.base)
+    if not base.is_file():
+        raise ConfigError(f"{path}: base = {config.base!r}: no such training config ({base})")
+    if config.mode == "zip" and len({len(v) for v in axes.values()}) > 1:
+        lengths = ", ".join(f"{k}: {len(v)}" for k, v in axes.items())
+        raise ConfigError(f"{path}: mode = 'zip' needs axes of equal length, got {lengths}")
+    return config, axes, base
+
+
+def _label(value: Any) -> str:
+    if isinstance(value, (list, tuple)):
+        return "+".join(_label(v) for v in value)
+    if isinstance(value, dict):
+        return "+".join(f"{k}-{_label(v)}" for k, v in value.items())
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return str(value)
+
+
+def plan_runs(config: SweepConfig, axes: dict[str, list[Any]]) -> list[Run]:
+    """The sweep's runs in order: the grid (or zip) of the axes. A run's name is
+    ``key=value`` per axis (last part of the key, lists joined by '+'), joined by '__'; an
+    axis called ``name`` gives names instead of overrides (in ``zip`` mode the whole name, in
+    ``grid`` mode a prefix)."""
+    keys = list(axes)
+    points = (itertools.product(*axes.values()) if config.mode == "grid"
+              else zip(*axes.values()))
+    runs, seen = [], set()
+    for point in points:
+        values = dict(zip(keys, point))
+        named = {k: v for k, v in values.items() if k != NAME_AXIS}
+        name = "__".join(filter(None, [
+            _label(values[NAME_AXIS]) if NAME_AXIS in values else "",
+            *(f"{k.split('.')[-1]}={_label(v)}" for k, v in named.items()
+              if NAME_AXIS not in values or config.mode == "grid")]))
+        name = re.sub(r"[^A-Za-z0-9_.+=-]", "-", name)[:200]
+        if name in seen:
+            raise ConfigError(f"two runs of the sweep get the same folder name {name!r}: make "
+                              f"the axis values distinct")
+        seen.add(name)
+        overrides = (*config.overrides, *(f"{k}={_toml_value(v)}" for k, v in named.items()))
+        runs.append(Run(name, values, overrides))
+    return runs
+
+
+def _run_one(task: tuple[str, str, tuple[str, ...], dict, dict[str, Any], bool]) -> dict:
+    """Train, evaluate and record one run (module level: the local executor pickles it)."""
+    from jaxden.fileio import atomic_write_text
+    from jaxden.train import load_train_config, train_and_evaluate
+
+    run_dir, base, overrides, evaluate, values, progress = task
+    run_dir = Path(run_dir)
+    train_config = load_train_config(base, list(overrides))
+    resolved = config_to_dict(train_config)
+    result_file = run_dir / RESULT_NAME
+    if result_file.is_file():
+        previous = json.loads(result_file.read_text())
+        if previous.get("config") == resolved and previous.get("evaluate") == evaluate:
+            return {**previous, "skipped": True}
+    train = train_and_evaluate(train_config, run_dir, progress=progress)
+    evaluations = {}
+    if evaluate["pd"]:
+        if train_config.model != "mixer":
+            raise ConfigError(f"[evaluate] pd needs mixer runs; run {run_dir.name} trains "
+                              f"{train_config.model!r}")
+        from jaxden import pdreport
+        from jaxden.progressive import load_mixer
+
+        params, mixer_config = load_mixer(run_dir)
+        denoiser = evaluate["denoiser"] or mixer_config.denoiser
+        for dataset in evaluate["pd"]:
+            rows = pdreport.evaluate_progressive(
+                dataset, denoiser, (params, mixer_config), split=evaluate["split"],
+                seed=evaluate["seed"], num_probes=evaluate["probes"],
+                spp=None if evaluate["spp"] is None else tuple(evaluate["spp"]))
+            summary = pdreport.summarize_progressive(rows)
+            evaluations[f"pd:{dataset}"] = {"headline": summary["headline"],
+                                            "max_spp": summary["max_spp"],
+                                            "crops": summary["crops"]}
+    result = {"run": run_dir.name, "values": values, "overrides": list(overrides),
+              "config": resolved, "evaluate": evaluate,
+              "train": {k: v for k, v in train.items() if isinstance(v, (int, float, str))},
+              "evaluations": evaluations}
+    atomic_write_text(result_file, json.dumps(result, indent=1, sort_keys=True))
+    return {**result, "skipped": False}
+
+
+def run_sweep(path: str | Path, workdir: str | Path, overrides=(), *, executor: str = "serial",
+              workers: int | None = None, progress: bool = True) -> list[dict]:
+    """Run (or finish) the sweep in ``path`` under ``workdir``; returns the runs' results in
+    plan order and writes ``summary.json`` / ``summary.md`` there."""
+    from jaxden.executor import make_executor
+    from jaxden.fileio import atomic_write_text
+
+    config, axes, base = load_sweep(path, tuple(overrides))
+    runs = plan_runs(config, axes)
+    workdir = Path(workdir)
+    if workdir.exists() and not workdir.is_dir():
+        raise ConfigError(f"--workdir {workdir} is a file, not a folder")
+    # Every run's config must load before any training starts.
+    from jaxden.train import load_train_config
+
+    for run in runs:
+        try:
+            load_train_config(base, list(run.overrides))
+        except ConfigError as error:
+            raise ConfigError(f"{path}: run {run.name}: {error}") from None
+    workdir.mkdir(parents=True, exist_ok=True)
+    evaluate = config_to_dict(config.evaluate)
+    evaluate["pd"] = [str(Path(p)) for p in config.evaluate.pd]
+    tasks = [(str(workdir / run.name), str(base), run.overrides, evaluate, run.values, progress)
+             for run in runs]
+    by_name = {}
+    with make_executor(executor, workers) as pool:
+        for result in pool.map_unordered(_run_one, tasks):
+            by_name[result["run"]] = result
+    results = [by_name[run.name] for run in runs]
+    summary = summarize(results, list(axes))
+    atomic_write_text(workdir / "summary.json", json.dumps(
+        {"sweep": str(path), "base": str(base), "mode": config.mode,
+         "axes": axes, "runs": [{k: v for k, v in r.items() if k != "config"} for r in results],
+         "groups": summary["groups"]}, indent=1, sort_keys=True, default=str))
+    atomic_write_text(workdir / "summary.md", summary["markdown"] + "\n")
+    return results
+
+
+def _metrics(result: dict) -> dict[str, float]:
+    """The numbers a summary row shows: final validation loss (and the baseline's), and per
+    PD evaluation the PD / denoiser ratios (RMSE, relMSE) and PD / MC at the top spp."""
+    out = {}
+    for key in ("val_loss", "val_baseline_loss"):
+        if isinstance(result["train"].get(key), (int, float)):
+            out[key] = float(result["train"][key])
+    for name, evaluation in result.get("evaluations", {}).items():
+        label = name.split(":", 1)[1].rstrip("/").split("/")[-1]
+        head = evaluation["headline"]
+        out[f"{label} PD/den RMSE"] = head["pd_over_denoiser"]["rmse"]
+        out[f"{label} PD/den relMSE"] = head["pd_over_denoiser"]["relmse"]
+        out[f"{label} PD/MC RMSE@{evaluation['max_spp']}"] = head["pd_over_mc_at_max_spp"]["rmse"]
+    return out
+
+
+def summarize(results: list[dict], axes: list[str]) -> dict[str, Any]:
+    """A markdown table of every run (axis values and metrics) and, when ``seed`` is an axis,
+    one row per setting of the other axes with the mean and the standard deviation over seeds
+    (``groups`` in the returned dict)."""
+    rows = [(r, _metrics(r)) for r in results]
+    columns = list(dict.fromkeys(k for _, m in rows for k in m))
+    lines = ["| run | " + " | ".join(axes + columns) + " |",
+             "|---|" + "---|" * len(axes) + "---:|" * len(columns)]
+    for result, metrics in rows:
+        cells = [_label(result["values"].get(a, "")) for a in axes]
+        cells += [f"{metrics[c]:.5g}" if c in metrics else "" for c in columns]
+        lines.append(f"| {result['run']} | " + " | ".join(cells) + " |")
+    groups = []
+    if "seed" in axes:
+        others = [a for a in axes if a != "seed"]
+        grouped: dict[tuple, list[dict[str, float]]] = defaultdict(list)
+        for result, metrics in rows:
+            grouped[tuple(_label(result["values"][a]) for a in others)].append(metrics)
+        lines += ["", "Mean ± standard deviation over seeds:", "",
+                  "| " + " | ".join(others + ["seeds"] + columns) + " |",
+                  "|" + "---|" * (len(others) + 1) + "---:|" * len(columns)]
+        for key, members in grouped.items():
+            stats = {}
+            for c in columns:
+                values = [m[c] for m in members if c in m]
+                if values:
+                    mean = sum(values) / len(values)
+                    std = (math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1))
+                           if len(values) > 1 else 0.0)
+                    stats[c] = (mean, std)
+            groups.append({"values": dict(zip(others, key)), "seeds": len(members),
+                           "metrics": {c: {"mean": m, "std": s} for c, (m, s) in stats.items()}})
+            cells = list(key) + [str(len(members))]
+            cells += [f"{stats[c][0]:.5g} ± {stats[c][1]:.2g}" if c in stats else ""
+                      for c in columns]
+            lines.append("| " + " | ".join(cells) + " |")
+    return {"markdown": "\n".join(lines), "groups": groups}

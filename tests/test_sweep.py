@@ -1,0 +1,116 @@
+"""Sweeps (jaxden/sweep.py, `jaxden sweep`): planning from a sweep file, clear errors, and a
+tiny mixer sweep end to end (Mitsuba-free data): every run trained and evaluated in its own
+folder, a summary with the spread over seeds, and a rerun that skips finished runs."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from jaxden.cli import main
+from jaxden.config import load_config
+from jaxden.data.builder import build_dataset, synthetic_render
+from jaxden.data.config import DatasetConfig
+from jaxden.errors import ConfigError
+from jaxden.sweep import load_sweep, plan_runs, run_sweep
+from jaxden.train import load_train_config
+
+ROOT = Path(__file__).parent.parent
+TINY_MIXER = ROOT / "experiments" / "configs" / "mixer-tiny.toml"
+
+
+def write_sweep(folder: Path, body: str, base: Path = TINY_MIXER) -> Path:
+    path = folder / "sweep.toml"
+    path.write_text(f'base = "{base}"\n' + body)
+    return path
+
+
+def test_grid_and_zip_plans(tmp_path):
+    grid = write_sweep(tmp_path, 'overrides = ["optim.steps=7"]\n[axes]\n'
+                                 '"model_config.head" = ["f_act", "sigmoid"]\nseed = [0, 1, 2]\n')
+    config, axes, base = load_sweep(grid, ["data.crop_size=8"])
+    runs = plan_runs(config, axes)
+    assert base == TINY_MIXER.resolve() and len(runs) == 6
+    assert runs[0].name == "head=f_act__seed=0" and runs[-1].name == "head=sigmoid__seed=2"
+    assert runs[4].overrides == ("optim.steps=7", "data.crop_size=8",
+                                 'model_config.head="sigmoid"', "seed=1")
+    loaded = load_train_config(base, list(runs[4].overrides))  # the overrides really apply
+    assert (loaded.model_config["head"], loaded.seed, loaded.optim.steps,
+            loaded.data.crop_size) == ("sigmoid", 1, 7, 8)
+
+    zipped = write_sweep(tmp_path, 'mode = "zip"\n[axes]\nname = ["full", "no-sure"]\n'
+                                   '"model_config.features" = [["hdr", "den", "var", "sure"], '
+                                   '["hdr", "den", "var"]]\n')
+    config, axes, _ = load_sweep(zipped)
+    runs = plan_runs(config, axes)
+    assert [r.name for r in runs] == ["full", "no-sure"]
+    assert runs[1].overrides == ('model_config.features=["hdr", "den", "var"]',)
+
+
+@pytest.mark.parametrize("body, words", [
+    ('mdoe = "grid"\n[axes]\nseed = [0]\n', "mdoe"),
+    ('mode = "zip"\n[axes]\nseed = [0, 1]\n"optim.steps" = [3]\n', "equal length"),
+    ("[axes]\nseed = []\n", "non-empty list"),
+    ('mode = "grid"\n', r"needs an \[axes\] table"),
+    ('[axes]\nname = ["a", "a"]\n', "same folder name"),
+])
+def test_sweep_file_errors_name_the_file(tmp_path, body, words):
+    path = write_sweep(tmp_path, body)
+    with pytest.raises(ConfigError, match=words) as info:
+        config, axes, _ = load_sweep(path)
+        plan_runs(config, axes)
+    assert "sweep.toml" in str(info.value) or words == "same folder name"
+
+
+def test_bad_base_or_run_config_fails_before_any_training(tmp_path, capsys):
+    missing = write_sweep(tmp_path, "[axes]\nseed = [0]\n", base=tmp_path / "absent.toml")
+    assert main(["sweep", str(missing), "--workdir", str(tmp_path / "w")]) == 2
+    assert "absent.toml" in capsys.readouterr().err
+    typo = write_sweep(tmp_path, '[axes]\n"model_config.haed" = ["f_act"]\n')
+    assert main(["sweep", str(typo), "--workdir", str(tmp_path / "w")]) == 2
+    err = capsys.readouterr().err
+    assert "haed" in err and "run haed=f_act" in err
+    assert not (tmp_path / "w").exists()
+
+
+def test_tiny_mixer_sweep_end_to_end_and_resume(tmp_path, capsys):
+    dataset = tmp_path / "tiny"
+    data_config = load_config(ROOT / "experiments" / "configs" / "dataset-tiny.toml",
+                              DatasetConfig, ["crops_per_scene=2"])
+    build_dataset(data_config, dataset, executor="serial", render_fn=synthetic_render,
+                  progress=False)
+    sweep = write_sweep(tmp_path, f'overrides = ["data.dataset={dataset}", "optim.steps=4", '
+                                  '"eval_every=4", "checkpoint_every=4"]\n'
+                                  "[axes]\nseed = [0, 1]\n"
+                                  f'[evaluate]\npd = ["{dataset}"]\nsplit = "val"\n'
+                                  "spp = [8, 32]\n")
+    workdir = tmp_path / "sweep"
+    results = run_sweep(sweep, workdir, progress=False)
+    assert [r["run"] for r in results] == ["seed=0", "seed=1"]
+    assert not any(r["skipped"] for r in results)
+    for result in results:
+        run_dir = workdir / result["run"]
+        assert (run_dir / "metrics.jsonl").is_file() and (run_dir / "result.json").is_file()
+        assert result["config"]["seed"] == result["values"]["seed"]
+        head = result["evaluations"][f"pd:{dataset}"]["headline"]
+        assert 0 < head["pd_over_denoiser"]["rmse"] < 10
+    # Different seeds train different mixers.
+    assert results[0]["train"]["val_loss"] != results[1]["train"]["val_loss"]
+    summary = (workdir / "summary.md").read_text()
+    assert "| seed=0 |" in summary and "| seed=1 |" in summary
+    assert "Mean ± standard deviation over seeds" in summary and "| 2 |" in summary
+    data = json.loads((workdir / "summary.json").read_text())
+    assert data["groups"][0]["seeds"] == 2
+    log = (workdir / "seed=0" / "metrics.jsonl").read_text()
+
+    # A rerun skips both runs (nothing retrained, nothing re-evaluated) ...
+    capsys.readouterr()
+    assert main(["sweep", str(sweep), "--workdir", str(workdir)]) == 0
+    out = capsys.readouterr().out
+    assert "0 run now, 2 already finished" in out
+    assert (workdir / "seed=0" / "metrics.jsonl").read_text() == log
+    # ... and a run whose result is lost is redone from its finished checkpoint.
+    (workdir / "seed=1" / "result.json").unlink()
+    again = run_sweep(sweep, workdir, progress=False)
+    assert [r["skipped"] for r in again] == [True, False]
+    assert again[1]["evaluations"] == results[1]["evaluations"]
