@@ -49,10 +49,9 @@ def cmd_scenes(args: argparse.Namespace) -> int:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
+    from jaxden.cli_pd import exr_outputs
     from jaxden.io.exr import write_frame
     from jaxden.render.core import render_frame
-
-    from jaxden.cli_pd import exr_outputs
 
     if args.buffers is not None:
         return _render_buffers(args, Path(args.out))
