@@ -332,6 +332,27 @@ def evaluate(eval_step, params, loader, mesh, max_batches: int, prepare) -> dict
     return {f"val_{key}": value / count for key, value in totals.items()}
 
 
+def _resolved_model_config(config: TrainConfig, saved: Any) -> Any:
+    """A checkpoint's recorded model_config with today's defaults filled in (None if it no
+    longer loads), so that adding a config field with a default keeps old runs resumable."""
+    from jaxden.config import config_to_dict, load_config
+
+    if not isinstance(saved, dict):
+        return None
+    try:
+        if config.model == "mixer":
+            from jaxden.progressive import MixerConfig
+
+            cls = MixerConfig
+        else:
+            from jaxden.denoisers import get_definition
+
+            cls = get_definition(config.model).config_cls
+        return config_to_dict(load_config(dict(saved), cls))
+    except (ConfigError, TypeError, ValueError):
+        return None
+
+
 def train_and_evaluate(
     config: TrainConfig, workdir: str | os.PathLike, *, progress: bool = True, stop_after: int | None = None
 ) -> dict[str, Any]:
@@ -384,9 +405,13 @@ def train_and_evaluate(
     checkpointer = Checkpointer(workdir, max_to_keep=config.keep_checkpoints)
     start = 0
     if checkpointer.latest_step() is not None:
-        state, _ = checkpointer.restore(
-            state, expect={k: task.meta[k] for k in ("kind", "model", "model_config")}
-        )
+        expect = {k: task.meta[k] for k in ("kind", "model", "model_config")}
+        saved = checkpointer.read_meta().get("model_config")
+        if saved != expect["model_config"] and _resolved_model_config(config, saved) == \
+                expect["model_config"]:
+            # Saved before a config field with a default was added: the same model.
+            expect["model_config"] = saved
+        state, _ = checkpointer.restore(state, expect=expect)
         start = int(state.step)
     state = replicate(state, mesh)
 

@@ -26,7 +26,7 @@ from jaxden.config import load_config
 from jaxden.data.builder import build_dataset, synthetic_render
 from jaxden.data.config import DatasetConfig
 from jaxden.denoisers import load_denoiser, make_denoiser
-from jaxden.errors import FrameError, JaxdenError
+from jaxden.errors import CheckpointError, FrameError, JaxdenError
 from jaxden.io.exr import read_channels, read_header, read_image, write_channels, write_frame
 from jaxden.pdcache import SureCache, denoise_with_sure
 from jaxden.sure import draw_probes, sure_blackbox
@@ -118,6 +118,30 @@ def test_training_lowers_the_loss_and_swap_symmetry_is_measured(trained):
             values.append(P.swap_symmetry(p, mixer_config, b["x"], b["y"], b["var"], b["sure"]))
         gaps[name] = float(np.mean(values))
     print(f"swap symmetry mean |alpha(x,y) - (1 - alpha(y,x))|: {gaps}")
+
+
+def test_a_run_saved_before_a_new_config_field_resumes(trained, tmp_path):
+    """Adding a MixerConfig field with a default (swap_average) must not make older
+    checkpoints 'of another config': the stored model_config is read with today's defaults."""
+    dataset, workdir = trained
+    old = tmp_path / "old-run"
+    shutil.copytree(workdir, old)
+    for meta_file in old.glob("*/meta/metadata"):
+        meta = json.loads(meta_file.read_text())
+        assert meta["model_config"].pop("swap_average") is False
+        meta_file.write_text(json.dumps(meta))
+    config = train_config(dataset)
+    from jaxden.train import train_and_evaluate
+
+    result = train_and_evaluate(config, old, progress=False)  # resumes at the last step
+    assert np.isfinite(result["val_loss"])
+    # ... but a real difference is still refused
+    for meta_file in old.glob("*/meta/metadata"):
+        meta = json.loads(meta_file.read_text())
+        meta["model_config"]["width"] = 8
+        meta_file.write_text(json.dumps(meta))
+    with pytest.raises(CheckpointError, match="another model or config"):
+        train_and_evaluate(config, old, progress=False)
 
 
 def test_training_batches_swap_reproducibly(trained):
