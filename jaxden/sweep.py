@@ -256,7 +256,8 @@ def _provenance(path, workdir, overrides) -> dict[str, str]:
 
 def _metrics(result: dict) -> dict[str, float]:
     """The numbers a summary row shows: final validation loss (and the baseline's), and per
-    PD evaluation the PD / denoiser ratios (RMSE, relMSE) and PD / MC at the top spp."""
+    PD evaluation the PD / denoiser ratios (RMSE, relMSE), the RMSE ratio without the t-test,
+    and PD / MC at the top spp."""
     out = {}
     for key in ("val_loss", "val_baseline_loss"):
         if isinstance(result["train"].get(key), (int, float)):
@@ -266,6 +267,8 @@ def _metrics(result: dict) -> dict[str, float]:
         head = evaluation["headline"]
         out[f"{label} PD/den RMSE"] = head["pd_over_denoiser"]["rmse"]
         out[f"{label} PD/den relMSE"] = head["pd_over_denoiser"]["relmse"]
+        if "mixed_over_denoiser" in head:  # the same mixer without the t-test
+            out[f"{label} no-t/den RMSE"] = head["mixed_over_denoiser"]["rmse"]
         out[f"{label} PD/MC RMSE@{evaluation['max_spp']}"] = head["pd_over_mc_at_max_spp"]["rmse"]
     return out
 
