@@ -55,7 +55,7 @@ def provenance(args: argparse.Namespace, extra: dict) -> dict:
         "dataset": {"dir": str(args.data), "split": getattr(args, "split", None),
                     "manifest_sha256": _sha256(manifest_path(args.data)),
                     "config": manifest.config},
-        "seed": args.seed, "probes": args.probes,
+        "seed": getattr(args, "seed", None), "probes": getattr(args, "probes", None),
         **extra,
     }
 

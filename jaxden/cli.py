@@ -56,8 +56,11 @@ def cmd_render(args: argparse.Namespace) -> int:
     if args.buffers is not None:
         return _render_buffers(args, Path(args.out))
     (out,) = exr_outputs(("--out", args.out))
-    frame = render_frame(args.scene, spp=args.spp, seed=args.seed, size=args.size)
-    write_frame(out, frame, half=args.half, attributes={"seed": args.seed, "scene": args.scene})
+    frame = render_frame(args.scene, spp=args.spp, seed=args.seed, size=args.size, aux=args.aux,
+                         feature_spp=args.feature_spp)
+    write_frame(out, frame, half=args.half, attributes={
+        "seed": args.seed, "scene": args.scene, "aux": args.aux,
+        "feature_spp": min(args.spp, args.feature_spp)})
     print(f"wrote {out} ({frame.width}x{frame.height}, {args.spp} spp, channels: "
           f"{', '.join(frame.features())})")
     return 0
@@ -83,17 +86,18 @@ def _render_buffers(args: argparse.Namespace, out: Path) -> int:
     out, *paths = exr_outputs(("--out", out), *((f"sub-buffer {i}", p)
                                                  for i, p in enumerate(paths)))
     seeds = [args.seed * k + i for i in range(k)]
-    parts = [render_cached(args.scene, args.spp // k, seed=s, size=args.size).numpy()
-             for s in seeds]
+    parts = [render_cached(args.scene, args.spp // k, seed=s, size=args.size, aux=args.aux,
+                           feature_spp=args.feature_spp).numpy() for s in seeds]
     full = combine_buffers(parts)
     full = full.replace(**{name: np.asarray(getattr(full, name), np.float32)
                            for name in full.features()}, spp=np.float32(args.spp))
     with all_or_nothing():  # the sub-buffers and their combination: all or none
         for i, (path, part) in enumerate(zip(paths, parts)):
             write_frame(path, part, half=args.half, attributes={
-                "seed": seeds[i], "scene": args.scene, "buffer": i, "buffers": k})
+                "seed": seeds[i], "scene": args.scene, "buffer": i, "buffers": k,
+                "aux": args.aux})
         write_frame(out, full, half=args.half, attributes={
-            "seed": args.seed, "scene": args.scene, "buffers": k})
+            "seed": args.seed, "scene": args.scene, "buffers": k, "aux": args.aux})
     print(f"wrote {out} ({full.width}x{full.height}, {args.spp} spp = {k} sub-buffers of "
           f"{args.spp // k}) and {paths[0].name} .. {paths[-1].name}; sub-buffer SURE: jaxden "
           f"sure {out} --buffers {' '.join(str(p) for p in paths)} --denoiser oidn --out "
@@ -205,6 +209,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", type=parse_size, default=None, help="WxH (default: the scene's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--half", action="store_true", help="store channels as float16")
+    p.add_argument("--aux", choices=("first-hit", "specular-chain"), default="first-hit",
+                   help="albedo and normal of the first hit (default), or of the first "
+                        "non-delta surface behind mirrors and smooth glass (as OIDN recommends)")
+    p.add_argument("--feature-spp", type=positive_int, default=16, metavar="N",
+                   help="the features average min(spp, N) samples (default 16)")
     p.add_argument("--buffers", type=positive_int, default=None, metavar="K",
                    help="also keep K independent sub-buffers of spp / K samples each "
                         "(OUT.b0.exr ..; OUT is their combination), for `jaxden sure --buffers`")

@@ -101,6 +101,8 @@ def test_shipped_configs_load():
         ({"scenes": ("procedural:7",)}, r"procedural:7 appear\(s\) twice"),
         ({"scenes": ("procedural:x",)}, r"'procedural:SEED'"),
         ({"splits": SplitConfig(val_scenes=("zeta",))}, r"splits.val_scenes: zeta is not one"),
+        ({"aux": "next-hit"}, r"aux must be one of first-hit, specular-chain, got 'next-hit'"),
+        ({"feature_spp": 0}, r"feature_spp must be > 0, got 0"),
     ],
 )
 def test_dataset_config_rejects_bad_values(changes, pattern):
@@ -318,6 +320,41 @@ def test_different_config_or_renderer_in_same_folder_is_an_error(tmp_path):
         )
 
 
+def test_dataset_of_an_older_jaxden_without_aux_resumes(tmp_path):
+    # Datasets written before `aux` existed store no such key: they were first-hit, and must
+    # resume under today's config (default first-hit) but not under another aux.
+    directory = tmp_path / "d"
+    build(directory)
+    path = directory / "manifest.json"
+    stored = json.loads(path.read_text())
+    del stored["config"]["aux"], stored["config"]["feature_spp"]
+    path.write_text(json.dumps(stored))
+    _, render = build(directory)
+    assert render.calls == 0
+    other = dataclasses.replace(SMALL, aux="specular-chain")
+    with pytest.raises(DatasetError, match='aux: "first-hit" -> "specular-chain"'):
+        build(directory, render=AuxRender(), config=other)
+
+
+class AuxRender(CountingRender):
+    """CountingRender that takes (and records) the aux mode."""
+
+    def __call__(self, scene, spp, seed=0, size=None, *, crop=None, aux="first-hit",
+                 feature_spp=16):
+        self.aux, self.feature_spp = aux, feature_spp
+        return super().__call__(scene, spp, seed, size, crop=crop)
+
+
+def test_feature_options_reach_the_renderer_and_a_renderer_without_them_is_refused(tmp_path):
+    config = dataclasses.replace(SMALL, aux="specular-chain", feature_spp=256)
+    _, render = build(tmp_path / "a", render=AuxRender(), config=config)
+    assert (render.aux, render.feature_spp, render.calls) == ("specular-chain", 256, ITEMS)
+    with pytest.raises(DatasetError, match="aux = 'specular-chain', feature_spp = 256 needs a "
+                                           "renderer that takes `aux=`, `feature_spp=`"):
+        build(tmp_path / "b", config=config)
+    assert not (tmp_path / "b").exists()
+
+
 def test_refuses_foreign_folder_and_concurrent_build(tmp_path):
     (tmp_path / "foreign").mkdir()
     (tmp_path / "foreign" / "notes.txt").write_text("mine")
@@ -449,6 +486,26 @@ def test_micro_build_with_mitsuba_stores_exactly_render_frame(tmp_path):
         np.testing.assert_array_equal(stored.color, direct.color)
         np.testing.assert_array_equal(stored.variance, direct.variance)
         np.testing.assert_array_equal(stored.normal, direct.normal)
+
+
+def test_micro_build_with_specular_chain_features(tmp_path):
+    """aux = "specular-chain" reaches render_frame: the stored albedo is the chain's, which
+    differs from the first-hit albedo on glossy-glass (smooth glass and metal)."""
+    from jaxden.io.exr import read_frame
+    from jaxden.render.core import render_frame
+
+    config = DatasetConfig(name="chain", scenes=("glossy-glass",), size=(40, 40), crop_size=40,
+                           crops_per_scene=1, spp=(2,), reference_spp=4, aux="specular-chain",
+                           splits=SplitConfig(train=1.0, val=0.0))
+    manifest = build_dataset(config, tmp_path / "m", executor="serial", progress=False)
+    crop, item = manifest.crops[0], manifest.items[1]
+    stored = read_frame(tmp_path / "m" / item.path)
+    kwargs = {"seed": item.seed, "size": config.size, "crop": crop.window}
+    chain = render_frame(crop.scene, item.spp, aux="specular-chain", **kwargs)
+    first = render_frame(crop.scene, item.spp, **kwargs)
+    np.testing.assert_array_equal(stored.albedo, chain.albedo)
+    np.testing.assert_array_equal(stored.color, first.color)
+    assert np.abs(stored.albedo - first.albedo).max() > 0.1
 
 
 @pytest.mark.skipif(not _real_renderer_available(), reason="jaxden.render not available yet")

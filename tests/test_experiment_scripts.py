@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent.parent / "experiments"))
+import aux_features
 import pd_figure  # the experiment scripts are part of the repository: no skip
 import sure_stein
 
@@ -56,3 +57,26 @@ def test_neighbour_mean_excludes_the_centre():
     np.testing.assert_allclose(got[i, j], (window.sum((0, 1)) - values[i, j]) / 8)
     corner = padded[0:3, 0:3]
     np.testing.assert_allclose(got[0, 0], (corner.sum((0, 1)) - values[0, 0]) / 8)
+
+
+def test_aux_features_ratios_are_ratios_of_crop_means():
+    names = ["first-hit:16:clean", "specular-chain:256:noisy"]
+    rows = []
+    for crop, errors in (("a", (1.0, 0.5)), ("b", (3.0, 3.0))):
+        for spp in (64, 256):
+            rows.append({"crop": crop, "spp": spp, "errors": {
+                name: {"rmse": e * 64 / spp, "relmse": e, "mse_nc": e * e}
+                for name, e in zip(names, errors)}})
+    summary = aux_features.summarize(rows, names)
+    # Per spp: (0.5 + 3) / (1 + 3) = 0.875 for RMSE and relMSE; (0.25 + 9) / (1 + 9) for MSE.
+    for spp in (64, 256):
+        ratio = summary["per_spp"][spp]["ratio"][names[1]]
+        assert ratio["rmse"] == pytest.approx(0.875) and ratio["relmse"] == pytest.approx(0.875)
+        assert ratio["mse_nc"] == pytest.approx(9.25 / 10)
+        assert summary["per_spp"][spp]["ratio"][names[0]]["rmse"] == 1.0
+    assert summary["per_crop"]["a"][names[1]]["rmse"] == pytest.approx(0.5)
+    assert summary["mean_over_spp"][names[1]]["rmse"] == pytest.approx(0.875)
+    assert aux_features.parse_variant("specular-chain:256:noisy") == ("specular-chain", 256, False)
+    for bad in ("first-hit:16", "next-hit:16:clean", "first-hit:0:clean", "first-hit:x:clean"):
+        with pytest.raises(SystemExit, match="--variant"):
+            aux_features.parse_variant(bad)

@@ -239,6 +239,105 @@ def test_features_on_the_cornell_box(cornell_frame):
                                atol=1e-4)
 
 
+def test_specular_chain_features_equal_first_hit_without_delta_surfaces(cornell, cornell_frame):
+    # The Cornell box has only diffuse surfaces: the chain integrator stops at the first hit,
+    # so it must reproduce Mitsuba's own aov integrator exactly (same seed, same rays).
+    chain = render_frame(cornell, spp=8, seed=5, aux="specular-chain")
+    np.testing.assert_array_equal(chain.color, cornell_frame.color)
+    for name in ("albedo", "normal", "depth", "position"):
+        np.testing.assert_allclose(getattr(chain, name), getattr(cornell_frame, name),
+                                   atol=1e-6, err_msg=name)
+
+
+def _mirror_scene(reflectance: float, behind: float):
+    """A camera at the origin looking down -z at a perfect mirror (z = -2, facing +z) that
+    reflects a large diffuse wall behind the camera (z = +5, facing -z)."""
+    variant.ensure_variant()
+    T = mi.ScalarTransform4f
+    return {
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 20.0,
+                   "to_world": T().look_at(origin=[0, 0, 0], target=[0, 0, -1], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 12, "height": 10}},
+        "mirror": {"type": "rectangle", "to_world": T().translate([0, 0, -2]).scale(3.0),
+                   "bsdf": {"type": "conductor", "material": "none",
+                            "specular_reflectance": {"type": "rgb", "value": [reflectance] * 3}}},
+        "wall": {"type": "rectangle",
+                 "to_world": T().translate([0, 0, 5]).rotate([0, 1, 0], 180).scale(50.0),
+                 "bsdf": {"type": "diffuse",
+                          "reflectance": {"type": "rgb", "value": [behind] * 3}}},
+        "light": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
+    }
+
+
+def test_specular_chain_takes_albedo_and_normal_behind_a_mirror():
+    scene = load_scene(_mirror_scene(0.5, 0.6))
+    first = render_frame(scene, spp=4, seed=1)
+    chain = render_frame(scene, spp=4, seed=1, aux="specular-chain")
+    # First hit: a conductor, whose diffuse reflectance Mitsuba reports as 0, facing +z.
+    np.testing.assert_allclose(first.albedo, 0.0, atol=1e-7)
+    np.testing.assert_allclose(first.normal, np.broadcast_to([0, 0, 1], first.normal.shape),
+                               atol=1e-6)
+    # Through the chain: the wall's reflectance times the mirror's, and the wall's normal.
+    np.testing.assert_allclose(chain.albedo, 0.5 * 0.6, rtol=1e-5)
+    np.testing.assert_allclose(chain.normal, np.broadcast_to([0, 0, -1], chain.normal.shape),
+                               atol=1e-5)
+    # Depth and position stay first-hit (the mirror at z = -2).
+    np.testing.assert_allclose(chain.depth, first.depth, rtol=1e-6)
+    np.testing.assert_allclose(chain.position[..., 2], -2.0, atol=1e-5)
+    # (Mitsuba's camera rays start on the near clip plane, 0.01 in front of the camera.)
+    np.testing.assert_allclose(chain.depth[..., 0], np.linalg.norm(chain.position, axis=-1),
+                               atol=0.015)
+
+
+def test_specular_chain_on_glass_fills_the_dark_albedo():
+    # glossy-glass has smooth glass and metal: first-hit albedo is 0 on them.
+    scene = load_scene("glossy-glass", size=(48, 48))
+    first = render_frame(scene, spp=8, seed=2)
+    chain = render_frame(scene, spp=8, seed=2, aux="specular-chain")
+    hit = first.depth[..., 0] > 0
+    dark_first = (hit & (first.albedo.max(-1) < 1e-3)).mean()
+    dark_chain = (hit & (chain.albedo.max(-1) < 1e-3)).mean()
+    assert dark_first > 0.05 and dark_chain < 0.5 * dark_first, (dark_first, dark_chain)
+    assert (chain.albedo >= 0).all() and (chain.albedo <= 1).all()
+    np.testing.assert_array_equal(chain.depth, first.depth)
+
+
+def test_feature_spp_sets_the_feature_samples(cornell, cornell_frame):
+    # At spp = 8 the features average min(8, feature_spp) = 8 samples for any feature_spp
+    # >= 8: the same render.
+    same = render_frame(cornell, spp=8, seed=5, feature_spp=1024)
+    for name in ("albedo", "normal", "depth", "position"):
+        np.testing.assert_array_equal(getattr(same, name), getattr(cornell_frame, name))
+    # More feature samples: less feature noise. Albedo error against a 1024-sample feature
+    # render, on the finely textured texture-bump scene (seeds fixed; expected ratio ~2 for
+    # 4x the samples, asserted < 0.75).
+    scene = load_scene("texture-bump", size=(48, 48))
+    truth = render_frame(scene, spp=1024, seed=9, feature_spp=1024).albedo
+    errors = [np.sqrt(np.mean((render_frame(scene, spp=256, seed=s, feature_spp=n).albedo
+                               - truth) ** 2)) for s, n in ((1, 16), (2, 64))]
+    assert errors[1] < 0.75 * errors[0], errors
+
+
+def test_feature_passes_average_like_one_pass(cornell):
+    # A sample budget of 2 x the film forces 32 feature passes at 64 feature spp; interior
+    # pixels (one diffuse reflectance exactly) must come out the same as in one pass.
+    one = render_frame(cornell, spp=64, seed=4, feature_spp=64)
+    split = render_frame(cornell, spp=64, seed=4, feature_spp=64, max_samples_per_pass=2 * 32 * 24)
+    hit = one.depth[..., 0] > 0
+    interior = hit & (np.abs(one.albedo[..., None, :] - CORNELL_ALBEDOS).max(-1).min(-1) < 1e-6)
+    assert interior.mean() > 0.5
+    np.testing.assert_allclose(split.albedo[interior], one.albedo[interior], atol=1e-5)
+    assert np.abs(split.albedo - one.albedo).max() > 0  # other seeds: edges differ
+    with pytest.raises(SceneError, match="feature_spp must be in"):
+        render_frame(cornell, spp=2, feature_spp=0)
+
+
+def test_bad_aux_mode(cornell):
+    with pytest.raises(SceneError, match="aux must be one of first-hit, specular-chain"):
+        render_frame(cornell, spp=2, aux="next-hit")
+
+
 def test_render_is_deterministic_in_the_seed(cornell, cornell_frame):
     again = render_frame(cornell, spp=8, seed=5)
     for name in ("color", "variance", "albedo", "normal", "depth", "position"):

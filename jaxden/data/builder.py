@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxden.data.config import DatasetConfig
+from jaxden.data.config import DatasetConfig, load_dataset_config
 from jaxden.data.layout import (
     CONFIG_NAME,
     LOCK_NAME,
@@ -84,6 +84,8 @@ class CropTask:
     items: tuple[RenderTask, ...]
     render_fn: RenderFn | None = None
     threads: int | None = None  # Dr.Jit worker threads for this process (None: all cores)
+    aux: str = "first-hit"  # DatasetConfig.aux; passed to the renderer only when not default
+    feature_spp: int = 16  # DatasetConfig.feature_spp; passed only when not the default 16
 
 
 # Per worker process: the most recently loaded Mitsuba scenes. render_frame reloads a scene
@@ -101,6 +103,8 @@ def render_cached(
     size: tuple[int, int] | None = None,
     *,
     crop: tuple[int, int, int, int] | None = None,
+    aux: str = "first-hit",
+    feature_spp: int = 16,
 ) -> Any:
     """``jaxden.render.core.render_frame`` with the loaded scene kept between calls (the
     builder's default renderer)."""
@@ -114,7 +118,31 @@ def render_cached(
         while len(_SCENE_CACHE) >= _SCENE_CACHE_SIZE:
             _SCENE_CACHE.pop(next(iter(_SCENE_CACHE)))
         _SCENE_CACHE[key] = loaded
-    return render_frame(loaded, spp, seed=seed, size=size, crop=crop)
+    return render_frame(loaded, spp, seed=seed, size=size, crop=crop, aux=aux,
+                        feature_spp=feature_spp)
+
+
+def _feature_options(aux: str, feature_spp: int) -> dict[str, Any]:
+    """The feature keywords a dataset passes to its renderer: only those off their defaults,
+    so render functions written before they existed keep working on ordinary datasets."""
+    options: dict[str, Any] = {}
+    if aux != "first-hit":
+        options["aux"] = aux
+    if feature_spp != 16:
+        options["feature_spp"] = feature_spp
+    return options
+
+
+def _missing_keywords(render_fn: RenderFn, names) -> list[str]:
+    import inspect
+
+    try:
+        parameters = inspect.signature(render_fn).parameters.values()
+    except (TypeError, ValueError):
+        return []  # cannot tell (a builtin); let the call decide
+    if any(p.kind is p.VAR_KEYWORD for p in parameters):
+        return []
+    return [name for name in names if name not in {p.name for p in parameters}]
 
 
 def _renderer_name(render_fn: RenderFn | None) -> str:
@@ -129,6 +157,7 @@ def render_crop(task: CropTask) -> list[dict[str, Any]]:
 
     Runs in a worker process. The render function is called as
     ``render_fn(scene, spp, seed=seed, size=(width, height), crop=(top, left, height, width))``
+    (plus ``aux=`` / ``feature_spp=`` when the dataset's differ from ``"first-hit"`` / 16)
     and must return a :class:`jaxden.frame.Frame` of the crop's size with the dataset features.
     """
     render = task.render_fn or render_cached
@@ -154,7 +183,9 @@ def _render_one(task: CropTask, item: RenderTask, render: RenderFn) -> dict[str,
 
     top, left, height, width = task.window
     start = time.perf_counter()
-    frame = render(task.scene, item.spp, seed=item.seed, size=task.size, crop=task.window)
+    extra = _feature_options(task.aux, task.feature_spp)
+    frame = render(task.scene, item.spp, seed=item.seed, size=task.size, crop=task.window,
+                   **extra)
     seconds = time.perf_counter() - start
     _check_render(frame, task, item)
     if frame.spp is None:
@@ -312,6 +343,18 @@ def _build_lock(directory: Path):
     return folder_lock(directory, LOCK_NAME, "build")
 
 
+def _with_defaults(stored_config: dict[str, Any]) -> dict[str, Any]:
+    """A stored dataset config with the fields added since it was written at their defaults
+    (e.g. ``aux``), so that an older dataset still resumes under the same config."""
+    from jaxden.config import config_to_dict
+    from jaxden.errors import ConfigError
+
+    try:
+        return config_to_dict(load_dataset_config(stored_config))
+    except (ConfigError, TypeError, ValueError):  # unreadable today: compare it as it is
+        return stored_config
+
+
 def _reconcile(stored: Manifest, planned: Manifest, directory: Path) -> Manifest:
     """Check a stored manifest against a fresh plan; return the plan with stored checksums."""
     from jaxden.config import config_diff
@@ -319,7 +362,7 @@ def _reconcile(stored: Manifest, planned: Manifest, directory: Path) -> Manifest
     where = directory / MANIFEST_NAME
     if not any(item.done for item in stored.items) and not any(directory.rglob("*.exr")):
         return planned  # nothing was built yet (e.g. the first render failed): start afresh
-    differences = config_diff(stored.config, planned.config)
+    differences = config_diff(_with_defaults(stored.config), planned.config)
     if differences:
         raise DatasetError(
             f"{where} was built from a different config; differences (stored -> given): "
@@ -371,9 +414,15 @@ def build_dataset(
     from jaxden.executor import make_executor
 
     if not isinstance(config, DatasetConfig):
-        from jaxden.data.config import load_dataset_config
-
         config = load_dataset_config(config)
+    options = _feature_options(config.aux, config.feature_spp)
+    missing = _missing_keywords(render_fn, options) if render_fn is not None else []
+    if missing:
+        raise DatasetError(
+            "the dataset's " + ", ".join(f"{name} = {options[name]!r}" for name in missing)
+            + " needs a renderer that takes "
+            + ", ".join(f"`{name}=`" for name in missing)
+            + f"; {_renderer_name(render_fn)} does not")
     directory = Path(out_dir)
     if directory.exists() and not directory.is_dir():
         raise DatasetError(f"{directory} exists and is not a folder")
@@ -441,6 +490,8 @@ def build_dataset(
                     items=tuple(RenderTask(i.id, i.path, i.spp, i.seed) for i in crop_items),
                     render_fn=render_fn,
                     threads=threads,
+                    aux=config.aux,
+                    feature_spp=config.feature_spp,
                 )
             )
         by_id = manifest.item_by_id()

@@ -30,6 +30,7 @@ import math
 from typing import Literal
 
 from jaxden.errors import ConfigError
+from jaxden.render.integrators import AUX_MODES
 
 SPLIT_NAMES: tuple[str, ...] = ("train", "val", "test")
 
@@ -116,6 +117,14 @@ class DatasetConfig:
     - ``reference_spp``: the reference's sample count (>= max(spp)), an independent render.
     - ``seed``: base seed for crop placement, split shuffling and every render's sampler seed.
     - ``half``: store EXR channels as float16 (half the disk space; float32 by default).
+    - ``aux``: how the albedo and normal features are rendered: ``"first-hit"`` (default;
+      every dataset before this option) or ``"specular-chain"`` (from the first non-delta
+      surface behind mirrors and smooth glass, as OIDN recommends;
+      :func:`jaxden.render.core.render_frame`).
+    - ``feature_spp``: the feature pass (albedo, normal, depth, position) averages
+      ``min(spp, feature_spp)`` samples per pixel; 16 (default) is what every dataset before
+      this option used. More samples give OIDN cleaner features (README, "OIDN's auxiliary
+      features"); set it >= the largest spp to average as many samples as the colour.
     - ``splits``: see :class:`SplitConfig`.
     """
 
@@ -129,6 +138,8 @@ class DatasetConfig:
     reference_spp: int = 16384
     seed: int = 0
     half: bool = False
+    aux: str = "first-hit"
+    feature_spp: int = 16
     splits: SplitConfig = SplitConfig()
 
     def __post_init__(self) -> None:
@@ -179,6 +190,10 @@ class DatasetConfig:
             )
         if self.seed < 0:
             raise ConfigError(f"seed must be >= 0, got {self.seed}")
+        if self.feature_spp <= 0:
+            raise ConfigError(f"feature_spp must be > 0, got {self.feature_spp}")
+        if self.aux not in AUX_MODES:
+            raise ConfigError(f"aux must be one of {', '.join(AUX_MODES)}, got {self.aux!r}")
         for name in ("val_scenes", "test_scenes"):
             unknown = [s for s in getattr(self.splits, name) if s not in all_scenes]
             if unknown:

@@ -9,7 +9,8 @@ Two renders per frame, with the same sensor:
    moments are combined exactly (weighted by their spp, in float64). Passes keep the Dr.Jit
    wavefront far below its 2^32 limit and bound the float32 round-off of the film's per-pixel
    sums (the sum of 1024 samples loses at most ~1e-4 relative; the variance needs m2 - m1^2).
-2. **Feature pass**: Mitsuba's ``aov`` integrator at ``min(spp, AOV_SPP)`` samples per pixel,
+2. **Feature pass**: Mitsuba's ``aov`` integrator at ``min(spp, feature_spp)`` samples per
+   pixel (``feature_spp`` defaults to ``AOV_SPP`` = 16, what every jaxden dataset so far used),
    box filter. The features are therefore *averages over that many samples inside the pixel*
    (anti-aliased, as in the authors' data and as OIDN expects): at an object's silhouette the
    albedo, depth and position blend the hit and the miss (misses count as 0). Normals are the
@@ -17,7 +18,10 @@ Two renders per frame, with the same sensor:
    unit length wherever anything was hit. ``albedo`` is Mitsuba's ``albedo`` AOV (the BSDF's
    diffuse reflectance) clipped to [0, 1]: for glossy lobes Mitsuba evaluates the BSDF at
    normal incidence, which exceeds 1 (a rough gold sphere gives ~16); smooth dielectrics and
-   conductors get 0 (OIDN would prefer 1 there; not done).
+   conductors get 0. With ``aux="specular-chain"`` the albedo and normal come instead from
+   the first non-delta surface along the mirror / refraction chain (the integrator
+   ``jaxden_features_chain``, as OIDN's documentation recommends; see
+   :mod:`jaxden.render.integrators`); depth and position stay first-hit.
 
 Seeds: the colour passes and the feature pass use seeds derived from ``seed`` by hashing
 (:func:`derive_seed`), so they are distinct, deterministic, and unrelated across user seeds.
@@ -215,12 +219,12 @@ def _integrators(scene, max_depth):
     return inner, entry[1]
 
 
-def _features_integrator():
+def _features_integrator(aux: str = "first-hit"):
     import mitsuba as mi
 
-    key = ("aov", mi.variant())
+    key = ("features", aux, mi.variant())
     if key not in _integrator_cache:
-        _integrator_cache[key] = integrators.aov_integrator()
+        _integrator_cache[key] = integrators.features_integrator(aux)
     return _integrator_cache[key]
 
 
@@ -234,6 +238,21 @@ def _render(scene, sensor, integrator, seed: int, spp: int, channels: int) -> np
     return image
 
 
+def _render_features(scene, sensor, integrator, seed: int, spp: int, pixels: int,
+                     budget: int) -> np.ndarray:
+    """The 10 feature channels at ``spp`` samples: in one pass when it fits the sample budget
+    (always, at the legacy 16 spp), else in passes with derived seeds, averaged by spp."""
+    plan = split_passes(spp, pixels, budget)
+    if len(plan) == 1:
+        return _render(scene, sensor, integrator, seed, spp, 10)
+    total = None
+    for index, pass_spp in enumerate(plan):
+        image = _render(scene, sensor, integrator, derive_seed(seed, "aov-pass", index),
+                        pass_spp, 10).astype(np.float64)
+        total = pass_spp * image if total is None else total + pass_spp * image
+    return (total / spp).astype(np.float32)
+
+
 def render_frame(
     scene,
     spp: int,
@@ -244,6 +263,8 @@ def render_frame(
     sensor: dict | None = None,
     max_depth: int | None = None,
     max_samples_per_pass: int | None = None,
+    aux: str = "first-hit",
+    feature_spp: int = AOV_SPP,
 ) -> Frame:
     """Render a Frame: colour, variance of the mean, albedo, normal, depth, position.
 
@@ -264,23 +285,35 @@ def render_frame(
         scene's own sampling integrator if it has one, else ``path`` with max_depth 8.
       max_samples_per_pass: samples (pixels x spp) per colour pass, default
         MAX_SAMPLES_PER_PASS; smaller means more passes (see the module docstring).
+      aux: how albedo and normal are taken: ``"first-hit"`` (Mitsuba's ``aov`` integrator) or
+        ``"specular-chain"`` (from the first non-delta surface behind mirrors and smooth
+        glass, as OIDN recommends; see the module docstring).
+      feature_spp: the feature pass averages ``min(spp, feature_spp)`` samples per pixel.
+        16 (the default) leaves visible sampling noise in textured albedo and at edges; OIDN
+        told that its features are clean keeps that noise, which costs it 10-25 % RMSE at
+        256-4096 spp against 256-sample features (README, "OIDN's auxiliary features").
 
     Returns:
       A Frame of float32 NumPy arrays without batch dimension: color (H, W, 3) (linear
       radiance, mean of spp samples), variance (H, W, 3) variance of that mean, or None when
       spp == 1; albedo (H, W, 3); normal (H, W, 3), unit length, 0 where no feature sample hit;
       depth (H, W, 1) distance along the camera ray, 0 on misses; position (H, W, 3) world
-      space, 0 on misses; spp = np.float32(spp). Features average min(spp, AOV_SPP) samples.
+      space, 0 on misses; spp = np.float32(spp). Features average min(spp, feature_spp)
+      samples.
 
-    Raises SceneError for a bad scene, size, crop, spp, seed or max_depth.
+    Raises SceneError for a bad scene, size, crop, spp, seed, max_depth, aux or feature_spp.
     """
     ensure_variant()
+    if aux not in integrators.AUX_MODES:
+        raise SceneError(f"render_frame: aux must be one of {', '.join(integrators.AUX_MODES)}, "
+                         f"got {aux!r}")
     spp = _check_int(spp, "spp", 1, MAX_SPP)
     seed = _check_int(seed, "seed", 0, 2**63 - 1)
     if max_depth is not None:
         max_depth = _check_int(max_depth, "max_depth", -1, 1024)
         if max_depth == 0:
             raise SceneError("render_frame: max_depth must be >= 1 (or -1 for unbounded), got 0")
+    feature_spp = _check_int(feature_spp, "feature_spp", 1, MAX_SPP)
     budget = MAX_SAMPLES_PER_PASS if max_samples_per_pass is None else _check_int(
         max_samples_per_pass, "max_samples_per_pass", 1, 1 << 31)
     mi_scene, mi_sensor, (height, width) = _scene_and_sensor(scene, size, crop, sensor)
@@ -296,8 +329,9 @@ def render_frame(
     m1, m2 = sum1 / spp, sum2 / spp
     variance = None if spp == 1 else integrators.variance_of_mean(m1, m2, spp).astype(np.float32)
 
-    features = _render(mi_scene, mi_sensor, _features_integrator(), derive_seed(seed, "aov"),
-                       min(spp, AOV_SPP), 10)
+    features = _render_features(mi_scene, mi_sensor, _features_integrator(aux),
+                                derive_seed(seed, "aov"), min(spp, feature_spp), height * width,
+                                budget)
     channels = integrators.FEATURE_CHANNELS
     normal = features[..., channels["normal"]]
     length = np.linalg.norm(normal, axis=-1, keepdims=True)

@@ -22,6 +22,17 @@ colour, which shows the samples themselves are identical. In ``scalar_rgb`` it i
 ``jaxden_features`` (:func:`aov_integrator`) is Mitsuba's built-in ``aov`` integrator with
 albedo, shading normal, depth and position of the first hit (0 on misses). Two separate renders
 (moments, then AOVs) are about 2x faster than ``aov`` wrapping ``path``, and give the same result.
+
+``jaxden_features_chain`` (:func:`chain_features_integrator`, ``aux = "specular-chain"``) gives
+the same 10 channels, but takes albedo and normal from the first *non-delta* surface: where a
+camera ray meets a perfect mirror or smooth glass (a BSDF with only delta lobes), it follows
+the reflected or refracted ray, chosen by sampling the BSDF (so the pixel average is the
+Fresnel blend of the two), up to ``max_specular`` delta bounces, and stores the albedo of the
+surface it reaches times the delta lobes' weights, and that surface's normal. This is what
+Intel Open Image Denoise's documentation recommends for delta surfaces; the first-hit albedo
+of a mirror or of glass is 0 in Mitsuba, which tells OIDN nothing about what is seen in it.
+Depth and position stay those of the first hit. A chain that ends in a miss, or is still on
+delta surfaces after ``max_specular`` bounces, stores 0 (as a camera ray's miss does).
 """
 
 from __future__ import annotations
@@ -42,6 +53,10 @@ FEATURE_CHANNELS: dict[str, slice] = {
     "position": slice(7, 10),
 }
 DEFAULT_MAX_DEPTH = 8
+CHAIN_PLUGIN = "jaxden_features_chain"
+DEFAULT_MAX_SPECULAR = 4
+#: How the albedo and normal features are taken (``render_frame(aux=...)``).
+AUX_MODES: tuple[str, ...] = ("first-hit", "specular-chain")
 
 _classes: dict[str, type] = {}  # variant -> MomentIntegrator class of that variant
 
@@ -136,6 +151,101 @@ def aov_integrator():
 
     ensure_variant()
     return mi.load_dict({"type": "aov", "aovs": FEATURE_AOVS})
+
+
+_chain_classes: dict[str, type] = {}  # variant -> ChainFeatures class of that variant
+
+
+def _chain_class() -> type:
+    """The ChainFeatures class for the current variant (see the module docstring)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    variant = ensure_variant()
+    if variant in _chain_classes:
+        return _chain_classes[variant]
+
+    class ChainFeatures(mi.SamplingIntegrator):
+        """First-hit depth and position; albedo and normal of the first non-delta hit.
+
+        Output: the albedo as the film's RGB, then normal (3), depth (1), position (3) as
+        AOVs: the channel order of FEATURE_CHANNELS. Property: ``max_specular``.
+        """
+
+        def __init__(self, props: Any) -> None:
+            super().__init__(props)
+            self.max_specular = int(props.get("max_specular", DEFAULT_MAX_SPECULAR))
+
+        def sample(self, scene, sampler, ray, medium=None, active=True):
+            # Importance mode: no radiance scaling (1 / eta^2) on refraction, so a chain
+            # through clear glass keeps weight 1.
+            context = mi.BSDFContext(mi.TransportMode.Importance)
+            ray = mi.Ray3f(ray)
+            si = scene.ray_intersect(ray, active)
+            hit = mi.Bool(active) & si.is_valid()
+            depth = dr.select(hit, si.t, 0.0)
+            position = dr.select(hit, si.p, mi.Point3f(0.0))
+            albedo = mi.Spectrum(0.0)
+            normal = mi.Vector3f(0.0)
+            weight = mi.Spectrum(1.0)
+            alive = mi.Bool(hit)
+            for bounce in range(self.max_specular + 1):
+                bsdf = si.bsdf(ray)
+                flags = bsdf.flags()
+                delta_only = (mi.has_flag(flags, mi.BSDFFlags.Delta)
+                              & ~mi.has_flag(flags, mi.BSDFFlags.Smooth))
+                stop = alive & ~delta_only
+                albedo[stop] = weight * bsdf.eval_diffuse_reflectance(si, stop)
+                normal[stop] = si.sh_frame.n
+                alive &= delta_only
+                if bounce == self.max_specular:
+                    break
+                sample, lobe_weight = bsdf.sample(context, si, sampler.next_1d(alive),
+                                                  sampler.next_2d(alive), alive)
+                alive &= dr.any(lobe_weight > 0.0)
+                weight[alive] = weight * lobe_weight
+                ray = si.spawn_ray(si.to_world(sample.wo))
+                si = scene.ray_intersect(ray, alive)
+                alive &= si.is_valid()
+            aovs = [normal.x, normal.y, normal.z, depth, position.x, position.y, position.z]
+            return albedo, mi.Bool(True), aovs
+
+        def aov_names(self):
+            return ["nn.X", "nn.Y", "nn.Z", "dd.Y", "pp.X", "pp.Y", "pp.Z"]
+
+        def to_string(self):
+            return f"ChainFeatures[max_specular={self.max_specular}]"
+
+    mi.register_integrator(CHAIN_PLUGIN, lambda props: ChainFeatures(props))
+    _chain_classes[variant] = ChainFeatures
+    return ChainFeatures
+
+
+def chain_features_integrator(max_specular: int = DEFAULT_MAX_SPECULAR):
+    """The ``jaxden_features_chain`` integrator: FEATURE_CHANNELS with albedo and normal of
+    the first non-delta hit (see the module docstring)."""
+    cls = _chain_class()
+    import mitsuba as mi
+
+    props = mi.Properties()
+    props["max_specular"] = int(max_specular)
+    logger = mi.logger()
+    level = logger.log_level()
+    if mi.variant().startswith("scalar"):
+        logger.set_log_level(mi.LogLevel.Error)
+    try:
+        return cls(props)
+    finally:
+        logger.set_log_level(level)
+
+
+def features_integrator(aux: str = "first-hit"):
+    """The feature integrator of an ``aux`` mode (one of AUX_MODES)."""
+    if aux == "first-hit":
+        return aov_integrator()
+    if aux == "specular-chain":
+        return chain_features_integrator()
+    raise ValueError(f"aux must be one of {', '.join(AUX_MODES)}, got {aux!r}")
 
 
 def variance_of_mean(m1, m2, spp: int):
