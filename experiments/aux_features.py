@@ -2,11 +2,12 @@
 
     python experiments/aux_features.py --data data/test-high --out experiments/results/oidn-aux-features
 
-For every crop of the split, albedo and normal are rendered afresh (seed FEATURE_SEED) in each
-feature setting: ``aux`` (``first-hit``: Mitsuba's aov integrator, what jaxden datasets store
-by default; ``specular-chain``: the first non-delta surface behind mirrors and smooth glass,
-as OIDN's documentation recommends) and the number of feature samples per pixel
-(``render_frame(feature_spp=...)``; jaxden datasets so far use 16). Every stored input render
+For every crop of the split and input spp level s, albedo and normal are rendered afresh
+(seed FEATURE_SEED + s) in each feature setting: ``aux`` (``first-hit``: Mitsuba's aov
+integrator, what jaxden datasets store by default; ``specular-chain``: the first non-delta
+surface behind mirrors and smooth glass, as OIDN's documentation recommends) and
+``feature_spp`` F: like a dataset built with ``feature_spp = F``, the features of an s-spp
+input average min(s, F) samples (jaxden datasets so far use F = 16). Every stored input render
 of the crop is then denoised by OIDN with each variant: a feature setting plus OIDN's
 ``cleanAux`` flag (``clean``: the features are declared noise-free, jaxden's default;
 ``noisy``: OIDN is told they are not). The errors are against the crop's reference.
@@ -25,9 +26,9 @@ import numpy as np
 
 FEATURE_SEED = 424242
 DEFAULT_VARIANTS = (
-    "first-hit:16:clean", "first-hit:16:noisy", "first-hit:64:clean", "first-hit:256:clean",
-    "first-hit:256:noisy", "specular-chain:16:clean", "specular-chain:256:clean",
-    "specular-chain:256:noisy",
+    "first-hit:16:clean", "first-hit:16:noisy", "first-hit:256:clean", "first-hit:4096:clean",
+    "first-hit:4096:noisy", "specular-chain:16:clean", "specular-chain:4096:clean",
+    "specular-chain:4096:noisy",
 )
 METRICS = ("rmse", "relmse", "mse_nc")
 
@@ -51,19 +52,20 @@ def evaluate(data: Path, split: str, variants, spp=None, progress: bool = True):
     from jaxden.pdreport import iter_crops
     from jaxden.render.core import render_frame
 
-    oidn = {clean: make_denoiser("oidn", OIDNConfig(clean_aux=clean)) for clean in (True, False)}
+    oidn = {clean: make_denoiser("oidn", OIDNConfig(clean_aux="yes" if clean else "no"))
+            for clean in (True, False)}
     size = tuple(load_manifest(data).config["size"])
-    settings = sorted({(aux, fspp) for aux, fspp, _ in variants})
     rows = []
     for crop, reference, inputs in iter_crops(data, split, spp):
-        features = {(aux, fspp): render_frame(crop.scene, fspp, seed=FEATURE_SEED, size=size,
-                                              crop=tuple(crop.window), aux=aux,
-                                              feature_spp=fspp)
-                    for aux, fspp in settings}
         for level, frame in inputs:
+            features = {}  # (aux, samples) -> Frame, shared by the variants of this input
+            for aux, samples in sorted({(aux, min(level, f)) for aux, f, _ in variants}):
+                features[(aux, samples)] = render_frame(
+                    crop.scene, samples, seed=FEATURE_SEED + level, size=size,
+                    crop=tuple(crop.window), aux=aux, feature_spp=samples)
             row = {"crop": crop.id, "scene": crop.scene, "spp": level, "errors": {}}
             for aux, fspp, clean in variants:
-                f = features[(aux, fspp)]
+                f = features[(aux, min(level, fspp))]
                 y = np.asarray(oidn[clean](frame.replace(albedo=f.albedo, normal=f.normal)),
                                np.float32)
                 row["errors"][f"{aux}:{fspp}:{'clean' if clean else 'noisy'}"] = {

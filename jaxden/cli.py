@@ -116,6 +116,17 @@ def cmd_dataset_build(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_dataset_refeature(args: argparse.Namespace) -> int:
+    from jaxden.data.builder import refeature_dataset
+
+    manifest = refeature_dataset(args.source, args.out, args.overrides, executor=args.executor,
+                                 workers=args.workers)
+    config = manifest.config
+    print(f"dataset complete: {args.out} ({len(manifest.items)} items; colour from "
+          f"{args.source}, features: aux={config['aux']}, feature_spp={config['feature_spp']})")
+    return 0
+
+
 def cmd_dataset_verify(args: argparse.Namespace) -> int:
     from jaxden.data.verify import verify_dataset
 
@@ -209,11 +220,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", type=parse_size, default=None, help="WxH (default: the scene's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--half", action="store_true", help="store channels as float16")
-    p.add_argument("--aux", choices=("first-hit", "specular-chain"), default="first-hit",
-                   help="albedo and normal of the first hit (default), or of the first "
-                        "non-delta surface behind mirrors and smooth glass (as OIDN recommends)")
-    p.add_argument("--feature-spp", type=positive_int, default=16, metavar="N",
-                   help="the features average min(spp, N) samples (default 16)")
+    p.add_argument("--aux", choices=("specular-chain", "first-hit"), default="specular-chain",
+                   help="albedo and normal of the first non-delta surface behind mirrors and "
+                        "smooth glass (default, as OIDN recommends), or of the first hit")
+    p.add_argument("--feature-spp", type=positive_int, default=1024, metavar="N",
+                   help="the features average min(spp, N) samples (default 1024)")
     p.add_argument("--buffers", type=positive_int, default=None, metavar="K",
                    help="also keep K independent sub-buffers of spp / K samples each "
                         "(OUT.b0.exr ..; OUT is their combination), for `jaxden sure --buffers`")
@@ -229,6 +240,15 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--executor", choices=("local", "ray"), default="local")
     b.add_argument("--workers", type=positive_int, default=None)
     b.set_defaults(func=cmd_dataset_build)
+    r = dsub.add_parser("refeature", help="copy a dataset, re-rendering only its features "
+                                          "(aux=..., feature_spp=...; resumable)")
+    r.add_argument("source", help="a complete dataset folder")
+    r.add_argument("overrides", nargs="*",
+                   help="feature settings, e.g. aux=specular-chain feature_spp=4096")
+    r.add_argument("--out", required=True, help="the new dataset folder")
+    r.add_argument("--executor", choices=("local", "ray"), default="local")
+    r.add_argument("--workers", type=positive_int, default=None)
+    r.set_defaults(func=cmd_dataset_refeature)
     v = dsub.add_parser("verify", help="check every file against the manifest")
     v.add_argument("dir")
     v.set_defaults(func=cmd_dataset_verify)

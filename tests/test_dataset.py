@@ -355,6 +355,19 @@ def test_feature_options_reach_the_renderer_and_a_renderer_without_them_is_refus
     assert not (tmp_path / "b").exists()
 
 
+def test_refeature_refuses_incomplete_or_foreign_sources(tmp_path):
+    from jaxden.data.builder import refeature_dataset
+
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        build(tmp_path / "part", render=CountingRender(crash_after=3))
+    with pytest.raises(DatasetError, match="not complete"):
+        refeature_dataset(tmp_path / "part", tmp_path / "x", ["feature_spp=64"])
+    build(tmp_path / "synthetic")
+    with pytest.raises(DatasetError, match="built by .*CountingRender; refeature needs"):
+        refeature_dataset(tmp_path / "synthetic", tmp_path / "x", ["feature_spp=64"])
+    assert not (tmp_path / "x").exists()
+
+
 def test_refuses_foreign_folder_and_concurrent_build(tmp_path):
     (tmp_path / "foreign").mkdir()
     (tmp_path / "foreign" / "notes.txt").write_text("mine")
@@ -479,8 +492,9 @@ def test_micro_build_with_mitsuba_stores_exactly_render_frame(tmp_path):
     assert verify_dataset(tmp_path / "m").ok
     crop = manifest.crops[0]
     for item in manifest.items[1:]:  # the 2-spp input (the reference works the same way)
-        direct = render_frame(
-            crop.scene, item.spp, seed=item.seed, size=config.size, crop=crop.window
+        direct = render_frame(  # the dataset defaults are the legacy features
+            crop.scene, item.spp, seed=item.seed, size=config.size, crop=crop.window,
+            aux="first-hit", feature_spp=16,
         )
         stored = read_frame(tmp_path / "m" / item.path, require=("color", "variance"))
         np.testing.assert_array_equal(stored.color, direct.color)
@@ -501,11 +515,49 @@ def test_micro_build_with_specular_chain_features(tmp_path):
     crop, item = manifest.crops[0], manifest.items[1]
     stored = read_frame(tmp_path / "m" / item.path)
     kwargs = {"seed": item.seed, "size": config.size, "crop": crop.window}
-    chain = render_frame(crop.scene, item.spp, aux="specular-chain", **kwargs)
-    first = render_frame(crop.scene, item.spp, **kwargs)
+    chain = render_frame(crop.scene, item.spp, aux="specular-chain", feature_spp=16, **kwargs)
+    first = render_frame(crop.scene, item.spp, aux="first-hit", feature_spp=16, **kwargs)
     np.testing.assert_array_equal(stored.albedo, chain.albedo)
     np.testing.assert_array_equal(stored.color, first.color)
     assert np.abs(stored.albedo - first.albedo).max() > 0.1
+
+
+def test_refeature_equals_a_full_build_of_the_new_config(tmp_path):
+    """`refeature` keeps the colour and re-renders the features: item for item, the result
+    equals a full build of the new config, and differs from the source only in features."""
+    from jaxden.data.builder import refeature_dataset
+    from jaxden.io.exr import read_frame
+
+    source = DatasetConfig(name="src", scenes=("glossy-glass",), size=(40, 40), crop_size=24,
+                           crops_per_scene=1, spp=(2, 32), reference_spp=64,
+                           splits=SplitConfig(train=1.0, val=0.0))
+    build_dataset(source, tmp_path / "a", executor="serial", progress=False)
+    refeatured = refeature_dataset(tmp_path / "a", tmp_path / "b",
+                                   ["aux=specular-chain", "feature_spp=64", "name=b"],
+                                   executor="serial", progress=False)
+    assert verify_dataset(tmp_path / "b").ok
+    assert refeatured.renderer.endswith("ColourFrom")
+    fresh = dataclasses.replace(source, name="b", aux="specular-chain", feature_spp=64)
+    build_dataset(fresh, tmp_path / "c", executor="serial", progress=False)
+    changed = 0
+    for item in refeatured.items:
+        a, b, c = (read_frame(tmp_path / d / item.path) for d in "abc")
+        for name in ("color", "variance", "albedo", "normal", "depth", "position"):
+            np.testing.assert_array_equal(getattr(b, name), getattr(c, name), err_msg=name)
+        np.testing.assert_array_equal(b.color, a.color)
+        np.testing.assert_array_equal(b.variance, a.variance)
+        changed += np.abs(b.albedo - a.albedo).max() > 0.05
+    assert changed == len(refeatured.items)
+    # Resuming a finished refeature renders nothing; colour-changing overrides are refused.
+    refeature_dataset(tmp_path / "a", tmp_path / "b",
+                      ["aux=specular-chain", "feature_spp=64", "name=b"], executor="serial",
+                      progress=False)
+    with pytest.raises(DatasetError, match="refeature can change only aux, feature_spp, name; "
+                                           "spp would change the colour renders"):
+        refeature_dataset(tmp_path / "a", tmp_path / "d", ["spp=[2,16]"], progress=False)
+    with pytest.raises(DatasetError, match="must not be"):
+        refeature_dataset(tmp_path / "a", tmp_path / "a", ["feature_spp=32"], progress=False)
+    assert not (tmp_path / "d").exists()
 
 
 @pytest.mark.skipif(not _real_renderer_available(), reason="jaxden.render not available yet")

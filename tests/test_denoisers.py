@@ -58,6 +58,30 @@ def test_oidn_batch_equals_per_frame():
         np.testing.assert_array_equal(out[i], den(frame))
 
 
+def test_oidn_clean_aux_auto_follows_the_frame_spp():
+    """auto = cleanAux for frames of >= clean_aux_min_spp samples (or unknown spp), not below;
+    in a batch, per frame. The outputs must equal those of the fixed settings, which differ
+    (noisy features: OIDN filters the albedo's noise too)."""
+    rng = np.random.default_rng(3)
+    frame, _ = smooth_scene(32, 32)
+    frame = frame.replace(albedo=np.clip(frame.albedo + 0.2 * rng.normal(size=frame.albedo.shape),
+                                         0, 1).astype(np.float32))
+    yes, no = (make_denoiser("oidn", OIDNConfig(quality="fast", clean_aux=c)) for c in ("yes", "no"))
+    auto = make_denoiser("oidn", OIDNConfig(quality="fast"))
+    low, high = frame.replace(spp=np.float32(4)), frame.replace(spp=np.float32(8))
+    assert np.abs(yes(low) - no(low)).max() > 1e-3
+    np.testing.assert_array_equal(auto(low), no(low))
+    np.testing.assert_array_equal(auto(high), yes(high))
+    np.testing.assert_array_equal(auto(frame.replace(spp=None)), yes(frame))
+    batch = jax.tree_util.tree_map(lambda *xs: np.stack(xs), low, high)
+    out = auto(batch)
+    np.testing.assert_array_equal(out[0], no(low))
+    np.testing.assert_array_equal(out[1], yes(high))
+    assert OIDNConfig(clean_aux_min_spp=64).features_are_clean(32) is False
+    with pytest.raises(ConfigError, match="clean_aux must be auto, yes or no"):
+        OIDNConfig(clean_aux=True)
+
+
 @pytest.mark.parametrize("size", [(37, 21)])
 def test_unet_any_size_nonnegative_and_differentiable(size):
     frame, _ = smooth_scene(*size)

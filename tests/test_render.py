@@ -243,10 +243,13 @@ def test_specular_chain_features_equal_first_hit_without_delta_surfaces(cornell,
     # The Cornell box has only diffuse surfaces: the chain integrator stops at the first hit,
     # so it must reproduce Mitsuba's own aov integrator exactly (same seed, same rays).
     chain = render_frame(cornell, spp=8, seed=5, aux="specular-chain")
-    np.testing.assert_array_equal(chain.color, cornell_frame.color)
+    first = render_frame(cornell, spp=8, seed=5, aux="first-hit")
+    np.testing.assert_array_equal(chain.color, first.color)
     for name in ("albedo", "normal", "depth", "position"):
-        np.testing.assert_allclose(getattr(chain, name), getattr(cornell_frame, name),
+        np.testing.assert_allclose(getattr(chain, name), getattr(first, name),
                                    atol=1e-6, err_msg=name)
+    # The default is the chain.
+    np.testing.assert_array_equal(cornell_frame.albedo, chain.albedo)
 
 
 def _mirror_scene(reflectance: float, behind: float):
@@ -272,8 +275,8 @@ def _mirror_scene(reflectance: float, behind: float):
 
 def test_specular_chain_takes_albedo_and_normal_behind_a_mirror():
     scene = load_scene(_mirror_scene(0.5, 0.6))
-    first = render_frame(scene, spp=4, seed=1)
-    chain = render_frame(scene, spp=4, seed=1, aux="specular-chain")
+    first = render_frame(scene, spp=4, seed=1, aux="first-hit")
+    chain = render_frame(scene, spp=4, seed=1)
     # First hit: a conductor, whose diffuse reflectance Mitsuba reports as 0, facing +z.
     np.testing.assert_allclose(first.albedo, 0.0, atol=1e-7)
     np.testing.assert_allclose(first.normal, np.broadcast_to([0, 0, 1], first.normal.shape),
@@ -293,7 +296,7 @@ def test_specular_chain_takes_albedo_and_normal_behind_a_mirror():
 def test_specular_chain_on_glass_fills_the_dark_albedo():
     # glossy-glass has smooth glass and metal: first-hit albedo is 0 on them.
     scene = load_scene("glossy-glass", size=(48, 48))
-    first = render_frame(scene, spp=8, seed=2)
+    first = render_frame(scene, spp=8, seed=2, aux="first-hit")
     chain = render_frame(scene, spp=8, seed=2, aux="specular-chain")
     hit = first.depth[..., 0] > 0
     dark_first = (hit & (first.albedo.max(-1) < 1e-3)).mean()

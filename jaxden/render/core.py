@@ -9,9 +9,9 @@ Two renders per frame, with the same sensor:
    moments are combined exactly (weighted by their spp, in float64). Passes keep the Dr.Jit
    wavefront far below its 2^32 limit and bound the float32 round-off of the film's per-pixel
    sums (the sum of 1024 samples loses at most ~1e-4 relative; the variance needs m2 - m1^2).
-2. **Feature pass**: Mitsuba's ``aov`` integrator at ``min(spp, feature_spp)`` samples per
-   pixel (``feature_spp`` defaults to ``AOV_SPP`` = 16, what every jaxden dataset so far used),
-   box filter. The features are therefore *averages over that many samples inside the pixel*
+2. **Feature pass**: ``min(spp, feature_spp)`` samples per pixel (default 1024; datasets
+   built before the option used ``AOV_SPP`` = 16), box filter, with Mitsuba's ``aov``
+   integrator (``aux="first-hit"``) or jaxden's specular-chain one (the default). The features are therefore *averages over that many samples inside the pixel*
    (anti-aliased, as in the authors' data and as OIDN expects): at an object's silhouette the
    albedo, depth and position blend the hit and the miss (misses count as 0). Normals are the
    averaged shading normal rescaled to unit length (0 where no sample hit), so ``normal`` is
@@ -49,7 +49,11 @@ from jaxden.frame import Frame
 from jaxden.render import integrators, scenes
 from jaxden.render.variant import ensure_variant
 
-AOV_SPP = 16
+AOV_SPP = 16  # the feature samples of every jaxden dataset built before feature_spp existed
+#: render_frame's defaults: the features OIDN does best with (README, "OIDN's auxiliary
+#: features"); datasets keep the legacy first-hit / AOV_SPP unless their config says otherwise.
+DEFAULT_AUX = "specular-chain"
+DEFAULT_FEATURE_SPP = 1024
 MAX_SAMPLES_PER_PASS = 1 << 28  # samples (pixels x spp) per colour pass; wavefront < 2^32
 MAX_SPP_PER_PASS = 1024
 MAX_SPP = 1 << 24
@@ -238,6 +242,37 @@ def _render(scene, sensor, integrator, seed: int, spp: int, channels: int) -> np
     return image
 
 
+def _render_colour(mi_scene, mi_sensor, max_depth, seed: int, spp: int,
+                   shape: tuple[int, int], budget: int):
+    """Colour passes: (pixel mean, variance of the mean or None at 1 spp), float32."""
+    _, moment = _integrators(mi_scene, max_depth)
+    sum1 = np.zeros(shape + (3,), np.float64)
+    sum2 = np.zeros(shape + (3,), np.float64)
+    for index, pass_spp in enumerate(split_passes(spp, shape[0] * shape[1], budget)):
+        image = _render(mi_scene, mi_sensor, moment, derive_seed(seed, "color", index), pass_spp,
+                        6).astype(np.float64)
+        sum1 += pass_spp * image[..., 0:3]
+        sum2 += pass_spp * image[..., 3:6]
+    m1, m2 = sum1 / spp, sum2 / spp
+    variance = None if spp == 1 else integrators.variance_of_mean(m1, m2, spp).astype(np.float32)
+    return m1.astype(np.float32), variance
+
+
+def _check_colour(colour: Frame, spp: int, shape: tuple[int, int]):
+    """The colour and variance of a given render, checked against the frame to be made."""
+    color = np.asarray(colour.color, np.float32)
+    if color.shape != shape + (3,):
+        raise SceneError(f"render_frame: colour= has shape {color.shape}, the render is "
+                         f"{shape + (3,)}")
+    if colour.spp is not None and float(colour.spp) != spp:
+        raise SceneError(f"render_frame: colour= is a {float(colour.spp):g}-spp render, "
+                         f"not {spp} spp")
+    variance = None if colour.variance is None else np.asarray(colour.variance, np.float32)
+    if variance is None and spp > 1:
+        raise SceneError("render_frame: colour= has no variance")
+    return color, variance
+
+
 def _render_features(scene, sensor, integrator, seed: int, spp: int, pixels: int,
                      budget: int) -> np.ndarray:
     """The 10 feature channels at ``spp`` samples: in one pass when it fits the sample budget
@@ -263,8 +298,9 @@ def render_frame(
     sensor: dict | None = None,
     max_depth: int | None = None,
     max_samples_per_pass: int | None = None,
-    aux: str = "first-hit",
-    feature_spp: int = AOV_SPP,
+    aux: str = DEFAULT_AUX,
+    feature_spp: int = DEFAULT_FEATURE_SPP,
+    colour: Frame | None = None,
 ) -> Frame:
     """Render a Frame: colour, variance of the mean, albedo, normal, depth, position.
 
@@ -285,13 +321,18 @@ def render_frame(
         scene's own sampling integrator if it has one, else ``path`` with max_depth 8.
       max_samples_per_pass: samples (pixels x spp) per colour pass, default
         MAX_SAMPLES_PER_PASS; smaller means more passes (see the module docstring).
-      aux: how albedo and normal are taken: ``"first-hit"`` (Mitsuba's ``aov`` integrator) or
-        ``"specular-chain"`` (from the first non-delta surface behind mirrors and smooth
-        glass, as OIDN recommends; see the module docstring).
-      feature_spp: the feature pass averages ``min(spp, feature_spp)`` samples per pixel.
-        16 (the default) leaves visible sampling noise in textured albedo and at edges; OIDN
-        told that its features are clean keeps that noise, which costs it 10-25 % RMSE at
-        256-4096 spp against 256-sample features (README, "OIDN's auxiliary features").
+      aux: how albedo and normal are taken: ``"specular-chain"`` (default: from the first
+        non-delta surface behind mirrors and smooth glass, as OIDN recommends; see the module
+        docstring) or ``"first-hit"`` (Mitsuba's ``aov`` integrator; datasets built before
+        this option).
+      feature_spp: the feature pass averages ``min(spp, feature_spp)`` samples per pixel
+        (default 1024). The 16 of older datasets leaves sampling noise in textured albedo and
+        at edges, which OIDN keeps when told its features are clean: 10-25 % more RMSE at
+        256-4096 spp (README, "OIDN's auxiliary features").
+      colour: a Frame whose colour and variance to keep instead of rendering them (only the
+        feature pass runs): a render of the same scene, crop and spp, e.g. a dataset item
+        whose features are re-rendered (``jaxden dataset refeature``). With the seed it was
+        rendered with, the result equals a full render_frame call.
 
     Returns:
       A Frame of float32 NumPy arrays without batch dimension: color (H, W, 3) (linear
@@ -317,17 +358,11 @@ def render_frame(
     budget = MAX_SAMPLES_PER_PASS if max_samples_per_pass is None else _check_int(
         max_samples_per_pass, "max_samples_per_pass", 1, 1 << 31)
     mi_scene, mi_sensor, (height, width) = _scene_and_sensor(scene, size, crop, sensor)
-    _, moment = _integrators(mi_scene, max_depth)
-
-    sum1 = np.zeros((height, width, 3), np.float64)
-    sum2 = np.zeros((height, width, 3), np.float64)
-    for index, pass_spp in enumerate(split_passes(spp, height * width, budget)):
-        image = _render(mi_scene, mi_sensor, moment, derive_seed(seed, "color", index), pass_spp,
-                        6).astype(np.float64)
-        sum1 += pass_spp * image[..., 0:3]
-        sum2 += pass_spp * image[..., 3:6]
-    m1, m2 = sum1 / spp, sum2 / spp
-    variance = None if spp == 1 else integrators.variance_of_mean(m1, m2, spp).astype(np.float32)
+    if colour is None:
+        color, variance = _render_colour(mi_scene, mi_sensor, max_depth, seed, spp,
+                                         (height, width), budget)
+    else:
+        color, variance = _check_colour(colour, spp, (height, width))
 
     features = _render_features(mi_scene, mi_sensor, _features_integrator(aux),
                                 derive_seed(seed, "aov"), min(spp, feature_spp), height * width,
@@ -337,7 +372,7 @@ def render_frame(
     length = np.linalg.norm(normal, axis=-1, keepdims=True)
     normal = np.where(length > 1e-6, normal / np.maximum(length, 1e-6), 0.0)
     return Frame(
-        color=m1.astype(np.float32),
+        color=color,
         variance=variance,
         # Mitsuba's albedo AOV evaluates non-diffuse lobes at normal incidence (a rough gold
         # sphere gives ~16): clip to the physical range.

@@ -156,6 +156,11 @@ def aov_integrator():
 _chain_classes: dict[str, type] = {}  # variant -> ChainFeatures class of that variant
 
 
+def _and_not(a, b):
+    """``a & ~b`` for Dr.Jit masks and for the Python bools of scalar variants."""
+    return (a and not b) if isinstance(b, bool) else a & ~b
+
+
 def _chain_class() -> type:
     """The ChainFeatures class for the current variant (see the module docstring)."""
     import drjit as dr
@@ -175,39 +180,47 @@ def _chain_class() -> type:
         def __init__(self, props: Any) -> None:
             super().__init__(props)
             self.max_specular = int(props.get("max_specular", DEFAULT_MAX_SPECULAR))
+            # Mitsuba's own aov integrator gives albedo and shading normal at the first hit
+            # of each ray of the chain: its shading normal includes bump and normal maps
+            # (a BSDF's perturbed frame, not reachable from Python).
+            self.first_hit = mi.load_dict({"type": "aov", "aovs": FEATURE_AOVS})
 
         def sample(self, scene, sampler, ray, medium=None, active=True):
             # Importance mode: no radiance scaling (1 / eta^2) on refraction, so a chain
             # through clear glass keeps weight 1.
             context = mi.BSDFContext(mi.TransportMode.Importance)
-            ray = mi.Ray3f(ray)
+            ray = mi.RayDifferential3f(ray)
             si = scene.ray_intersect(ray, active)
-            hit = mi.Bool(active) & si.is_valid()
-            depth = dr.select(hit, si.t, 0.0)
-            position = dr.select(hit, si.p, mi.Point3f(0.0))
+            alive = mi.Bool(active) & si.is_valid()
             albedo = mi.Spectrum(0.0)
             normal = mi.Vector3f(0.0)
             weight = mi.Spectrum(1.0)
-            alive = mi.Bool(hit)
+            # dr.select and _and_not rather than masked assignment and ~: the same code runs
+            # on lanes (llvm) and on one sample with Python bools (scalar variants).
             for bounce in range(self.max_specular + 1):
+                _, _, hit = self.first_hit.sample(scene, sampler, ray, medium, alive)
+                if bounce == 0:
+                    depth, position = hit[6], hit[7:10]
+                if isinstance(alive, bool) and not alive:
+                    break  # scalar variants: one sample, and no surface left to query
                 bsdf = si.bsdf(ray)
                 flags = bsdf.flags()
-                delta_only = (mi.has_flag(flags, mi.BSDFFlags.Delta)
-                              & ~mi.has_flag(flags, mi.BSDFFlags.Smooth))
-                stop = alive & ~delta_only
-                albedo[stop] = weight * bsdf.eval_diffuse_reflectance(si, stop)
-                normal[stop] = si.sh_frame.n
-                alive &= delta_only
+                delta_only = _and_not(mi.has_flag(flags, mi.BSDFFlags.Delta),
+                                      mi.has_flag(flags, mi.BSDFFlags.Smooth))
+                stop = _and_not(alive, delta_only)
+                albedo = dr.select(stop, weight * mi.Spectrum(hit[0], hit[1], hit[2]), albedo)
+                normal = dr.select(stop, mi.Vector3f(hit[3], hit[4], hit[5]), normal)
+                alive = alive & delta_only
                 if bounce == self.max_specular:
                     break
                 sample, lobe_weight = bsdf.sample(context, si, sampler.next_1d(alive),
                                                   sampler.next_2d(alive), alive)
-                alive &= dr.any(lobe_weight > 0.0)
-                weight[alive] = weight * lobe_weight
-                ray = si.spawn_ray(si.to_world(sample.wo))
+                alive = alive & dr.any(lobe_weight > 0.0)
+                weight = dr.select(alive, weight * lobe_weight, weight)
+                ray = mi.RayDifferential3f(si.spawn_ray(si.to_world(sample.wo)))
                 si = scene.ray_intersect(ray, alive)
-                alive &= si.is_valid()
-            aovs = [normal.x, normal.y, normal.z, depth, position.x, position.y, position.z]
+                alive = alive & si.is_valid()
+            aovs = [normal.x, normal.y, normal.z, depth, *position]
             return albedo, mi.Bool(True), aovs
 
         def aov_names(self):
