@@ -9,10 +9,11 @@ surface behind mirrors and smooth glass, as OIDN's documentation recommends) and
 ``feature_spp`` F: like a dataset built with ``feature_spp = F``, the features of an s-spp
 input average min(s, F) samples (jaxden datasets so far use F = 16). Every stored input render
 of the crop is then denoised by OIDN with each variant: a feature setting plus OIDN's
-``cleanAux`` flag (``clean``: the features are declared noise-free, jaxden's default;
-``noisy``: OIDN is told they are not). The errors are against the crop's reference.
+``cleanAux`` flag (``clean``: the features are declared noise-free, jaxden's setting before
+``OIDNConfig.clean_aux``; ``noisy``: OIDN is told they are not; ``auto``: clean from 8 spp
+up, today's default). The errors are against the crop's reference.
 
-A variant is written ``AUX:FEATURE_SPP:clean|noisy``; the first one is the baseline that the
+A variant is written ``AUX:FEATURE_SPP:clean|noisy|auto``; the first one is the baseline that the
 ratios divide by (ratio of crop means per spp).
 """
 
@@ -26,23 +27,24 @@ import numpy as np
 
 FEATURE_SEED = 424242
 DEFAULT_VARIANTS = (
-    "first-hit:16:clean", "first-hit:16:noisy", "first-hit:256:clean", "first-hit:4096:clean",
-    "first-hit:4096:noisy", "specular-chain:16:clean", "specular-chain:4096:clean",
-    "specular-chain:4096:noisy",
+    "first-hit:16:clean", "first-hit:16:noisy", "first-hit:1024:clean", "specular-chain:16:clean",
+    "specular-chain:1024:clean", "specular-chain:1024:noisy", "specular-chain:1024:auto",
 )
+CLEAN_AUX = {"clean": "yes", "noisy": "no", "auto": "auto"}  # variant word -> OIDNConfig
 METRICS = ("rmse", "relmse", "mse_nc")
 
 
-def parse_variant(text: str) -> tuple[str, int, bool]:
+def parse_variant(text: str) -> tuple[str, int, str]:
     try:
         aux, spp, clean = text.split(":")
         spp = int(spp)
     except ValueError:
-        raise SystemExit(f"--variant {text!r}: expected AUX:FEATURE_SPP:clean|noisy") from None
-    if aux not in ("first-hit", "specular-chain") or clean not in ("clean", "noisy") or spp < 1:
+        raise SystemExit(f"--variant {text!r}: expected AUX:FEATURE_SPP:clean|noisy|auto"
+                         ) from None
+    if aux not in ("first-hit", "specular-chain") or clean not in CLEAN_AUX or spp < 1:
         raise SystemExit(f"--variant {text!r}: AUX is first-hit or specular-chain, "
-                         f"FEATURE_SPP >= 1, then clean or noisy")
-    return aux, spp, clean == "clean"
+                         f"FEATURE_SPP >= 1, then clean, noisy or auto")
+    return aux, spp, clean
 
 
 def evaluate(data: Path, split: str, variants, spp=None, progress: bool = True):
@@ -52,8 +54,8 @@ def evaluate(data: Path, split: str, variants, spp=None, progress: bool = True):
     from jaxden.pdreport import iter_crops
     from jaxden.render.core import render_frame
 
-    oidn = {clean: make_denoiser("oidn", OIDNConfig(clean_aux="yes" if clean else "no"))
-            for clean in (True, False)}
+    oidn = {word: make_denoiser("oidn", OIDNConfig(clean_aux=value))
+            for word, value in CLEAN_AUX.items()}
     size = tuple(load_manifest(data).config["size"])
     rows = []
     for crop, reference, inputs in iter_crops(data, split, spp):
@@ -68,7 +70,7 @@ def evaluate(data: Path, split: str, variants, spp=None, progress: bool = True):
                 f = features[(aux, min(level, fspp))]
                 y = np.asarray(oidn[clean](frame.replace(albedo=f.albedo, normal=f.normal)),
                                np.float32)
-                row["errors"][f"{aux}:{fspp}:{'clean' if clean else 'noisy'}"] = {
+                row["errors"][f"{aux}:{fspp}:{clean}"] = {
                     "rmse": float(metrics.rmse(y, reference.color)),
                     "relmse": float(metrics.relmse(y, reference.color)),
                     "mse_nc": float(metrics.noise_corrected_mse(y, reference.color,
@@ -133,7 +135,7 @@ def main(argv=None) -> int:
     parser.add_argument("--data", type=Path, required=True, help="complete dataset folder")
     parser.add_argument("--split", default="test", help="split to evaluate (test, val, all)")
     parser.add_argument("--variant", action="append", default=None,
-                        help="AUX:FEATURE_SPP:clean|noisy (repeatable; the first is the "
+                        help="AUX:FEATURE_SPP:clean|noisy|auto (repeatable; the first is the "
                              f"baseline; default: {' '.join(DEFAULT_VARIANTS)})")
     parser.add_argument("--spp", type=int, nargs="+", default=None,
                         help="only these input spp levels (default: all)")
