@@ -10,8 +10,8 @@ surface behind mirrors and smooth glass, as OIDN's documentation recommends) and
 input average min(s, F) samples (jaxden datasets so far use F = 16). Every stored input render
 of the crop is then denoised by OIDN with each variant: a feature setting plus OIDN's
 ``cleanAux`` flag (``clean``: the features are declared noise-free, jaxden's setting before
-``OIDNConfig.clean_aux``; ``noisy``: OIDN is told they are not; ``auto``: clean from 8 spp
-up, today's default). The errors are against the crop's reference.
+``OIDNConfig.clean_aux``, and its default; ``noisy``: OIDN is told they are not; ``auto``:
+clean from 8 spp up). The errors are against the crop's reference.
 
 A variant is written ``AUX:FEATURE_SPP:clean|noisy|auto``; the first one is the baseline that the
 ratios divide by (ratio of crop means per spp).

@@ -67,8 +67,10 @@ def test_oidn_clean_aux_auto_follows_the_frame_spp():
     frame = frame.replace(albedo=np.clip(frame.albedo + 0.2 * rng.normal(size=frame.albedo.shape),
                                          0, 1).astype(np.float32))
     yes, no = (make_denoiser("oidn", OIDNConfig(quality="fast", clean_aux=c)) for c in ("yes", "no"))
-    auto = make_denoiser("oidn", OIDNConfig(quality="fast"))
+    auto = make_denoiser("oidn", OIDNConfig(quality="fast", clean_aux="auto"))
     low, high = frame.replace(spp=np.float32(4)), frame.replace(spp=np.float32(8))
+    np.testing.assert_array_equal(make_denoiser("oidn", OIDNConfig(quality="fast"))(low),
+                                  yes(low))  # the default is "yes"
     assert np.abs(yes(low) - no(low)).max() > 1e-3
     np.testing.assert_array_equal(auto(low), no(low))
     np.testing.assert_array_equal(auto(high), yes(high))
@@ -77,7 +79,7 @@ def test_oidn_clean_aux_auto_follows_the_frame_spp():
     out = auto(batch)
     np.testing.assert_array_equal(out[0], no(low))
     np.testing.assert_array_equal(out[1], yes(high))
-    assert OIDNConfig(clean_aux_min_spp=64).features_are_clean(32) is False
+    assert OIDNConfig(clean_aux="auto", clean_aux_min_spp=64).features_are_clean(32) is False
     with pytest.raises(ConfigError, match="clean_aux must be auto, yes or no"):
         OIDNConfig(clean_aux=True)
 
