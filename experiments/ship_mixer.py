@@ -35,6 +35,7 @@ def _training_facts(workdir: Path) -> dict:
     dataset = Path(config["data"]["dataset"])
     manifest = dataset / "manifest.json"
     return {
+        "workdir": str(workdir),
         "train_config": config,
         "steps": max(e["step"] for e in log),
         "seconds_logged": round(sum(e.get("seconds", 0.0) for e in steps), 1),
@@ -49,6 +50,7 @@ def _training_facts(workdir: Path) -> dict:
 
 
 def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], size: int) -> str:
+    workdir = facts["workdir"]
     """The model card; ``mc``: the resolved MixerConfig as a dict; ``reports``: (path, pd
     report JSON) pairs, one section each."""
     cfg = facts["train_config"]
@@ -78,16 +80,17 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
         "albedo and normal for OIDN.",
         "",
         "## Training data",
-        f"- Dataset: `{cfg['data']['dataset']}` built by `jaxden dataset build "
-        f"experiments/configs/dataset-default.toml --out data/default` (manifest sha256 "
-        f"`{(facts['dataset_manifest_sha256'] or '?')[:16]}...`): "
+        f"- Dataset: `{cfg['data']['dataset']}`, what `jaxden dataset build "
+        f"experiments/configs/dataset-default.toml --out {cfg['data']['dataset']}` renders "
+        f"(manifest sha256 `{(facts['dataset_manifest_sha256'] or '?')[:16]}...`): "
         f"{len(data.get('scenes', []))} built-in scenes + "
         f"{data.get('procedural', {}).get('count', 0)} procedural scenes (seeds "
         f"{data.get('procedural', {}).get('seed', '?')}+), {data.get('crops_per_scene', '?')} "
         f"crops of {data.get('crop_size', '?')}^2 each, inputs at {data.get('spp')} spp, "
         f"references at {data.get('reference_spp')} spp, dataset seed {data.get('seed')}; "
         f"split by scene (train/val {data.get('splits', {}).get('train')}/"
-        f"{data.get('splits', {}).get('val')}).",
+        f"{data.get('splits', {}).get('val')}); features (albedo, normal): "
+        f"{data.get('aux', 'first-hit')}, min(spp, {data.get('feature_spp', 16)}) samples.",
         f"- Denoiser: OIDN via pyoidn (CPU, 'high' quality, HDR, albedo + normal); SURE of its "
         f"output by forward differences, {mc['sure_probes']} probes, eps "
         f"{mc['sure_eps'] if mc['sure_eps'] is not None else '1e-2 (default for black boxes)'}, "
@@ -104,12 +107,12 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
         f"(OIDN alone: {facts['val_baseline_loss']:.5f}); "
         f"{facts['seconds_logged'] / 60:.0f} min of logged step time on the 2-core project CPU "
         f"(2 XLA host devices).",
-        "- Retrain: `jaxden dataset build experiments/configs/dataset-default.toml --out "
-        "data/default` then `XLA_FLAGS=--xla_force_host_platform_device_count=2 jaxden train "
-        "experiments/configs/mixer-oidn.toml data.dataset=data/default --workdir "
-        "runs/mixer-oidn`, then `python experiments/ship_mixer.py --workdir runs/mixer-oidn "
-        f"--name {name}{' --swap-average' if mc.get('swap_average') else ''} --report experiments/results/pd-oidn.json --report "
-        "experiments/results/pd-oidn-high.json`.",
+        f"- Retrain: `jaxden dataset build experiments/configs/dataset-default.toml --out "
+        f"{cfg['data']['dataset']}` then `XLA_FLAGS=--xla_force_host_platform_device_count=2 "
+        f"jaxden train experiments/configs/mixer-oidn.toml data.dataset={cfg['data']['dataset']}"
+        f" --workdir {workdir}`, then `python experiments/ship_mixer.py --workdir {workdir} "
+        f"--name {name}{' --swap-average' if mc.get('swap_average') else ''}"
+        + "".join(f" --report {path}" for path, _ in reports) + "`.",
         "",
     ]
     for path, report in reports:
