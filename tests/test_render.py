@@ -761,4 +761,5 @@ def test_render_bench_quick(capsys):
     last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     # Structure only: speed is the benchmark's business, never a unit test's.
     assert last == json.loads(json.dumps(result))
-    assert all(math.isfinite(result[k]) and result[k] > 0 for k in ("ratio", "cpu_ratio"))
+    assert all(math.isfinite(result[k]) and result[k] > 0
+               for k in ("ratio", "cpu_ratio", "ratio_legacy_features", "cpu_ratio_legacy_features"))

@@ -4,7 +4,10 @@ ratio = median time of :func:`jaxden.render.render_frame` / median time of ``mi.
 same scene's own colour integrator (``path``), sensor, size, spp and variant, in one run. Both
 are warmed up first (JIT compilation excluded) and timed alternately, several repeats each, so
 drift of a shared machine hits both alike. render_frame's extra work is the three moment AOVs,
-the feature (``aov``) render at min(spp, 16) spp and the NumPy post-processing. Target <= 1.15.
+the feature render and the NumPy post-processing. Target <= 1.15, set when the features were
+Mitsuba's ``aov`` at min(spp, 16) samples: ``ratio_legacy_features`` measures that
+(``aux="first-hit", feature_spp=16``); ``ratio`` measures today's defaults (specular-chain
+features at min(spp, 1024) samples, the ones OIDN does best with), which cost more.
 
 ``ratio`` uses wall-clock time (what users wait for); ``cpu_ratio`` uses the process's CPU time
 over all threads, which is steadier when other jobs share the machine.
@@ -39,24 +42,31 @@ def measure(scene_spec=SCENE, size=SIZE, spp=SPP, repeats: int = 5) -> dict:
     def frame() -> None:
         core.render_frame(scene, spp, seed=1)
 
+    def legacy() -> None:
+        core.render_frame(scene, spp, seed=1, aux="first-hit", feature_spp=core.AOV_SPP)
+
     def plain() -> None:
         np.array(mi.render(scene, sensor=sensor, integrator=inner, spp=spp, seed=1))
 
-    frame()
-    plain()  # warm-up: compile every kernel once
-    wall: dict[str, list[float]] = {"frame": [], "plain": []}
-    cpu: dict[str, list[float]] = {"frame": [], "plain": []}
+    runs = (("frame", frame), ("legacy", legacy), ("plain", plain))
+    for _, fn in runs:
+        fn()  # warm-up: compile every kernel once
+    wall: dict[str, list[float]] = {key: [] for key, _ in runs}
+    cpu: dict[str, list[float]] = {key: [] for key, _ in runs}
     for _ in range(repeats):
-        for key, fn in (("frame", frame), ("plain", plain)):
+        for key, fn in runs:
             start, start_cpu = time.perf_counter(), time.process_time()
             fn()
             wall[key].append(time.perf_counter() - start)
             cpu[key].append(time.process_time() - start_cpu)
     frame_s, plain_s = statistics.median(wall["frame"]), statistics.median(wall["plain"])
     frame_cpu, plain_cpu = statistics.median(cpu["frame"]), statistics.median(cpu["plain"])
+    legacy_s, legacy_cpu = statistics.median(wall["legacy"]), statistics.median(cpu["legacy"])
     return {
         "ratio": frame_s / plain_s,
         "cpu_ratio": frame_cpu / plain_cpu,
+        "ratio_legacy_features": legacy_s / plain_s,
+        "cpu_ratio_legacy_features": legacy_cpu / plain_cpu,
         "render_frame_s": frame_s,
         "plain_path_s": plain_s,
         "render_frame_cpu_s": frame_cpu,
