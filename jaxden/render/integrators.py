@@ -115,17 +115,13 @@ def path_integrator(max_depth: int = DEFAULT_MAX_DEPTH):
     return mi.load_dict({"type": "path", "max_depth": int(max_depth)})
 
 
-def moment_integrator(inner=None, max_depth: int = DEFAULT_MAX_DEPTH):
-    """A ``jaxden_moment`` integrator wrapping ``inner`` (an mi.SamplingIntegrator).
-
-    With ``inner=None`` it wraps ``path`` with ``max_depth``. Rendered with a box filter, the
-    image has 6 channels: m1 (R, G, B) then m2 (R, G, B), see the module docstring.
-    """
-    cls = _moment_class()
+def _construct(cls: type, **properties: Any):
+    """An instance of one of jaxden's Python integrator classes from Mitsuba properties."""
     import mitsuba as mi
 
     props = mi.Properties()
-    props["max_depth"] = int(max_depth)
+    for key, value in properties.items():
+        props[key] = value
     logger = mi.logger()
     level = logger.log_level()
     if mi.variant().startswith("scalar"):
@@ -133,9 +129,18 @@ def moment_integrator(inner=None, max_depth: int = DEFAULT_MAX_DEPTH):
         # notice has already said so once.
         logger.set_log_level(mi.LogLevel.Error)
     try:
-        integrator = cls(props)
+        return cls(props)
     finally:
         logger.set_log_level(level)
+
+
+def moment_integrator(inner=None, max_depth: int = DEFAULT_MAX_DEPTH):
+    """A ``jaxden_moment`` integrator wrapping ``inner`` (an mi.SamplingIntegrator).
+
+    With ``inner=None`` it wraps ``path`` with ``max_depth``. Rendered with a box filter, the
+    image has 6 channels: m1 (R, G, B) then m2 (R, G, B), see the module docstring.
+    """
+    integrator = _construct(_moment_class(), max_depth=int(max_depth))
     if inner is not None:
         integrator.inner = inner
     return integrator
@@ -237,19 +242,7 @@ def _chain_class() -> type:
 def chain_features_integrator(max_specular: int = DEFAULT_MAX_SPECULAR):
     """The ``jaxden_features_chain`` integrator: FEATURE_CHANNELS with albedo and normal of
     the first non-delta hit (see the module docstring)."""
-    cls = _chain_class()
-    import mitsuba as mi
-
-    props = mi.Properties()
-    props["max_specular"] = int(max_specular)
-    logger = mi.logger()
-    level = logger.log_level()
-    if mi.variant().startswith("scalar"):
-        logger.set_log_level(mi.LogLevel.Error)
-    try:
-        return cls(props)
-    finally:
-        logger.set_log_level(level)
+    return _construct(_chain_class(), max_specular=int(max_specular))
 
 
 def features_integrator(aux: str = "first-hit"):
