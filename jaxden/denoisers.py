@@ -301,7 +301,8 @@ def load_denoiser(spec: str | os.PathLike) -> Denoiser:
         config = load_config(meta.get("model_config", {}), definition.config_cls)
     except ConfigError as error:
         raise CheckpointError(f"{path}: its model_config does not fit '{definition.name}': {error}") from None
-    target = definition.init(jax.random.PRNGKey(0), config)
+    # Only the structure and shapes are needed: eval_shape skips the (seconds-long) init.
+    target = jax.eval_shape(lambda: definition.init(jax.random.PRNGKey(0), config))
     params, _ = load_trained_params(path, target, expect={"model": definition.name})
     return Denoiser(definition, config, params)
 

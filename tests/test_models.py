@@ -63,6 +63,12 @@ def _box(image, k):
     return total(num) / total(den)
 
 
+def zero_params(init, config):
+    """A model's parameter tree with every entry 0 (shapes by eval_shape: no init compile)."""
+    shapes = jax.eval_shape(lambda: init(jax.random.PRNGKey(0), config))
+    return jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+
+
 def _safe_albedo(albedo, floor):
     return np.where(albedo >= floor, albedo, 1.0 - (1.0 - floor) * albedo / floor)
 
@@ -71,7 +77,7 @@ def test_wskp_with_zero_network_is_fused_box_filter_on_irradiance():
     """With all network weights 0 the importance maps and logits are 0: every kernel is a
     plain (zero-padded, renormalised) box filter and the fusion an equal average."""
     config = wskp.WSKPConfig(kernel_sizes=(3, 5))
-    params = jax.tree_util.tree_map(jnp.zeros_like, wskp.wskp_init(jax.random.PRNGKey(0), config))
+    params = zero_params(wskp.wskp_init, config)
     frame = random_frame(9, 8)
     out = np.asarray(wskp.wskp_denoise(params, config, frame))
     albedo = _safe_albedo(frame.albedo, config.albedo_floor)
@@ -100,8 +106,7 @@ def test_multiresolution_combination_eq7_with_zero_network():
     as o = f - alpha U(D(f)) + alpha U(c); checked against that NumPy form on a noisy image
     (a constant image would pass any combination rule)."""
     config = wskp.WSKPMRConfig(levels=3, kernel_sizes=(3, 5))
-    params = jax.tree_util.tree_map(jnp.zeros_like,
-                                    wskp.wskp_mr_init(jax.random.PRNGKey(3), config))
+    params = zero_params(wskp.wskp_mr_init, config)
     frame = random_frame(16, 12, seed=5)  # a multiple of 2^(levels-1): no padding
     out = np.asarray(wskp.wskp_mr_denoise(params, config, frame))
     albedo = _safe_albedo(frame.albedo.astype(np.float64), config.albedo_floor)
