@@ -134,7 +134,7 @@ class OIDNConfig:
     samples, so at 2-4 spp they are noisy, but telling OIDN so is no reliable gain: on the 8
     crops of data/test "no" lowers OIDN's RMSE by 18 % at 2 spp and 9 % at 4 spp, while on
     the built-in scenes at 2-8 spp it ranges from 0.63x to 4.6x in relMSE (small-lights:
-    far worse); from 16 spp up "yes" wins (README, "OIDN's auxiliary features").
+    far worse); from 16 spp up "yes" wins (docs/results.md, "OIDN's auxiliary features").
     """
 
     quality: Literal["high", "balanced", "fast"] = "high"
@@ -301,7 +301,7 @@ def load_denoiser(spec: str | os.PathLike) -> Denoiser:
         config = load_config(meta.get("model_config", {}), definition.config_cls)
     except ConfigError as error:
         raise CheckpointError(f"{path}: its model_config does not fit '{definition.name}': {error}") from None
-    # Only the structure and shapes are needed: eval_shape skips the (seconds-long) init.
+    # Only structure and shapes are needed: eval_shape skips the (seconds-long) init.
     target = jax.eval_shape(lambda: definition.init(jax.random.PRNGKey(0), config))
     params, _ = load_trained_params(path, target, expect={"model": definition.name})
     return Denoiser(definition, config, params)

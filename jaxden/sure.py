@@ -436,7 +436,7 @@ def sure_blackbox(
 # Why: Stein's identity Cov(x_i, y_i) = var_i E[dy_i/dx_i] needs Gaussian noise of known
 # variance. Monte Carlo pixel means are heavy-tailed (fireflies) and their variance is
 # estimated from the same samples, so through a strongly nonlinear denoiser (OIDN) the
-# divergence term can be off by 2x either way (README, experiments/sure_stein.py).
+# divergence term can be off by 2x either way (docs/results.md, experiments/sure_stein.py).
 #
 # With the N samples of each pixel split into K equal, independent sub-buffers x_1..x_K
 # (x the mean of the x_k; x_-k the mean of all but x_k, independent of x_k):

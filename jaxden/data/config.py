@@ -123,8 +123,8 @@ class DatasetConfig:
       :func:`jaxden.render.core.render_frame`).
     - ``feature_spp``: the feature pass (albedo, normal, depth, position) averages
       ``min(spp, feature_spp)`` samples per pixel; 16 (default) is what every dataset before
-      this option used. More samples give OIDN cleaner features (README, "OIDN's auxiliary
-      features"); set it >= the largest spp to average as many samples as the colour.
+      this option used. More samples give OIDN cleaner features (docs/results.md, "OIDN's
+      auxiliary features"); set it >= the largest spp to average as many samples as the colour.
     - ``splits``: see :class:`SplitConfig`.
     """
 

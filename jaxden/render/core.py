@@ -50,7 +50,7 @@ from jaxden.render import integrators, scenes
 from jaxden.render.variant import ensure_variant
 
 AOV_SPP = 16  # the feature samples of every jaxden dataset built before feature_spp existed
-#: render_frame's defaults: the features OIDN does best with (README, "OIDN's auxiliary
+#: render_frame's defaults: the features OIDN does best with (docs/results.md, "OIDN's auxiliary
 #: features"); datasets keep the legacy first-hit / AOV_SPP unless their config says otherwise.
 DEFAULT_AUX = "specular-chain"
 DEFAULT_FEATURE_SPP = 1024
@@ -328,7 +328,7 @@ def render_frame(
       feature_spp: the feature pass averages ``min(spp, feature_spp)`` samples per pixel
         (default 1024). The 16 of older datasets leaves sampling noise in textured albedo and
         at edges, which OIDN keeps when told its features are clean: 10-25 % more RMSE at
-        256-4096 spp (README, "OIDN's auxiliary features").
+        256-4096 spp (docs/results.md, "OIDN's auxiliary features").
       colour: a Frame whose colour and variance to keep instead of rendering them (only the
         feature pass runs): a render of the same scene, crop and spp, e.g. a dataset item
         whose features are re-rendered (``jaxden dataset refeature``). With the seed it was
