@@ -171,14 +171,17 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 def cmd_denoise(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from jaxden.cli_pd import exr_outputs
+    from jaxden.cli_pd import channel_map, exr_outputs, feature_notice
     from jaxden.denoisers import load_denoiser
     from jaxden.io.exr import read_frame, write_image
 
     (out,) = exr_outputs(("--out", args.out))
     denoiser = load_denoiser(args.model)
     required = denoiser.definition.required(denoiser.config)
-    frame = read_frame(args.input, require=required, nonfinite=args.nonfinite)
+    mapping = channel_map(args) or {}
+    frame = read_frame(args.input, require=(*required, *(f for f in mapping if f not in required)),
+                       nonfinite=args.nonfinite, channel_map=mapping or None)
+    feature_notice(frame, denoiser, args.input)
     image = np.asarray(denoiser(frame))
     write_image(out, image, attributes={"denoiser": denoiser.name, "source": str(args.input)})
     print(f"wrote {args.out} (denoised by {denoiser.name})")
@@ -253,7 +256,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("dir")
     v.set_defaults(func=cmd_dataset_verify)
 
-    from jaxden.cli_pd import add_pd_commands
+    from jaxden.cli_pd import add_channels_option, add_pd_commands
 
     add_pd_commands(sub, dsub)
 
@@ -281,6 +284,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output .exr")
     p.add_argument("--nonfinite", choices=("error", "zero"), default="error",
                    help="NaN/inf in the input: refuse (default) or replace by 0")
+    add_channels_option(p)
     p.set_defaults(func=cmd_denoise)
 
     p = sub.add_parser("bench", help="run a benchmark (ratios against a peer in the same run)")

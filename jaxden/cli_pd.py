@@ -3,9 +3,12 @@
 
 Input EXRs: jaxden's own channels (``R,G,B``, ``variance.R/G/B``, optional ``albedo.*`` and
 ``normal.*``). Files from other renderers work when they have colour and the variance of the
-pixel mean; name the variance channels with ``--variance-channels`` if they differ, and pass
-``--sample-variance`` (with ``--spp`` if the header has no ``jaxden.spp``) when the file stores
-the per-sample variance. OIDN uses albedo and normal only when the file has them.
+pixel mean; name their channels with ``--channels FIELD=NAME,...`` (repeatable, any field of
+:data:`jaxden.frame.CHANNELS`; ``--variance-channels`` is the older spelling for the variance),
+and pass ``--sample-variance`` (with ``--spp`` if the header has no ``jaxden.spp``) when the
+file stores the per-sample variance. OIDN uses albedo and normal only when the file has them,
+and says so on stderr when it has not: without them OIDN, and a mixer trained on its output
+with features, do markedly worse.
 
 Output of ``jaxden sure``: one EXR with ``R,G,B`` = the denoised image (so any viewer shows
 it), ``sure.R/G/B`` = the per-pixel SURE of it (an estimate of its squared error, radiance^2,
@@ -50,6 +53,63 @@ def _channel_names(text: str) -> tuple[str, str, str]:
     return names  # type: ignore[return-value]
 
 
+def _channel_spec(text: str) -> tuple[str, tuple[str, ...]]:
+    """``FIELD=NAME,NAME,...`` of ``--channels``: a Frame field and its channel names."""
+    from jaxden.frame import CHANNELS
+
+    field, sep, names = text.partition("=")
+    field = field.strip()
+    if not sep or field not in CHANNELS:
+        raise argparse.ArgumentTypeError(
+            f"expected FIELD=NAME,... with FIELD one of {', '.join(CHANNELS)}, got {text!r}")
+    parts = tuple(part.strip() for part in names.split(","))
+    want = len(CHANNELS[field])
+    if len(parts) != want or not all(parts):
+        raise argparse.ArgumentTypeError(
+            f"{field} takes {want} channel name(s) (default {','.join(CHANNELS[field])}), "
+            f"got {names!r}")
+    return field, parts
+
+
+def add_channels_option(parser: argparse.ArgumentParser) -> None:
+    """``--channels FIELD=NAME,...``: the input file's channel names for a Frame field."""
+    parser.add_argument(
+        "--channels", type=_channel_spec, action="append", default=None, metavar="FIELD=NAMES",
+        help="the input's channel names for a field, if not jaxden's, e.g. "
+             "albedo=Albedo.R,Albedo.G,Albedo.B or normal=Ns.X,Ns.Y,Ns.Z (repeatable; fields: "
+             "color, variance, albedo, normal, depth, position, motion)")
+
+
+def channel_map(args: argparse.Namespace) -> dict[str, tuple[str, ...]] | None:
+    """The ``channel_map`` of :func:`jaxden.io.exr.read_frame` from ``--channels`` (and
+    ``--variance-channels``); None when neither is given."""
+    mapping: dict[str, tuple[str, ...]] = {}
+    given = list(getattr(args, "channels", None) or ())
+    if getattr(args, "variance_channels", None):
+        given.append(("variance", tuple(args.variance_channels)))
+    for field, names in given:
+        if mapping.get(field, names) != names:
+            raise ConfigError(f"the channels of {field} are given twice, differently: "
+                              f"{','.join(mapping[field])} and {','.join(names)}")
+        mapping[field] = names
+    return mapping or None
+
+
+def feature_notice(frame, denoiser, path) -> None:
+    """On stderr: OIDN is about to run without albedo or normal (its quality drops, and mixers
+    trained on its output with features see inputs unlike their training data)."""
+    if denoiser.name != "oidn":
+        return
+    lacking = [field for field in ("albedo", "normal") if getattr(frame, field) is None]
+    if lacking:
+        from jaxden.frame import CHANNELS
+
+        expected = "; ".join(f"{f}: {','.join(CHANNELS[f])}" for f in lacking)
+        _stderr(f"jaxden: note: {path} has no {' or '.join(lacking)} channels ({expected}); "
+                f"OIDN runs without them, which costs it much of its quality. Name your "
+                f"renderer's channels with --channels FIELD=NAME,... if it has them")
+
+
 def exr_outputs(*outputs: tuple[str, str | None]) -> list[Path | None]:
     """Check the output .exr files of a command, given as ``(option, path or None)`` pairs,
     before any work: .exr names, distinct, not folders, in existing writable folders
@@ -68,17 +128,18 @@ def read_input_frame(args: argparse.Namespace, who: str):
     """Read ``args.input`` for SURE: colour and variance required (clear errors otherwise)."""
     from jaxden.io.exr import read_frame, read_header
 
-    channel_map = {"variance": args.variance_channels} if args.variance_channels else None
+    mapping = channel_map(args)
     frame = read_frame(
         args.input,
-        require=("color",),
+        require=("color", *(mapping or {})),  # channels named on the command line must exist
         nonfinite=args.nonfinite,
-        channel_map=channel_map,
+        channel_map=mapping,
         variance_is_sample_variance=args.sample_variance,
         spp=args.spp,
     )
     if frame.variance is None:
-        names = ", ".join(args.variance_channels or ("variance.R", "variance.G", "variance.B"))
+        names = ", ".join((mapping or {}).get("variance", ("variance.R", "variance.G",
+                                                              "variance.B")))
         header = read_header(args.input)
         found = ", ".join(header["channels"])
         if header["parts"] > 1:
@@ -86,8 +147,8 @@ def read_input_frame(args: argparse.Namespace, who: str):
         raise FrameError(
             f"{args.input}: {who} needs SURE, and SURE needs the variance of the pixel mean "
             f"(channels {names}), which the file lacks (it has {found}); name your renderer's "
-            f"variance channels with --variance-channels (and --sample-variance if they hold "
-            f"the per-sample variance)"
+            f"variance channels with --channels variance=R,G,B (and --sample-variance if they "
+            f"hold the per-sample variance)"
         )
     return frame
 
@@ -108,6 +169,7 @@ def cmd_sure(args: argparse.Namespace) -> int:
     (out,) = exr_outputs(("--out", args.out))
     frame = read_input_frame(args, "jaxden sure")
     denoiser = load_denoiser(args.denoiser)
+    feature_notice(frame, denoiser, args.input)
     if args.buffers:
         return _sure_from_buffers(args, frame, denoiser, out)
     if args.extrapolate:
@@ -191,6 +253,7 @@ def cmd_progressive(args: argparse.Namespace) -> int:
     params, config = load_mixer(args.mixer)
     frame = read_input_frame(args, "jaxden progressive")
     denoiser = load_denoiser(args.denoiser)
+    feature_notice(frame, denoiser, args.input)
     if config.denoiser != denoiser.name and Path(config.denoiser).name != Path(args.denoiser).name:
         _stderr(f"jaxden: note: the mixer was trained on the output of denoiser "
                 f"{config.denoiser!r}; mixing {denoiser.name!r} instead")
@@ -250,9 +313,11 @@ def _input_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the SURE probes")
     parser.add_argument("--probe-batch", type=_positive_int, default=None,
                         help="probes per jvp pass (1 bounds the memory for big images)")
+    add_channels_option(parser)
     parser.add_argument("--variance-channels", type=_channel_names, default=None,
                         metavar="R,G,B",
-                        help="names of the variance channels if not variance.R/G/B")
+                        help="names of the variance channels if not variance.R/G/B (the same "
+                             "as --channels variance=R,G,B)")
     parser.add_argument("--sample-variance", action="store_true",
                         help="the file stores the per-sample variance: divide it by spp")
     parser.add_argument("--spp", type=_positive_float, default=None,

@@ -325,6 +325,54 @@ def test_cli_sure_reads_files_of_other_renderers(tmp_path, capsys):
                                rtol=1e-4, atol=1e-6)
 
 
+def test_cli_channels_maps_another_renderers_names(tmp_path, capsys):
+    """--channels FIELD=NAMES reads a file with another renderer's names (here pbrt-v4-like)
+    exactly as the same data under jaxden's names; OIDN without features is announced."""
+    frame = small_frame(seed=13)
+    ours = tmp_path / "ours.exr"
+    write_frame(ours, frame)
+    names = {"color": ("R", "G", "B"), "variance": ("Variance.R", "Variance.G", "Variance.B"),
+             "albedo": ("Albedo.R", "Albedo.G", "Albedo.B"), "normal": ("Ns.X", "Ns.Y", "Ns.Z")}
+    theirs = tmp_path / "theirs.exr"
+    write_channels(theirs, {name: getattr(frame, field)[..., i]
+                            for field, channels in names.items()
+                            for i, name in enumerate(channels)}, attributes={"spp": 16})
+    mapping = [arg for field in ("variance", "albedo", "normal")
+               for arg in ("--channels", f"{field}={','.join(names[field])}")]
+    code, _, stderr = run_cli(["progressive", ours, "--denoiser", "oidn", "--out",
+                               tmp_path / "a.exr"], capsys)
+    assert code == 0 and "note" not in stderr, stderr
+    code, _, stderr = run_cli(["progressive", theirs, "--denoiser", "oidn", *mapping, "--out",
+                               tmp_path / "b.exr"], capsys)
+    assert code == 0 and "note" not in stderr, stderr
+    np.testing.assert_array_equal(read_image(tmp_path / "b.exr"), read_image(tmp_path / "a.exr"))
+    code, _, stderr = run_cli(["denoise", theirs, "--model", "oidn", *mapping[2:], "--out",
+                               tmp_path / "c.exr"], capsys)
+    assert code == 0 and "note" not in stderr, stderr
+    code, _, _ = run_cli(["denoise", ours, "--model", "oidn", "--out", tmp_path / "d.exr"],
+                         capsys)
+    np.testing.assert_array_equal(read_image(tmp_path / "c.exr"), read_image(tmp_path / "d.exr"))
+    # Without the mapping the features are not found: said on stderr, not silently dropped.
+    code, _, stderr = run_cli(["sure", theirs, "--denoiser", "oidn", *mapping[:2], "--out",
+                               tmp_path / "e.exr"], capsys)
+    assert code == 0 and "no albedo or normal channels" in stderr and "--channels" in stderr
+    # Bad specifications (argparse's usage error) and channels the file lacks are clear errors.
+    for bad, message in [(["--channels", "albedo=Albedo.R,Albedo.G"], "albedo takes 3"),
+                         (["--channels", "colour=A,B,C"], "FIELD one of color"),
+                         (["--channels", "albedo"], "expected FIELD=NAME")]:
+        with pytest.raises(SystemExit) as exit_info:
+            run_cli(["sure", theirs, "--denoiser", "oidn", *bad, "--out", tmp_path / "f.exr"],
+                    capsys)
+        assert exit_info.value.code == 2 and message in capsys.readouterr().err, bad
+    for bad, message in [(["--channels", "variance=V.R,V.G,V.B", "--variance-channels",
+                           "W.R,W.G,W.B"], "given twice, differently"),
+                         (["--channels", "normal=N.X,N.Y,N.Z"], "normal needs N.X, N.Y, N.Z")]:
+        code, _, stderr = run_cli(["sure", theirs, "--denoiser", "oidn", *mapping[:2], *bad,
+                                   "--out", tmp_path / "f.exr"], capsys)
+        assert code == 2 and message in stderr, (bad, stderr)
+    assert not (tmp_path / "f.exr").exists()
+
+
 def test_cli_progressive_and_sure_cache(trained, tmp_path, capsys):
     dataset, workdir = trained
     frame = small_frame(seed=11)
