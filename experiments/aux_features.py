@@ -14,7 +14,11 @@ of the crop is then denoised by OIDN with each variant: a feature setting plus O
 clean from 8 spp up). The errors are against the crop's reference.
 
 A variant is written ``AUX:FEATURE_SPP:clean|noisy|auto``; the first one is the baseline that the
-ratios divide by (ratio of crop means per spp).
+ratios divide by (ratio of crop means per spp). Two more variants render nothing: ``stored``
+(the dataset's own features, cleanAux on) and ``none`` (OIDN on colour alone):
+
+    python experiments/aux_features.py --data data/test-chain --variant stored --variant none \
+        --out experiments/results/oidn-no-features
 """
 
 from __future__ import annotations
@@ -35,6 +39,8 @@ METRICS = ("rmse", "relmse", "mse_nc")
 
 
 def parse_variant(text: str) -> tuple[str, int, str]:
+    if text in ("stored", "none"):
+        return text, 0, "clean"
     try:
         aux, spp, clean = text.split(":")
         spp = int(spp)
@@ -47,13 +53,14 @@ def parse_variant(text: str) -> tuple[str, int, str]:
     return aux, spp, clean
 
 
-def evaluate(data: Path, split: str, variants, spp=None, progress: bool = True):
+def evaluate(data: Path, split: str, names, spp=None, progress: bool = True):
     from jaxden import metrics
     from jaxden.data.layout import load_manifest
     from jaxden.denoisers import OIDNConfig, make_denoiser
     from jaxden.pdreport import iter_crops
     from jaxden.render.core import render_frame
 
+    variants = [parse_variant(name) for name in names]
     oidn = {word: make_denoiser("oidn", OIDNConfig(clean_aux=value))
             for word, value in CLEAN_AUX.items()}
     size = tuple(load_manifest(data).config["size"])
@@ -61,16 +68,22 @@ def evaluate(data: Path, split: str, variants, spp=None, progress: bool = True):
     for crop, reference, inputs in iter_crops(data, split, spp):
         for level, frame in inputs:
             features = {}  # (aux, samples) -> Frame, shared by the variants of this input
-            for aux, samples in sorted({(aux, min(level, f)) for aux, f, _ in variants}):
+            for aux, samples in sorted({(aux, min(level, f)) for aux, f, _ in variants
+                                        if aux not in ("stored", "none")}):
                 features[(aux, samples)] = render_frame(
                     crop.scene, samples, seed=FEATURE_SEED + level, size=size,
                     crop=tuple(crop.window), aux=aux, feature_spp=samples)
             row = {"crop": crop.id, "scene": crop.scene, "spp": level, "errors": {}}
-            for aux, fspp, clean in variants:
-                f = features[(aux, min(level, fspp))]
-                y = np.asarray(oidn[clean](frame.replace(albedo=f.albedo, normal=f.normal)),
-                               np.float32)
-                row["errors"][f"{aux}:{fspp}:{clean}"] = {
+            for name, (aux, fspp, clean) in zip(names, variants):
+                if aux == "stored":
+                    given = frame
+                elif aux == "none":
+                    given = frame.replace(albedo=None, normal=None)
+                else:
+                    f = features[(aux, min(level, fspp))]
+                    given = frame.replace(albedo=f.albedo, normal=f.normal)
+                y = np.asarray(oidn[clean](given), np.float32)
+                row["errors"][name] = {
                     "rmse": float(metrics.rmse(y, reference.color)),
                     "relmse": float(metrics.relmse(y, reference.color)),
                     "mse_nc": float(metrics.noise_corrected_mse(y, reference.color,
@@ -135,19 +148,20 @@ def main(argv=None) -> int:
     parser.add_argument("--data", type=Path, required=True, help="complete dataset folder")
     parser.add_argument("--split", default="test", help="split to evaluate (test, val, all)")
     parser.add_argument("--variant", action="append", default=None,
-                        help="AUX:FEATURE_SPP:clean|noisy|auto (repeatable; the first is the "
-                             f"baseline; default: {' '.join(DEFAULT_VARIANTS)})")
+                        help="AUX:FEATURE_SPP:clean|noisy|auto, stored or none (repeatable; the "
+                             f"first is the baseline; default: {' '.join(DEFAULT_VARIANTS)})")
     parser.add_argument("--spp", type=int, nargs="+", default=None,
                         help="only these input spp levels (default: all)")
     parser.add_argument("--out", type=Path, required=True, help="output path without suffix")
     args = parser.parse_args(argv)
     names = list(dict.fromkeys(args.variant or DEFAULT_VARIANTS))
-    variants = [parse_variant(name) for name in names]
+    for name in names:
+        parse_variant(name)  # a bad --variant fails before any work
 
     from pd_report import provenance, write_report
 
     info = provenance(args, {"variants": names, "feature_seed": FEATURE_SEED})
-    rows = evaluate(args.data, args.split, variants, tuple(args.spp) if args.spp else None)
+    rows = evaluate(args.data, args.split, names, tuple(args.spp) if args.spp else None)
     summary = summarize(rows, names)
     write_report(args.out, {"provenance": info, "rows": rows, "summary": summary},
                  markdown(summary, names))

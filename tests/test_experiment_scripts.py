@@ -77,6 +77,7 @@ def test_aux_features_ratios_are_ratios_of_crop_means():
     assert summary["per_crop"]["a"][names[1]]["rmse"] == pytest.approx(0.5)
     assert summary["mean_over_spp"][names[1]]["rmse"] == pytest.approx(0.875)
     assert aux_features.parse_variant("specular-chain:256:noisy") == ("specular-chain", 256, "noisy")
+    assert aux_features.parse_variant("none") == ("none", 0, "clean")
     for bad in ("first-hit:16", "next-hit:16:clean", "first-hit:0:clean", "first-hit:x:clean"):
         with pytest.raises(SystemExit, match="--variant"):
             aux_features.parse_variant(bad)
