@@ -7,7 +7,9 @@ manager). Kinds:
 - ``'local'`` (default): a ``concurrent.futures.ProcessPoolExecutor`` with the ``'spawn'``
   start method, because forking a process that has started Mitsuba's or JAX's thread pools can
   deadlock. ``fn`` and the items must be picklable (module-level functions); worker processes
-  are reused across items, so each imports Mitsuba/JAX once.
+  are reused across items, so each imports Mitsuba/JAX once. A worker exits within about a
+  second of its parent's death (``kill PID`` of a build, not only Ctrl-C): an orphaned worker
+  would otherwise finish its tasks unseen and render the same items as the rerun.
 - ``'serial'``: in this process, one item at a time (no pickling; for tests, debugging, and
   for jobs that already use every core per task).
 - ``'ray'``: ``ray.remote`` tasks on the cluster that ``ray.init()`` connects to (the
@@ -92,6 +94,23 @@ class SerialExecutor(_Base):
             yield fn(item)
 
 
+PARENT_POLL_SECONDS = 1.0
+
+
+def _exit_with_parent(parent: int) -> None:
+    """Worker initializer: a daemon thread that ends this process once ``parent`` is gone
+    (the worker is then re-parented, so ``os.getppid()`` changes)."""
+    import threading
+    import time
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_POLL_SECONDS)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="jaxden-parent-watch", daemon=True).start()
+
+
 class LocalExecutor(_Base):
     """A pool of ``workers`` spawned processes (created on first use, reused until close)."""
 
@@ -104,7 +123,8 @@ class LocalExecutor(_Base):
     def _get_pool(self) -> cf.ProcessPoolExecutor:
         if self._pool is None:
             self._pool = cf.ProcessPoolExecutor(
-                max_workers=self.workers, mp_context=multiprocessing.get_context("spawn")
+                max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
+                initializer=_exit_with_parent, initargs=(os.getpid(),),
             )
         return self._pool
 

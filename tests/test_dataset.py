@@ -429,6 +429,54 @@ def _sqrt(x: float) -> float:
     return math.sqrt(x)
 
 
+ORPHAN_SCRIPT = """
+import sys, time
+from pathlib import Path
+
+def task(path):
+    import os
+    Path(path).write_text(str(os.getpid()))
+    time.sleep(120)
+
+if __name__ == "__main__":
+    from jaxden.executor import make_executor
+    with make_executor("local", workers=1) as pool:
+        list(pool.map_unordered(task, [sys.argv[1]]))
+"""
+
+
+def test_local_workers_exit_when_their_parent_is_killed(tmp_path):
+    """A build killed with SIGKILL (or `kill PID` of the parent alone) must not leave its
+    worker rendering on unseen: a rerun would render the same items twice at once."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    script, pid_file = tmp_path / "parent.py", tmp_path / "worker.pid"
+    script.write_text(ORPHAN_SCRIPT)
+    parent = subprocess.Popen([sys.executable, str(script), str(pid_file)])
+    try:
+        deadline = time.monotonic() + 60
+        while not (pid_file.exists() and pid_file.read_text()):
+            assert time.monotonic() < deadline and parent.poll() is None, "worker never started"
+            time.sleep(0.1)
+        worker = int(pid_file.read_text())
+        os.kill(parent.pid, signal.SIGKILL)
+        parent.wait()
+        deadline = time.monotonic() + 10  # the watcher polls every PARENT_POLL_SECONDS = 1
+        while Path(f"/proc/{worker}").exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        alive = Path(f"/proc/{worker}").exists()
+        if alive:
+            os.kill(worker, signal.SIGKILL)
+        assert not alive, "the worker outlived its parent by more than 10 s"
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+
+
 def test_synthetic_render_variance_matches_noise():
     """The synthetic renderer's variance channel estimates the variance of the mean: over many
     seeds, the empirical variance of the colour equals the mean variance estimate (tolerance:
