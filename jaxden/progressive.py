@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+from collections.abc import Callable
 from typing import Literal
 
 import jax
@@ -66,6 +67,24 @@ MIXER_FEATURES_NO_SURE: tuple[str, ...] = tuple(
     f for f in MIXER_FEATURES if f not in SURE_BASED_FEATURES
 )
 CHANNELS_PER_FEATURE = 3
+#: The "log" input transform: LOG_SCALE * sign(v) * log(1 + |v| / LOG_FLOOR), v in radiance^2.
+LOG_FLOOR = 1e-8
+LOG_SCALE = 0.1
+
+
+def _signed_log(v):
+    return LOG_SCALE * jnp.sign(v) * jnp.log1p(jnp.abs(v) / LOG_FLOOR)
+
+
+#: Transforms of the non-radiance features (var, sure, residual, divergence), by name:
+#:   atan  the authors' arctan. Linear below ~1, so at the variances of 64+ spp renders
+#:         (1e-4..1e-7 radiance^2 on our data) these inputs are ~0 next to the radiance inputs
+#:         and the biases, and the mixer cannot compare SURE with var there (measured: the
+#:         shipped atan mixer's alpha is ~0.45 at both 1024 and 4096 spp on a crop where
+#:         OIDN's SURE is 2.5x and 9x the render's variance).
+#:   log   a signed log (LOG_FLOOR, LOG_SCALE): O(1) at every scale from 1e-7 to 1e4, and
+#:         differences of features are log-ratios (log SURE - log var). Our addition.
+INPUT_TRANSFORMS: dict[str, Callable] = {"atan": jnp.arctan, "log": _signed_log}
 
 
 def mixer_channel_slices(features: tuple[str, ...] = MIXER_FEATURES) -> dict[str, slice]:
@@ -134,21 +153,23 @@ def _check_variance_values(var, where: str) -> None:
         )
 
 
-@functools.partial(jax.jit, static_argnames=("features",))
-def _mixer_inputs(x, y, var, sure, features):
+@functools.partial(jax.jit, static_argnames=("features", "transform"))
+def _mixer_inputs(x, y, var, sure, features, transform: str = "atan"):
     residual_sq = jnp.square(x - y)
+    f = INPUT_TRANSFORMS[transform]
     parts = {
         "hdr": lambda: x,
         "den": lambda: y,
-        "var": lambda: jnp.arctan(var),
-        "sure": lambda: jnp.arctan(sure),
-        "residual": lambda: jnp.arctan(residual_sq),
-        "divergence": lambda: jnp.arctan(sure + var - residual_sq),
+        "var": lambda: f(var),
+        "sure": lambda: f(sure),
+        "residual": lambda: f(residual_sq),
+        "divergence": lambda: f(sure + var - residual_sq),
     }
     return jnp.concatenate([parts[name]() for name in features], axis=-1)
 
 
-def mixer_inputs(x, y, var, sure=None, *, features: tuple[str, ...] = MIXER_FEATURES):
+def mixer_inputs(x, y, var, sure=None, *, features: tuple[str, ...] = MIXER_FEATURES,
+                 transform: str = "atan"):
     """Mixer ("PDNet") input features, (..., H, W, 3 * len(features)); 18 channels by default.
 
     Args:
@@ -160,10 +181,14 @@ def mixer_inputs(x, y, var, sure=None, *, features: tuple[str, ...] = MIXER_FEAT
         :data:`MIXER_FEATURES_NO_SURE` for the "w/o SURE" ablation). Channel slices:
         :func:`mixer_channel_slices`.
 
-    Non-radiance features go through arctan (bounded, and defined for the negative values
-    SURE takes), as in the paper's Sec. 4.3; radiance stays linear as in the authors' code.
+    Non-radiance features go through ``transform`` (:data:`INPUT_TRANSFORMS`): arctan by
+    default (bounded, and defined for the negative values SURE takes), as in the paper's Sec.
+    4.3; radiance stays linear as in the authors' code.
     """
     _check_features(features)
+    if transform not in INPUT_TRANSFORMS:
+        raise ConfigError(f"mixer_inputs: unknown transform {transform!r}; allowed: "
+                          f"{', '.join(INPUT_TRANSFORMS)}")
     needs_sure = any(f in SURE_BASED_FEATURES for f in features)
     if needs_sure and sure is None:
         raise FrameError(
@@ -176,7 +201,7 @@ def mixer_inputs(x, y, var, sure=None, *, features: tuple[str, ...] = MIXER_FEAT
     _check_same("mixer_inputs", **arrays)
     x, y, var = jnp.asarray(x), jnp.asarray(y), jnp.asarray(var)
     sure = jnp.asarray(sure) if needs_sure else jnp.zeros_like(x)
-    return _mixer_inputs(x, y, var, sure, features)
+    return _mixer_inputs(x, y, var, sure, features, transform)
 
 
 def swap_inputs(key, x, y, var, sure, probability: float = 0.5):
@@ -559,6 +584,8 @@ class MixerConfig:
         LeCun scale the untrained f_act mixer has a third of its alphas saturated at 0 or 1
         (zero gradient) on the tiny dataset, mean 0.15; at 0.1 none, 0.46 +- 0.03.
       f_act_eps: the eps of f_act (1e-6).
+      input_transform: ``"atan"`` (the authors') or ``"log"`` (a signed log; our addition) for
+        the var, SURE, residual and divergence inputs; see :data:`INPUT_TRANSFORMS`.
 
     Training:
       swap_probability: probability of swapping (x, var) with (y, SURE) per training sample
@@ -593,6 +620,7 @@ class MixerConfig:
     centred_head: bool = True
     init_output_scale: float = 0.1
     f_act_eps: float = 1e-6
+    input_transform: Literal["atan", "log"] = "atan"
     swap_probability: float = 0.5
     tstat: TStatConfig = TStatConfig()
     swap_average: bool = False
@@ -621,6 +649,11 @@ class MixerConfig:
             )
         if not (math.isfinite(self.f_act_eps) and self.f_act_eps > 0):
             raise ConfigError(f"MixerConfig.f_act_eps: expected > 0, got {self.f_act_eps!r}")
+        if self.input_transform not in INPUT_TRANSFORMS:
+            raise ConfigError(
+                f"MixerConfig.input_transform: unknown transform {self.input_transform!r}; "
+                f"allowed: {', '.join(INPUT_TRANSFORMS)}"
+            )
         if not 0.0 <= self.swap_probability <= 1.0:
             raise ConfigError(
                 f"MixerConfig.swap_probability: expected a value in [0, 1], got "
@@ -739,7 +772,7 @@ def _mixer_swap_args(config: MixerConfig, x, y, var, sure):
 
 @functools.partial(jax.jit, static_argnames=("config",))
 def _mixer_alpha(params, x, y, var, sure, config: MixerConfig):
-    inputs = _mixer_inputs(x, y, var, sure, tuple(config.features))
+    inputs = _mixer_inputs(x, y, var, sure, tuple(config.features), config.input_transform)
     raw = mixer_module(config).apply(params, inputs)
     if config.head == "f_act":
         return _f_act(raw, config.f_act_eps, "by_role")

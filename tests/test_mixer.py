@@ -282,12 +282,13 @@ def test_mixer_input_errors():
 
 
 def test_save_and_load_mixer_round_trip(tmp_path):
-    config = P.MixerConfig(features=P.MIXER_FEATURES_NO_SURE, head="sigmoid", width=4)
+    config = P.MixerConfig(features=P.MIXER_FEATURES_NO_SURE, head="sigmoid", width=4,
+                           input_transform="log")
     params = randomized(P.mixer_init(jax.random.PRNGKey(0), config), seed=9)
     path = tmp_path / "mixer.msgpack"
     P.save_mixer(path, params, config, steps=3)
     loaded, loaded_config = P.load_mixer(path)
-    assert loaded_config == config
+    assert loaded_config == config and loaded_config.input_transform == "log"
     for a, b in zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(loaded)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     meta = json.loads(path.with_suffix(".json").read_text())

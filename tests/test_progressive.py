@@ -270,6 +270,35 @@ def test_mixer_inputs_layout():
         np.testing.assert_allclose(features[..., P.MIXER_LAYOUT[name]], value, rtol=1e-6, atol=1e-7)
 
 
+def test_log_input_transform_is_a_signed_log_and_scale_free():
+    """transform="log": 0.1 sign(v) log(1 + |v| / 1e-8) for var, SURE, residual and divergence;
+    radiance stays linear. Values are O(1) from 1e-7 to 1e4 (arctan is ~0 below 1e-3), and
+    scaling var and SURE together by k shifts both by ~0.1 log k (a log-ratio input)."""
+    rng = np.random.default_rng(3)
+    x, y = (rng.uniform(0.1, 1.0, (4, 5, 3)).astype(np.float32) for _ in range(2))
+    var = np.full((4, 5, 3), 1e-6, np.float32)
+    sure = np.full((4, 5, 3), -4e-6, np.float32)
+    f = np.asarray(P.mixer_inputs(x, y, var, sure, transform="log"))
+    L = P.MIXER_LAYOUT
+    np.testing.assert_allclose(f[..., L["hdr"]], x)
+    np.testing.assert_allclose(f[..., L["var"]], 0.1 * np.log1p(100.0), rtol=1e-5)
+    np.testing.assert_allclose(f[..., L["sure"]], -0.1 * np.log1p(400.0), rtol=1e-5)
+    r2 = (x.astype(np.float64) - y) ** 2
+    np.testing.assert_allclose(f[..., L["residual"]], 0.1 * np.log1p(r2 / 1e-8), rtol=1e-5)
+    d = sure.astype(np.float64) + var - r2
+    np.testing.assert_allclose(f[..., L["divergence"]], 0.1 * np.sign(d) * np.log1p(np.abs(d) / 1e-8),
+                               rtol=1e-4)
+    g = np.asarray(P.mixer_inputs(x, y, 1e4 * var, 1e4 * sure, transform="log"))
+    shift = g[..., L["var"]] - f[..., L["var"]]
+    np.testing.assert_allclose(shift, 0.1 * np.log(1e4), rtol=2e-3)  # the floor: 0.1 %
+    np.testing.assert_allclose(-(g[..., L["sure"]] - f[..., L["sure"]]), shift, rtol=2e-3)
+    assert np.abs(np.asarray(P.mixer_inputs(x, y, var, sure))[..., L["var"]]).max() < 2e-6
+    with pytest.raises(ConfigError, match="unknown transform 'sqrt'"):
+        P.mixer_inputs(x, y, var, sure, transform="sqrt")
+    with pytest.raises(ConfigError, match="input_transform: unknown transform"):
+        P.MixerConfig(input_transform="sqrt")
+
+
 def test_mixer_inputs_without_sure_for_ablation():
     rng = np.random.default_rng(1)
     x, y = (rng.normal(1.0, 0.5, (4, 5, 3)).astype(np.float32) for _ in range(2))
