@@ -77,9 +77,10 @@ def _signed_log(v):
 
 
 #: Transforms of the non-radiance features (var, sure, residual, divergence), by name:
-#:   atan  the authors' arctan. Linear below ~1, so at the variances of 64+ spp renders
-#:         (1e-4..1e-7 radiance^2 on our data) these inputs are ~0 next to the radiance inputs
-#:         and the biases, and the mixer cannot compare SURE with var there (measured: the
+#:   atan  the authors' arctan. Linear below ~1, so at the variances of renders of 64 spp
+#:         and more (about 1e-3 down to 1e-7 radiance^2 on our test crops) these inputs are ~0
+#:         next to the radiance inputs and the biases (the trained first-layer weights on them
+#:         are ~0.1), and the mixer cannot compare SURE with var there (measured: the
 #:         shipped atan mixer's alpha is ~0.45 at both 1024 and 4096 spp on a crop where
 #:         OIDN's SURE is 2.5x and 9x the render's variance).
 #:   log   a signed log (LOG_FLOOR, LOG_SCALE): O(1) at every scale from 1e-7 to 1e4, and
