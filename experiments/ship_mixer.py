@@ -64,7 +64,9 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
         "## What it is",
         f"PDNet (Firmino, Frisvad, Jensen 2022, Sec. 4.3): 5x5 first layer, two residual blocks, "
         f"{mc['width']} channels, 6 layers, {len(mc['features'])} x 3 = "
-        f"{3 * len(mc['features'])} input channels ({', '.join(mc['features'])}), head "
+        f"{3 * len(mc['features'])} input channels ({', '.join(mc['features'])}; the "
+        f"non-radiance ones through `{mc.get('input_transform', 'atan')}`, see "
+        f"`jaxden.progressive.INPUT_TRANSFORMS`), head "
         f"`{mc['head']}` (f_act, one alpha per colour channel). It mixes the Monte Carlo input x "
         f"and OIDN's output y per pixel; at inference the t-statistic scaling (window "
         f"{mc['tstat']['window']}, a = {mc['tstat']['a']}, c = {mc['tstat']['c']}, "
