@@ -14,6 +14,7 @@ import dataclasses
 import json
 import shutil
 import sys
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -478,6 +479,32 @@ def test_swap_symmetry_of_the_trained_mixer_on_a_frame(trained):
 
 
 # ------------------------------------------------------------------------ reports
+
+
+def test_mixer_alpha_script_matches_the_pipeline(trained):
+    """experiments/mixer_alpha.py: its 'single' and 'average' PD / MC are what
+    progressive_denoise gives without and with swap averaging (same SURE key)."""
+    sys.path.insert(0, str(Path(__file__).parent.parent / "experiments"))
+    import mixer_alpha
+    from jaxden import pdreport
+
+    dataset, workdir = trained
+    crop, reference, levels = next(pdreport.iter_crops(dataset, "all"))
+    spp, frame = levels[-1]
+    rows = mixer_alpha.evaluate(dataset, [crop.id], [spp], [str(workdir)])
+    assert [(r["crop"], r["spp"]) for r in rows] == [(crop.id, spp)]
+    entry = rows[0]["mixers"][str(workdir)]
+    params, config = P.load_mixer(workdir)
+    mc = float(metrics.rmse(frame.color, reference.color))
+    for swap, name in ((False, "single"), (True, "average")):
+        z, _, extras = P.progressive_denoise(frame, "oidn", params, config, jax.random.PRNGKey(0),
+                                             swap_average=swap)
+        assert entry[name]["pd_over_mc"] == pytest.approx(
+            float(metrics.rmse(np.asarray(z), reference.color)) / mc, rel=1e-4)
+        if not swap:
+            assert entry[name]["alpha"] == pytest.approx(float(np.mean(extras["alpha"])), rel=1e-5)
+    with pytest.raises(SystemExit, match="no crop"):
+        mixer_alpha.evaluate(dataset, ["s999-c000"], [spp], [str(workdir)])
 
 
 def test_pd_report_rows_match_direct_computation(trained):

@@ -1,0 +1,108 @@
+"""What a trained mixer does on given crops: its alpha against the evidence it is fed.
+
+    python experiments/mixer_alpha.py --data data/test-high-chain --crop s006-c000 s001-c000 \
+        --spp 64 1024 4096 --mixer oidn-pd --mixer runs/mixer-oidn-chain-log \
+        --out experiments/results/mixer-alpha-high
+
+For every crop, spp and mixer: the mean alpha of the mixer's single call (the paper's), of its
+swapped call (1 - alpha(y, x)) and of their average (``swap_average``), each before the
+t-statistic scaling; RMSE over MC's of PD with each alpha (after the scaling) and of OIDN
+alone; and the median over pixels and channels of SURE(y) / var(x), the evidence of which
+image is closer to the truth (above 1: y's estimated squared error exceeds x's variance, so
+the render should win). SURE: 4 finite-difference probes, seed 0, as in the PD reports.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def evaluate(data: Path, crops, spp, mixers, denoiser: str = "oidn", seed: int = 0):
+    import jax
+    import jax.numpy as jnp
+
+    from jaxden.denoisers import load_denoiser
+    from jaxden.pdcache import denoise_with_sure
+    from jaxden.pdreport import iter_crops
+    from jaxden.progressive import (_mixer_alpha, _mixer_swap_args, load_mixer, mix,
+                                    t_statistic_scaling)
+
+    model = load_denoiser(denoiser)
+    loaded = {spec: load_mixer(spec) for spec in mixers}
+    rows, found = [], set()
+    for crop, reference, inputs in iter_crops(data, "all", tuple(spp)):
+        if crop.id not in crops:
+            continue
+        found.add(crop.id)
+        truth = np.asarray(reference.color, np.float64)
+        for level, frame in inputs:
+            result, frame = denoise_with_sure(model, frame, jax.random.PRNGKey(seed))
+            x, var = jnp.asarray(frame.color), jnp.asarray(frame.variance)
+            y, sure = jnp.asarray(result.denoised), jnp.asarray(result.sure)
+
+            def rmse(image):
+                return float(np.sqrt(np.mean((np.asarray(image, np.float64) - truth) ** 2)))
+
+            mc = rmse(x)
+            ratio = np.asarray(sure, np.float64) / np.maximum(np.asarray(var, np.float64), 1e-20)
+            row = {"crop": crop.id, "spp": level, "oidn_over_mc": rmse(y) / mc,
+                   "sure_over_var_median": float(np.median(ratio)), "mixers": {}}
+            for spec, (params, config) in loaded.items():
+                single = _mixer_alpha(params, x, y, var, sure, config)
+                swapped = 1.0 - _mixer_alpha(params, *_mixer_swap_args(config, x, y, var, sure),
+                                             config)
+                entry = {}
+                for name, alpha in (("single", single), ("swapped", swapped),
+                                    ("average", (single + swapped) / 2)):
+                    scaled = t_statistic_scaling(alpha, x, mix(x, y, alpha), var, config.tstat)
+                    entry[name] = {"alpha": float(jnp.mean(alpha)),
+                                   "pd_over_mc": rmse(mix(x, y, scaled)) / mc}
+                row["mixers"][spec] = entry
+            rows.append(row)
+    missing = sorted(set(crops) - found)
+    if missing:
+        raise SystemExit(f"{data}: no crop(s) {', '.join(missing)}")
+    return rows
+
+
+def markdown(rows, mixers) -> str:
+    lines = ["| crop | spp | OIDN / MC | median SURE / var | mixer | alpha single / swapped / "
+             "average | PD / MC single / swapped / average |",
+             "|---|---:|---:|---:|---|---|---|"]
+    for row in rows:
+        for spec in mixers:
+            e = row["mixers"][spec]
+            lines.append(
+                f"| {row['crop']} | {row['spp']} | {row['oidn_over_mc']:.3f} | "
+                f"{row['sure_over_var_median']:.2f} | `{spec}` | "
+                + " / ".join(f"{e[k]['alpha']:.3f}" for k in ("single", "swapped", "average"))
+                + " | " + " / ".join(f"{e[k]['pd_over_mc']:.3f}"
+                                     for k in ("single", "swapped", "average")) + " |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", type=Path, required=True, help="complete dataset folder")
+    parser.add_argument("--crop", nargs="+", required=True, help="crop ids, e.g. s006-c000")
+    parser.add_argument("--spp", type=int, nargs="+", required=True)
+    parser.add_argument("--mixer", action="append", required=True,
+                        help="a mixer spec (shipped name, run folder or .msgpack); repeatable")
+    parser.add_argument("--seed", type=int, default=0, help="SURE probe seed")
+    parser.add_argument("--out", type=Path, required=True, help="output path without suffix")
+    args = parser.parse_args(argv)
+
+    from pd_report import provenance, write_report
+
+    info = provenance(args, {"mixers": args.mixer, "crops": args.crop})
+    rows = evaluate(args.data, args.crop, args.spp, args.mixer, seed=args.seed)
+    write_report(args.out, {"provenance": info, "rows": rows}, markdown(rows, args.mixer))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
