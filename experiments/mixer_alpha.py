@@ -10,6 +10,7 @@ t-statistic scaling; RMSE over MC's of PD with each alpha (after the scaling) an
 alone; and the median over pixels and channels of SURE(y) / var(x), the evidence of which
 image is closer to the truth (above 1: y's estimated squared error exceeds x's variance, so
 the render should win). SURE: 4 finite-difference probes, seed 0, as in the PD reports.
+``--mixer untrained:SPEC`` shows where training started (SPEC's config, seed-0 init).
 """
 
 from __future__ import annotations
@@ -21,6 +22,19 @@ from pathlib import Path
 import numpy as np
 
 
+def _load(spec: str):
+    """``(params, config)`` of a mixer spec; ``untrained:SPEC`` is SPEC's config with freshly
+    initialised parameters (seed 0), the starting point of its training."""
+    import jax
+
+    from jaxden.progressive import load_mixer, mixer_init
+
+    if spec.startswith("untrained:"):
+        _, config = load_mixer(spec.split(":", 1)[1])
+        return mixer_init(jax.random.PRNGKey(0), config), config
+    return load_mixer(spec)
+
+
 def evaluate(data: Path, crops, spp, mixers, denoiser: str = "oidn", seed: int = 0):
     import jax
     import jax.numpy as jnp
@@ -28,11 +42,10 @@ def evaluate(data: Path, crops, spp, mixers, denoiser: str = "oidn", seed: int =
     from jaxden.denoisers import load_denoiser
     from jaxden.pdcache import denoise_with_sure
     from jaxden.pdreport import iter_crops
-    from jaxden.progressive import (_mixer_alpha, _mixer_swap_args, load_mixer, mix,
-                                    t_statistic_scaling)
+    from jaxden.progressive import _mixer_alpha, _mixer_swap_args, mix, t_statistic_scaling
 
     model = load_denoiser(denoiser)
-    loaded = {spec: load_mixer(spec) for spec in mixers}
+    loaded = {spec: _load(spec) for spec in mixers}
     rows, found = [], set()
     for crop, reference, inputs in iter_crops(data, "all", tuple(spp)):
         if crop.id not in crops:
@@ -44,7 +57,7 @@ def evaluate(data: Path, crops, spp, mixers, denoiser: str = "oidn", seed: int =
             x, var = jnp.asarray(frame.color), jnp.asarray(frame.variance)
             y, sure = jnp.asarray(result.denoised), jnp.asarray(result.sure)
 
-            def rmse(image):
+            def rmse(image, truth=truth):
                 return float(np.sqrt(np.mean((np.asarray(image, np.float64) - truth) ** 2)))
 
             mc = rmse(x)
@@ -91,7 +104,8 @@ def main(argv=None) -> int:
     parser.add_argument("--crop", nargs="+", required=True, help="crop ids, e.g. s006-c000")
     parser.add_argument("--spp", type=int, nargs="+", required=True)
     parser.add_argument("--mixer", action="append", required=True,
-                        help="a mixer spec (shipped name, run folder or .msgpack); repeatable")
+                        help="a mixer spec (shipped name, run folder or .msgpack), or "
+                             "untrained:SPEC (its config, untrained); repeatable")
     parser.add_argument("--seed", type=int, default=0, help="SURE probe seed")
     parser.add_argument("--out", type=Path, required=True, help="output path without suffix")
     args = parser.parse_args(argv)

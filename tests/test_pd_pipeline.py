@@ -505,6 +505,11 @@ def test_mixer_alpha_script_matches_the_pipeline(trained):
             assert entry[name]["alpha"] == pytest.approx(float(np.mean(extras["alpha"])), rel=1e-5)
     with pytest.raises(SystemExit, match="no crop"):
         mixer_alpha.evaluate(dataset, ["s999-c000"], [spp], [str(workdir)])
+    untrained, untrained_config = mixer_alpha._load(f"untrained:{workdir}")
+    assert untrained_config == config
+    fresh = P.mixer_init(jax.random.PRNGKey(0), config)
+    for a, b in zip(jax.tree_util.tree_leaves(untrained), jax.tree_util.tree_leaves(fresh)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
 def test_pd_report_rows_match_direct_computation(trained):
