@@ -96,14 +96,19 @@ def cmd_pd(args: argparse.Namespace) -> None:
     else:
         import dataclasses
 
-        from jaxden.progressive import load_mixer
+        from jaxden.config import config_to_dict, load_config
+        from jaxden.progressive import TStatConfig, load_mixer
 
         params, config = load_mixer(args.mixer)
         if args.swap_average is not None:
             config = dataclasses.replace(config, swap_average=args.swap_average)
+        if args.tstat:
+            config = dataclasses.replace(
+                config, tstat=load_config(config.tstat, TStatConfig, overrides=args.tstat))
         source = provenance(args, {"denoiser": args.denoiser[0],
                                    "mixer": _weights_identity(args.mixer),
-                                   "swap_average": config.swap_average})
+                                   "swap_average": config.swap_average,
+                                   "tstat": config_to_dict(config.tstat)})
         rows = pdreport.evaluate_progressive(args.data, args.denoiser[0], (params, config),
                                              split=args.split, seed=args.seed,
                                              num_probes=args.probes, spp=args.spp, progress=True)
@@ -210,6 +215,10 @@ def main(argv=None) -> int:
             p.add_argument("--mixer", default="oidn-pd", help="mixer spec (default oidn-pd)")
             p.add_argument("--swap-average", action=argparse.BooleanOptionalAction,
                            default=None, help="override the mixer config's swap_average")
+            p.add_argument("--tstat", action="append", default=[], metavar="KEY=VALUE",
+                           help="override a field of the mixer's t-statistic config "
+                                "(jaxden.progressive.TStatConfig), e.g. sigma_min=1.0; "
+                                "repeatable")
         if name == "sure-buffers":
             p.add_argument("--buffers", type=int, default=16,
                            help="independent sub-buffers per render (spp / buffers each)")
