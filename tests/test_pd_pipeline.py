@@ -486,6 +486,7 @@ def test_mixer_alpha_script_matches_the_pipeline(trained):
     progressive_denoise gives without and with swap averaging (same SURE key)."""
     sys.path.insert(0, str(Path(__file__).parent.parent / "experiments"))
     import mixer_alpha
+
     from jaxden import pdreport
 
     dataset, workdir = trained
@@ -510,6 +511,41 @@ def test_mixer_alpha_script_matches_the_pipeline(trained):
     fresh = P.mixer_init(jax.random.PRNGKey(0), config)
     for a, b in zip(jax.tree_util.tree_leaves(untrained), jax.tree_util.tree_leaves(fresh)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_pd_report_script_tstat_override(trained, tmp_path):
+    """experiments/pd_report.py pd --tstat KEY=VALUE: the rows are those of the mixer with that
+    t-statistic field changed, and the provenance records it; a bad key names the field."""
+    sys.path.insert(0, str(Path(__file__).parent.parent / "experiments"))
+    import pd_report
+
+    from jaxden import pdreport
+    from jaxden.config import load_config
+    from jaxden.errors import ConfigError
+
+    dataset, workdir = trained
+    spp = next(pdreport.iter_crops(dataset, "all"))[2][-1][0]  # the highest input spp
+    out = tmp_path / "rep"
+    pd_report.main(["pd", "--data", str(dataset), "--split", "all", "--denoiser", "oidn",
+                    "--mixer", str(workdir), "--spp", str(spp), "--tstat", "c=1.0",
+                    "--out", str(out)])
+    result = json.loads(out.with_suffix(".json").read_text())
+    assert result["provenance"]["tstat"]["c"] == 1.0
+    params, config = P.load_mixer(workdir)
+    changed = dataclasses.replace(config, tstat=load_config(config.tstat, P.TStatConfig,
+                                                            overrides=["c=1.0"]))
+    rows = pdreport.evaluate_progressive(dataset, "oidn", (params, changed), split="all",
+                                         spp=(spp,))
+    assert [r["pd_rmse"] for r in result["rows"]] == pytest.approx([r["pd_rmse"] for r in rows],
+                                                                   rel=1e-6)
+    default = pdreport.evaluate_progressive(dataset, "oidn", (params, config), split="all",
+                                            spp=(spp,))
+    assert [r["pd_rmse"] for r in default] != pytest.approx([r["pd_rmse"] for r in rows],
+                                                            rel=1e-6)  # c matters here
+    with pytest.raises(ConfigError, match="sigma_mn"):
+        pd_report.main(["pd", "--data", str(dataset), "--split", "all", "--denoiser", "oidn",
+                        "--mixer", str(workdir), "--tstat", "sigma_mn=1", "--out",
+                        str(tmp_path / "bad")])
 
 
 def test_pd_report_rows_match_direct_computation(trained):
