@@ -10,7 +10,9 @@ t-statistic scaling; RMSE over MC's of PD with each alpha (after the scaling) an
 alone; and the median over pixels and channels of SURE(y) / var(x), the evidence of which
 image is closer to the truth (above 1: y's estimated squared error exceeds x's variance, so
 the render should win). SURE: 4 finite-difference probes, seed 0, as in the PD reports.
-``--mixer untrained:SPEC`` shows where training started (SPEC's config, seed-0 init).
+``--mixer untrained:SPEC`` shows where training started (SPEC's config, seed-0 init). Also
+listed: the crop's mean variance, the t-test's Gaussian width sigma_s for it, and the mean
+absolute first-layer weight of each mixer on each input feature.
 """
 
 from __future__ import annotations
@@ -42,7 +44,8 @@ def evaluate(data: Path, crops, spp, mixers, denoiser: str = "oidn", seed: int =
     from jaxden.denoisers import load_denoiser
     from jaxden.pdcache import denoise_with_sure
     from jaxden.pdreport import iter_crops
-    from jaxden.progressive import _mixer_alpha, _mixer_swap_args, mix, t_statistic_scaling
+    from jaxden.progressive import (_gaussian_sigma, _mixer_alpha, _mixer_swap_args, mix,
+                                    t_statistic_scaling)
 
     model = load_denoiser(denoiser)
     loaded = {spec: _load(spec) for spec in mixers}
@@ -63,12 +66,13 @@ def evaluate(data: Path, crops, spp, mixers, denoiser: str = "oidn", seed: int =
             mc = rmse(x)
             ratio = np.asarray(sure, np.float64) / np.maximum(np.asarray(var, np.float64), 1e-20)
             row = {"crop": crop.id, "spp": level, "oidn_over_mc": rmse(y) / mc,
-                   "sure_over_var_median": float(np.median(ratio)), "mixers": {}}
+                   "sure_over_var_median": float(np.median(ratio)),
+                   "var_mean": float(np.mean(np.asarray(var, np.float64))), "mixers": {}}
             for spec, (params, config) in loaded.items():
                 single = _mixer_alpha(params, x, y, var, sure, config)
                 swapped = 1.0 - _mixer_alpha(params, *_mixer_swap_args(config, x, y, var, sure),
                                              config)
-                entry = {}
+                entry = {"tstat_sigma": float(_gaussian_sigma(var, config.tstat))}
                 for name, alpha in (("single", single), ("swapped", swapped),
                                     ("average", (single + swapped) / 2)):
                     scaled = t_statistic_scaling(alpha, x, mix(x, y, alpha), var, config.tstat)
@@ -82,19 +86,42 @@ def evaluate(data: Path, crops, spp, mixers, denoiser: str = "oidn", seed: int =
     return rows
 
 
-def markdown(rows, mixers) -> str:
-    lines = ["| crop | spp | OIDN / MC | median SURE / var | mixer | alpha single / swapped / "
-             "average | PD / MC single / swapped / average |",
-             "|---|---:|---:|---:|---|---|---|"]
+def first_layer_weights(mixers) -> dict:
+    """Mean |weight| of each mixer's first convolution per input feature (3 channels each)."""
+    import jax
+
+    from jaxden.progressive import mixer_channel_slices
+
+    out = {}
+    for spec in mixers:
+        params, config = _load(spec)
+        kernel = next(np.asarray(v) for path, v in jax.tree_util.tree_leaves_with_path(params)
+                      if "conv_in" in jax.tree_util.keystr(path) and np.ndim(v) == 4)
+        out[spec] = {name: float(np.mean(np.abs(kernel[:, :, s, :])))
+                     for name, s in mixer_channel_slices(tuple(config.features)).items()}
+    return out
+
+
+def markdown(rows, mixers, weights=None) -> str:
+    lines = ["| crop | spp | OIDN / MC | median SURE / var | mean var | mixer | t-test sigma_s | "
+             "alpha single / swapped / average | PD / MC single / swapped / average |",
+             "|---|---:|---:|---:|---:|---|---:|---|---|"]
     for row in rows:
         for spec in mixers:
             e = row["mixers"][spec]
             lines.append(
                 f"| {row['crop']} | {row['spp']} | {row['oidn_over_mc']:.3f} | "
-                f"{row['sure_over_var_median']:.2f} | `{spec}` | "
+                f"{row['sure_over_var_median']:.2f} | {row['var_mean']:.2e} | `{spec}` | "
+                f"{e['tstat_sigma']:.3g} | "
                 + " / ".join(f"{e[k]['alpha']:.3f}" for k in ("single", "swapped", "average"))
                 + " | " + " / ".join(f"{e[k]['pd_over_mc']:.3f}"
                                      for k in ("single", "swapped", "average")) + " |")
+    if weights:
+        names = list(next(iter(weights.values())))
+        lines += ["", "Mean |weight| of the first convolution, per input feature:", "",
+                  "| mixer | " + " | ".join(names) + " |", "|---|" + "---:|" * len(names)]
+        for spec, values in weights.items():
+            lines.append(f"| `{spec}` | " + " | ".join(f"{values[n]:.4f}" for n in names) + " |")
     return "\n".join(lines)
 
 
@@ -114,7 +141,9 @@ def main(argv=None) -> int:
 
     info = provenance(args, {"mixers": args.mixer, "crops": args.crop})
     rows = evaluate(args.data, args.crop, args.spp, args.mixer, seed=args.seed)
-    write_report(args.out, {"provenance": info, "rows": rows}, markdown(rows, args.mixer))
+    weights = first_layer_weights(args.mixer)
+    write_report(args.out, {"provenance": info, "rows": rows, "first_layer_weights": weights},
+                 markdown(rows, args.mixer, weights))
     return 0
 
 
