@@ -44,8 +44,13 @@ def evaluate(data: Path, crops, spp, mixers, denoiser: str = "oidn", seed: int =
     from jaxden.denoisers import load_denoiser
     from jaxden.pdcache import denoise_with_sure
     from jaxden.pdreport import iter_crops
-    from jaxden.progressive import (_gaussian_sigma, _mixer_alpha, _mixer_swap_args, mix,
-                                    t_statistic_scaling)
+    from jaxden.progressive import (
+        _gaussian_sigma,
+        _mixer_alpha,
+        _mixer_swap_args,
+        mix,
+        t_statistic_scaling,
+    )
 
     model = load_denoiser(denoiser)
     loaded = {spec: _load(spec) for spec in mixers}
