@@ -248,14 +248,15 @@ def cmd_progressive(args: argparse.Namespace) -> int:
             raise CheckpointError(
                 f"jaxden progressive: no mixer ships for denoiser {args.denoiser!r} (shipped: "
                 f"{', '.join(f'{m} for {d}' for d, m in SHIPPED_MIXERS.items())}); pass "
-                f"--mixer CKPT"
+                f"--mixer CKPT, or --mixer closed-form (no training, any denoiser)"
             )
         args.mixer = SHIPPED_MIXERS[args.denoiser]
     params, config = load_mixer(args.mixer)
     frame = read_input_frame(args, "jaxden progressive")
     denoiser = load_denoiser(args.denoiser)
     feature_notice(frame, denoiser, args.input)
-    if config.denoiser != denoiser.name and Path(config.denoiser).name != Path(args.denoiser).name:
+    if (config.kind == "network" and config.denoiser != denoiser.name
+            and Path(config.denoiser).name != Path(args.denoiser).name):
         _stderr(f"jaxden: note: the mixer was trained on the output of denoiser "
                 f"{config.denoiser!r}; mixing {denoiser.name!r} instead")
     z, alpha_prime, extras = progressive_denoise(
@@ -356,8 +357,9 @@ def add_pd_commands(subparsers, dataset_subparsers=None) -> None:
     _input_options(p)
     p.add_argument("--mixer", default=None,
                    help="trained mixer: a shipped name (oidn-pd), a checkpoint folder of "
-                        "`jaxden train` or a .msgpack file; default: the mixer shipped for "
-                        "--denoiser (oidn-pd for oidn)")
+                        "`jaxden train` or a .msgpack file; or closed-form[:sigma=S] (the "
+                        "paper's Eq. 9 with local means: no weights, any denoiser); default: "
+                        "the mixer shipped for --denoiser (oidn-pd for oidn)")
     p.add_argument("--out", required=True, help="output .exr")
     p.add_argument("--alpha", default=None, help="also write the mixing weights to this .exr")
     p.add_argument("--no-tstat", action="store_true",

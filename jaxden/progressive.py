@@ -562,12 +562,107 @@ def consistent_mix(x, y, alpha, var, config: TStatConfig | None = None, **overri
     return mix(x, y, alpha_prime), alpha_prime
 
 
+# ------------------------------------------------------------------------ closed-form mixer
+
+#: Mixer spec (``--mixer``, :func:`load_mixer`) of the closed-form mixer; options as
+#: ``closed-form:sigma=4,per_channel=true``.
+CLOSED_FORM_SPEC = "closed-form"
+#: Option names of the closed-form spec -> :class:`MixerConfig` fields.
+CLOSED_FORM_OPTIONS = {"sigma": "closed_form_sigma", "per_channel": "closed_form_per_channel"}
+
+
+def _gaussian_taps(sigma: float) -> np.ndarray:
+    radius = max(1, math.ceil(3.0 * sigma))
+    offsets = np.arange(-radius, radius + 1, dtype=np.float64)
+    return np.exp(-np.square(offsets) / (2.0 * sigma * sigma)).astype(np.float32)
+
+
+def _closed_form_single(x, y, var, sure, taps, per_channel: bool):
+    residual = jnp.square(y - x)
+    # E[(y - x)^2 + var - SURE] = 2 (var - var E f'(x)): Eq. 9's numerator, twice.
+    numerator = residual + var - sure
+    denominator = 2.0 * residual
+    if not per_channel:
+        numerator = jnp.sum(numerator, axis=-1, keepdims=True)
+        denominator = jnp.sum(denominator, axis=-1, keepdims=True)
+    # Zero-padded sums with the same weights in both: the ratio of local weighted means over
+    # the in-image pixels of the window.
+    numerator = _blur_1d(_blur_1d(numerator, taps, 0), taps, 1)
+    denominator = _blur_1d(_blur_1d(denominator, taps, 0), taps, 1)
+    positive = denominator > 0
+    # y == x on the whole window: every alpha gives the same z; take y.
+    alpha = jnp.where(positive, numerator / jnp.where(positive, denominator, 1.0), 1.0)
+    return jnp.broadcast_to(jnp.clip(alpha, 0.0, 1.0), x.shape)
+
+
+@functools.partial(jax.jit, static_argnames=("sigma", "per_channel"))
+def _closed_form_alpha(x, y, var, sure, sigma: float, per_channel: bool):
+    taps = jnp.asarray(_gaussian_taps(sigma), x.dtype)
+    lead = x.shape[:-3]
+    flat = [a.reshape((-1,) + a.shape[-3:]) for a in (x, y, var, sure)]
+    alpha = jax.vmap(lambda a, b, c, d: _closed_form_single(a, b, c, d, taps, per_channel))(
+        *flat)
+    return alpha.reshape(lead + alpha.shape[1:])
+
+
+def closed_form_alpha(x, y, var, sure, *, sigma: float = 8.0, per_channel: bool = False):
+    """The paper's Eq. 9 with Gaussian local means: a mixer without a network (our addition).
+
+    For z = x + alpha (y - x), the alpha that minimises E[(z - mu)^2] is (paper Eq. 9)
+    ``alpha = (var - var E f'(x)) / E[(y - x)^2]``; with SURE = (y - x)^2 - var + 2 var f'(x)
+    its numerator is ``((y - x)^2 + var - SURE) / 2``. Per pixel these estimates are far too
+    noisy to use (paper Sec. 4.1; measured: PD / OIDN RMSE 1.89 at sigma 0), so both
+    numerator and denominator are replaced by local means, Gaussian weights of standard
+    deviation ``sigma`` pixels (truncated at 3 sigma, only in-image pixels), summed over the
+    colour channels unless ``per_channel``, and the ratio is clipped to [0, 1].
+
+    Properties: swap-symmetric by construction (exchanging (x, var) with (y, SURE) gives
+    1 - alpha before clipping); consistent on its own (as var -> 0 with y's bias fixed, the
+    numerator -> 0 and the denominator -> 2 bias^2, so alpha -> 0), and the t-statistic
+    scaling still applies on top in :func:`progressive_denoise`. Where y == x on a whole
+    window alpha is 1 (any value gives the same z).
+
+    Inputs (..., H, W, 3) as in :func:`mixer_alpha`; returns alpha (..., H, W, 3) in [0, 1].
+    Pure and jitted (``sigma`` and ``per_channel`` static).
+    """
+    config = MixerConfig(kind="closed_form", closed_form_sigma=sigma,
+                         closed_form_per_channel=per_channel)
+    x, y, var, sure = _mixer_arrays("closed_form_alpha", config, x, y, var, sure)
+    return _closed_form_alpha(x, y, var, sure, float(sigma), per_channel)
+
+
+def closed_form_mixer(spec: str = CLOSED_FORM_SPEC):
+    """``({}, MixerConfig)`` of the closed-form mixer for a spec ``closed-form`` or
+    ``closed-form:KEY=VALUE,...`` (keys: :data:`CLOSED_FORM_OPTIONS`)."""
+    from jaxden.config import load_config
+
+    name, _, options = spec.partition(":")
+    if name != CLOSED_FORM_SPEC:
+        raise ConfigError(f"mixer {spec!r}: not a closed-form mixer spec ({CLOSED_FORM_SPEC})")
+    overrides = []
+    for option in filter(None, (o.strip() for o in options.split(","))):
+        key, equals, value = option.partition("=")
+        if not equals or key.strip() not in CLOSED_FORM_OPTIONS:
+            raise ConfigError(
+                f"mixer {spec!r}: expected options KEY=VALUE with KEY one of "
+                f"{', '.join(CLOSED_FORM_OPTIONS)}, got {option!r}"
+            )
+        overrides.append(f"{CLOSED_FORM_OPTIONS[key.strip()]}={value.strip()}")
+    try:
+        config = load_config(MixerConfig(kind="closed_form"), MixerConfig, overrides=overrides)
+    except ConfigError as error:
+        raise ConfigError(f"mixer {spec!r}: {error}") from None
+    return {}, config
+
+
 # ==================================================================================== mixer
 # The mixer network, its config, training task, checkpoints and the inference pipeline.
 # (Appended to the pure functions above; the network module is jaxden.nn.mixer.PDNet.)
 
 MIXER_KIND = "mixer"
 MIXER_MODEL = "mixer"
+#: MixerConfig.kind: the paper's network, or Eq. 9 with local means (:func:`closed_form_alpha`).
+MIXER_KINDS = ("network", "closed_form")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -587,6 +682,15 @@ class MixerConfig:
       f_act_eps: the eps of f_act (1e-6).
       input_transform: ``"atan"`` (the authors') or ``"log"`` (a signed log; our addition) for
         the var, SURE, residual and divergence inputs; see :data:`INPUT_TRANSFORMS`.
+
+    Closed-form mixer (no network; our addition, see :func:`closed_form_alpha`):
+      kind: ``"network"`` (the paper's PDNet) or ``"closed_form"`` (the paper's Eq. 9 with
+        Gaussian local means of the per-pixel estimates; no parameters, works for any
+        denoiser without training; load it with the spec :data:`CLOSED_FORM_SPEC`).
+      closed_form_sigma: standard deviation in pixels of the Gaussian local means (8: chosen
+        on the training crops of data/default-chain, see docs/results.md).
+      closed_form_per_channel: one alpha per colour channel instead of one for all three.
+      With ``kind = "closed_form"`` the network fields (features, head, width, ...) are unused.
 
     Training:
       swap_probability: probability of swapping (x, var) with (y, SURE) per training sample
@@ -616,6 +720,9 @@ class MixerConfig:
     """
 
     features: tuple[str, ...] = MIXER_FEATURES
+    kind: Literal["network", "closed_form"] = "network"
+    closed_form_sigma: float = 8.0
+    closed_form_per_channel: bool = False
     head: Literal["f_act", "sigmoid", "clip"] = "f_act"
     width: int = 48
     centred_head: bool = True
@@ -637,6 +744,23 @@ class MixerConfig:
         if isinstance(self.features, list):  # a list from Python code; jit needs it hashable
             object.__setattr__(self, "features", tuple(self.features))
         _check_features(self.features)
+        if self.kind not in MIXER_KINDS:
+            raise ConfigError(
+                f"MixerConfig.kind: unknown mixer kind {self.kind!r}; allowed: "
+                f"{', '.join(MIXER_KINDS)}"
+            )
+        if not (isinstance(self.closed_form_sigma, (int, float))
+                and not isinstance(self.closed_form_sigma, bool)
+                and math.isfinite(self.closed_form_sigma) and self.closed_form_sigma > 0):
+            raise ConfigError(
+                f"MixerConfig.closed_form_sigma: expected a number > 0 (pixels), got "
+                f"{self.closed_form_sigma!r}"
+            )
+        if not isinstance(self.closed_form_per_channel, bool):
+            raise ConfigError(
+                f"MixerConfig.closed_form_per_channel: expected true or false, got "
+                f"{self.closed_form_per_channel!r}"
+            )
         if self.head not in ALPHA_HEADS:
             raise ConfigError(
                 f"MixerConfig.head: unknown alpha head {self.head!r}; allowed: "
@@ -685,7 +809,7 @@ class MixerConfig:
 
     @property
     def uses_sure(self) -> bool:
-        return any(f in SURE_BASED_FEATURES for f in self.features)
+        return self.kind == "closed_form" or any(f in SURE_BASED_FEATURES for f in self.features)
 
 
 def mixer_layout(config: MixerConfig) -> dict:
@@ -738,6 +862,8 @@ def mixer_init(key, config: MixerConfig = MixerConfig()):
     """
     from jaxden.nn.mixer import head_bias
 
+    if config.kind == "closed_form":
+        return {}
     sample = jax.ShapeDtypeStruct((1, 8, 8, config.in_channels), jnp.float32)
     shapes = jax.eval_shape(mixer_module(config).init, jax.random.PRNGKey(0), sample)
     leaves, tree = jax.tree_util.tree_flatten_with_path(shapes)
@@ -773,6 +899,9 @@ def _mixer_swap_args(config: MixerConfig, x, y, var, sure):
 
 @functools.partial(jax.jit, static_argnames=("config",))
 def _mixer_alpha(params, x, y, var, sure, config: MixerConfig):
+    if config.kind == "closed_form":
+        return _closed_form_alpha(x, y, var, sure, float(config.closed_form_sigma),
+                                  config.closed_form_per_channel)
     inputs = _mixer_inputs(x, y, var, sure, tuple(config.features), config.input_transform)
     raw = mixer_module(config).apply(params, inputs)
     if config.head == "f_act":
@@ -865,8 +994,9 @@ def load_mixer(spec, *, expect_features: tuple[str, ...] | None = None):
     """``(params, config)`` of a trained mixer.
 
     ``spec``: a training workdir or checkpoint folder of ``jaxden train`` with ``model =
-    "mixer"``, a released ``.msgpack`` file (with its .json), or the name of weights shipped in
-    ``jaxden/weights/<name>.msgpack``. ``expect_features``: the input layout the caller needs.
+    "mixer"``, a released ``.msgpack`` file (with its .json), the name of weights shipped in
+    ``jaxden/weights/<name>.msgpack``, or ``closed-form[:KEY=VALUE,...]`` for the mixer
+    without weights (:func:`closed_form_mixer`; params ``{}``). ``expect_features``: the input layout the caller needs.
 
     Raises CheckpointError naming the difference when the checkpoint is not a mixer (e.g. a
     denoiser checkpoint), its config is not a valid :class:`MixerConfig`, its recorded input
@@ -879,6 +1009,8 @@ def load_mixer(spec, *, expect_features: tuple[str, ...] | None = None):
     from jaxden.config import config_diff, load_config
     from jaxden.errors import CheckpointError
 
+    if isinstance(spec, str) and spec.partition(":")[0] == CLOSED_FORM_SPEC:
+        return closed_form_mixer(spec)
     path = Path(spec)
     if not path.exists() and isinstance(spec, str):
         from jaxden.denoisers import WEIGHTS_DIR
@@ -1093,6 +1225,11 @@ def mixer_task(train_config):
         config = load_config(dict(train_config.model_config), MixerConfig)
     except ConfigError as error:
         raise ConfigError(f"[model_config] of model 'mixer': {error}") from None
+    if config.kind != "network":
+        raise ConfigError(
+            f"[model_config] of model 'mixer': kind = {config.kind!r} has no parameters to "
+            f"train; use it directly with --mixer {CLOSED_FORM_SPEC}"
+        )
     if not train_config.data.dataset:
         raise ConfigError(
             "data.dataset must name a dataset folder (built by `jaxden dataset build`)"
@@ -1138,7 +1275,10 @@ def mixer_task(train_config):
 
 
 __all__ += [
+    "CLOSED_FORM_SPEC",
     "MixerConfig",
+    "closed_form_alpha",
+    "closed_form_mixer",
     "load_mixer",
     "mixer_alpha",
     "mixer_apply",

@@ -27,7 +27,7 @@ from jaxden.config import load_config
 from jaxden.data.builder import build_dataset, synthetic_render
 from jaxden.data.config import DatasetConfig
 from jaxden.denoisers import load_denoiser, make_denoiser
-from jaxden.errors import CheckpointError, FrameError, JaxdenError
+from jaxden.errors import CheckpointError, ConfigError, FrameError, JaxdenError
 from jaxden.io.exr import read_channels, read_header, read_image, write_channels, write_frame
 from jaxden.pdcache import SureCache, denoise_with_sure
 from jaxden.sure import draw_probes, sure_blackbox
@@ -521,7 +521,6 @@ def test_pd_report_script_tstat_override(trained, tmp_path):
 
     from jaxden import pdreport
     from jaxden.config import load_config
-    from jaxden.errors import ConfigError
 
     dataset, workdir = trained
     spp = next(pdreport.iter_crops(dataset, "all"))[2][-1][0]  # the highest input spp
@@ -723,3 +722,28 @@ def test_sure_accuracy_buffers_rows(trained, monkeypatch):
     with pytest.raises(DatasetError, match="collide"):
         pdreport.sure_accuracy_buffers(dataset, ["oidn"], buffers=4, split="all", spp=(8,),
                                        render_fn=fake_render)
+
+
+def test_cli_progressive_closed_form_mixer(tmp_path, capsys):
+    """`--mixer closed-form` needs no weights: same output as progressive_denoise with the
+    closed-form config; the mixer is not tied to a denoiser (no mismatch note for denoisers
+    without a shipped mixer), and it cannot be trained."""
+    frame = small_frame(seed=12)
+    source, out = tmp_path / "in.exr", tmp_path / "out.exr"
+    write_frame(source, frame)
+    code, _, stderr = run_cli(["progressive", source, "--denoiser", "oidn", "--mixer",
+                                    "closed-form:sigma=4", "--out", out, "--seed", 3], capsys)
+    assert code == 0, stderr
+    assert "trained on the output" not in stderr
+    params, config = P.load_mixer("closed-form:sigma=4")
+    z, _, extras = P.progressive_denoise(frame, "oidn", params, config,
+                                                   jax.random.PRNGKey(3))
+    np.testing.assert_allclose(read_image(out), np.asarray(z), rtol=1e-6, atol=1e-6)
+    want = P.closed_form_alpha(frame.color, extras["denoised"], frame.variance, extras["sure"],
+                               sigma=4.0)
+    np.testing.assert_allclose(np.asarray(extras["alpha"]), np.asarray(want), atol=1e-6)
+    code, _, stderr = run_cli(["progressive", source, "--denoiser", "unet", "--out", out],
+                              capsys)
+    assert code == 2 and "--mixer closed-form" in stderr
+    with pytest.raises(ConfigError, match="no parameters to train"):
+        P.mixer_task(load_train_config(TINY_MIXER, ["model_config.kind='closed_form'"]))
