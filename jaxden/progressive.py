@@ -605,7 +605,7 @@ def _closed_form_alpha(x, y, var, sure, sigma: float, per_channel: bool):
     return alpha.reshape(lead + alpha.shape[1:])
 
 
-def closed_form_alpha(x, y, var, sure, *, sigma: float = 8.0, per_channel: bool = False):
+def closed_form_alpha(x, y, var, sure, *, sigma: float = 12.0, per_channel: bool = False):
     """The paper's Eq. 9 with Gaussian local means: a mixer without a network (our addition).
 
     For z = x + alpha (y - x), the alpha that minimises E[(z - mu)^2] is (paper Eq. 9)
@@ -687,8 +687,9 @@ class MixerConfig:
       kind: ``"network"`` (the paper's PDNet) or ``"closed_form"`` (the paper's Eq. 9 with
         Gaussian local means of the per-pixel estimates; no parameters, works for any
         denoiser without training; load it with the spec :data:`CLOSED_FORM_SPEC`).
-      closed_form_sigma: standard deviation in pixels of the Gaussian local means (8: chosen
-        on the training crops of data/default-chain, see docs/results.md).
+      closed_form_sigma: standard deviation in pixels of the Gaussian local means (12: the
+        best geometric-mean RMSE ratio over OIDN on the 480 inputs of data/default-chain, flat
+        within 0.3 % from 8 to 16; experiments/results/closed-form-sigma.md).
       closed_form_per_channel: one alpha per colour channel instead of one for all three.
       With ``kind = "closed_form"`` the network fields (features, head, width, ...) are unused.
 
@@ -721,7 +722,7 @@ class MixerConfig:
 
     features: tuple[str, ...] = MIXER_FEATURES
     kind: Literal["network", "closed_form"] = "network"
-    closed_form_sigma: float = 8.0
+    closed_form_sigma: float = 12.0
     closed_form_per_channel: bool = False
     head: Literal["f_act", "sigmoid", "clip"] = "f_act"
     width: int = 48

@@ -124,7 +124,7 @@ def test_closed_form_alpha_vanishes_as_the_variance_shrinks():
 
 def test_closed_form_spec_config_and_errors(tmp_path):
     params, config = P.load_mixer("closed-form")
-    assert params == {} and config.kind == "closed_form" and config.closed_form_sigma == 8.0
+    assert params == {} and config.kind == "closed_form" and config.closed_form_sigma == 12.0
     _, config = P.load_mixer("closed-form:sigma=3, per_channel=true")
     assert (config.closed_form_sigma, config.closed_form_per_channel) == (3.0, True)
     assert P.mixer_init(jax.random.PRNGKey(0), config) == {}
