@@ -32,6 +32,7 @@ from jaxden.errors import ConfigError, FrameError
 
 __all__ = [
     "ALPHA_HEADS",
+    "EXTRA_MIXER_FEATURES",
     "MIXER_FEATURES",
     "MIXER_FEATURES_NO_SURE",
     "MIXER_LAYOUT",
@@ -60,8 +61,13 @@ __all__ = [
 #:   divergence atan(SURE + var - (x - y)^2) = atan(2 var dy/dx), the paper's sigma^2 f'(x)
 #:              term up to the factor 2 (the authors feed it with the factor)
 MIXER_FEATURES: tuple[str, ...] = ("hdr", "den", "var", "sure", "residual", "divergence")
+#: Optional features beyond the authors' (our addition; not in the default set):
+#:   closed_form  the closed-form mixer's alpha (:func:`closed_form_alpha`, width
+#:                ``MixerConfig.closed_form_sigma``), in [0, 1], untransformed: the network
+#:                starts from Eq. 9's answer and learns where to depart from it.
+EXTRA_MIXER_FEATURES: tuple[str, ...] = ("closed_form",)
 #: Features computed from SURE; dropped together for the paper's "w/o SURE" ablation.
-SURE_BASED_FEATURES: frozenset[str] = frozenset({"sure", "divergence"})
+SURE_BASED_FEATURES: frozenset[str] = frozenset({"sure", "divergence", "closed_form"})
 #: The "w/o SURE" ablation input set (12 channels).
 MIXER_FEATURES_NO_SURE: tuple[str, ...] = tuple(
     f for f in MIXER_FEATURES if f not in SURE_BASED_FEATURES
@@ -107,10 +113,11 @@ MIXER_LAYOUT: dict[str, slice] = {
 def _check_features(features) -> None:
     if not isinstance(features, tuple) or not features:
         raise ConfigError(f"mixer features must be a non-empty tuple of names, got {features!r}")
-    unknown = [f for f in features if f not in MIXER_FEATURES]
+    allowed = MIXER_FEATURES + EXTRA_MIXER_FEATURES
+    unknown = [f for f in features if f not in allowed]
     if unknown:
         raise ConfigError(
-            f"unknown mixer feature(s) {unknown}; allowed: {', '.join(MIXER_FEATURES)}"
+            f"unknown mixer feature(s) {unknown}; allowed: {', '.join(allowed)}"
         )
     if len(set(features)) != len(features):
         raise ConfigError(f"mixer features contain duplicates: {features}")
@@ -154,8 +161,9 @@ def _check_variance_values(var, where: str) -> None:
         )
 
 
-@functools.partial(jax.jit, static_argnames=("features", "transform"))
-def _mixer_inputs(x, y, var, sure, features, transform: str = "atan"):
+@functools.partial(jax.jit, static_argnames=("features", "transform", "closed_form_sigma"))
+def _mixer_inputs(x, y, var, sure, features, transform: str = "atan",
+                  closed_form_sigma: float = 12.0):
     residual_sq = jnp.square(x - y)
     f = INPUT_TRANSFORMS[transform]
     parts = {
@@ -165,12 +173,13 @@ def _mixer_inputs(x, y, var, sure, features, transform: str = "atan"):
         "sure": lambda: f(sure),
         "residual": lambda: f(residual_sq),
         "divergence": lambda: f(sure + var - residual_sq),
+        "closed_form": lambda: _closed_form_alpha(x, y, var, sure, closed_form_sigma, False),
     }
     return jnp.concatenate([parts[name]() for name in features], axis=-1)
 
 
 def mixer_inputs(x, y, var, sure=None, *, features: tuple[str, ...] = MIXER_FEATURES,
-                 transform: str = "atan"):
+                 transform: str = "atan", closed_form_sigma: float = 12.0):
     """Mixer ("PDNet") input features, (..., H, W, 3 * len(features)); 18 channels by default.
 
     Args:
@@ -179,8 +188,9 @@ def mixer_inputs(x, y, var, sure=None, *, features: tuple[str, ...] = MIXER_FEAT
         :func:`jaxden.sure.sure`), same shape; may be None when ``features`` has no
         SURE-based feature.
       features: which features, in which order (see :data:`MIXER_FEATURES`;
-        :data:`MIXER_FEATURES_NO_SURE` for the "w/o SURE" ablation). Channel slices:
-        :func:`mixer_channel_slices`.
+        :data:`MIXER_FEATURES_NO_SURE` for the "w/o SURE" ablation;
+        :data:`EXTRA_MIXER_FEATURES`). Channel slices: :func:`mixer_channel_slices`.
+      closed_form_sigma: width of the ``closed_form`` feature's local means.
 
     Non-radiance features go through ``transform`` (:data:`INPUT_TRANSFORMS`): arctan by
     default (bounded, and defined for the negative values SURE takes), as in the paper's Sec.
@@ -202,7 +212,7 @@ def mixer_inputs(x, y, var, sure=None, *, features: tuple[str, ...] = MIXER_FEAT
     _check_same("mixer_inputs", **arrays)
     x, y, var = jnp.asarray(x), jnp.asarray(y), jnp.asarray(var)
     sure = jnp.asarray(sure) if needs_sure else jnp.zeros_like(x)
-    return _mixer_inputs(x, y, var, sure, features, transform)
+    return _mixer_inputs(x, y, var, sure, features, transform, float(closed_form_sigma))
 
 
 def swap_inputs(key, x, y, var, sure, probability: float = 0.5):
@@ -687,7 +697,8 @@ class MixerConfig:
       kind: ``"network"`` (the paper's PDNet) or ``"closed_form"`` (the paper's Eq. 9 with
         Gaussian local means of the per-pixel estimates; no parameters, works for any
         denoiser without training; load it with the spec :data:`CLOSED_FORM_SPEC`).
-      closed_form_sigma: standard deviation in pixels of the Gaussian local means (12: the
+      closed_form_sigma: standard deviation in pixels of the Gaussian local means (also of
+        the network's optional ``closed_form`` input feature; 12: the
         best geometric-mean RMSE ratio over OIDN on the 480 inputs of data/default-chain, flat
         within 0.3 % from 8 to 16; experiments/results/closed-form-sigma.md).
       closed_form_per_channel: one alpha per colour channel instead of one for all three.
@@ -903,7 +914,8 @@ def _mixer_alpha(params, x, y, var, sure, config: MixerConfig):
     if config.kind == "closed_form":
         return _closed_form_alpha(x, y, var, sure, float(config.closed_form_sigma),
                                   config.closed_form_per_channel)
-    inputs = _mixer_inputs(x, y, var, sure, tuple(config.features), config.input_transform)
+    inputs = _mixer_inputs(x, y, var, sure, tuple(config.features), config.input_transform,
+                           float(config.closed_form_sigma))
     raw = mixer_module(config).apply(params, inputs)
     if config.head == "f_act":
         return _f_act(raw, config.f_act_eps, "by_role")

@@ -143,3 +143,26 @@ def test_closed_form_spec_config_and_errors(tmp_path):
         P.closed_form_alpha(x, y, var, None)
     with pytest.raises(FrameError, match="shape"):
         P.closed_form_alpha(x, y[:4], var, var)
+
+
+def test_closed_form_as_a_network_input_feature():
+    """The optional ``closed_form`` feature is closed_form_alpha at the config's width, turns
+    into 1 - alpha when the inputs are swapped, and a network with it initialises and runs."""
+    x, y, var, sure_map = _inputs(6)
+    features = (*P.MIXER_FEATURES, "closed_form")
+    inputs = np.asarray(P.mixer_inputs(x, y, var, sure_map, features=features,
+                                       closed_form_sigma=2.0))
+    assert inputs.shape == (*x.shape[:-1], 21)
+    part = P.mixer_channel_slices(features)["closed_form"]
+    want = np.asarray(P.closed_form_alpha(x, y, var, sure_map, sigma=2.0))
+    np.testing.assert_allclose(inputs[..., part], want, atol=1e-6)
+    swapped = np.asarray(P.mixer_inputs(y, x, sure_map, var, features=features,
+                                        closed_form_sigma=2.0))
+    np.testing.assert_allclose(swapped[..., part], 1 - want, atol=2e-6)
+    config = P.MixerConfig(features=features, closed_form_sigma=2.0, width=8)
+    params = P.mixer_init(jax.random.PRNGKey(0), config)
+    alpha = np.asarray(P.mixer_alpha(params, config, x, y, var, sure_map))
+    assert alpha.shape == x.shape and np.all((alpha >= 0) & (alpha <= 1))
+    with pytest.raises(ConfigError, match="unknown mixer feature"):
+        P.MixerConfig(features=(*P.MIXER_FEATURES, "oracle"))
+    assert "closed_form" not in P.MIXER_FEATURES_NO_SURE
