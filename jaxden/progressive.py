@@ -621,7 +621,8 @@ def closed_form_alpha(x, y, var, sure, *, sigma: float = 12.0, per_channel: bool
     For z = x + alpha (y - x), the alpha that minimises E[(z - mu)^2] is (paper Eq. 9)
     ``alpha = (var - var E f'(x)) / E[(y - x)^2]``; with SURE = (y - x)^2 - var + 2 var f'(x)
     its numerator is ``((y - x)^2 + var - SURE) / 2``. Per pixel these estimates are far too
-    noisy to use (paper Sec. 4.1; measured: PD / OIDN RMSE 1.89 at sigma 0), so both
+    noisy to use (paper Sec. 4.1; measured: at sigma 2 the mix is already worse than OIDN
+    alone, experiments/results/closed-form-sigma.md), so both
     numerator and denominator are replaced by local means, Gaussian weights of standard
     deviation ``sigma`` pixels (truncated at 3 sigma, only in-image pixels), summed over the
     colour channels unless ``per_channel``, and the ratio is clipped to [0, 1].
