@@ -69,7 +69,8 @@ def summarize(rows: list[dict], sigmas: list[float]) -> dict[str, dict[str, floa
     return out
 
 
-def markdown(summary: dict[str, dict[str, float]], count: int) -> str:
+def markdown(summary: dict[str, dict[str, float]], rows: list[dict], worst: int = 5) -> str:
+    count = len(rows)
     best = min((k for k in summary if k != "mc"), key=lambda k: summary[k]["geometric_mean"])
     lines = [f"RMSE over OIDN's on {count} inputs (no t-test). Selection criterion: the "
              f"geometric mean; best: **{best}**.", "",
@@ -79,6 +80,12 @@ def markdown(summary: dict[str, dict[str, float]], count: int) -> str:
         name = "MC (alpha = 0)" if key == "mc" else f"closed form, {key}"
         lines.append(f"| {name} | {s['geometric_mean']:.4f} | {s['median']:.4f} | "
                      f"{s['mean_over_spp_of_crop_mean_ratio']:.4f} |")
+    lines += ["", f"The {worst} inputs where the closed form at {best} is furthest above OIDN:", "",
+              "| crop | spp | RMSE MC | RMSE OIDN | RMSE closed form | over OIDN |",
+              "|---|---:|---:|---:|---:|---:|"]
+    for r in sorted(rows, key=lambda r: r[best] / r["oidn"], reverse=True)[:worst]:
+        lines.append(f"| {r['crop']} | {r['spp']} | {r['mc']:.4g} | {r['oidn']:.4g} | "
+                     f"{r[best]:.4g} | {r[best] / r['oidn']:.3f} |")
     return "\n".join(lines)
 
 
@@ -97,7 +104,7 @@ def main(argv=None) -> int:
     rows = evaluate(args.data, args.split, args.sigma)
     summary = summarize(rows, args.sigma)
     write_report(args.out, {"provenance": info, "summary": summary, "rows": rows},
-                 markdown(summary, len(rows)))
+                 markdown(summary, rows))
     return 0
 
 
