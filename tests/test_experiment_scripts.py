@@ -9,6 +9,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent.parent / "experiments"))
 import aux_features
+import closed_form_sigma
 import pd_figure  # the experiment scripts are part of the repository: no skip
 import sure_stein
 
@@ -81,3 +82,22 @@ def test_aux_features_ratios_are_ratios_of_crop_means():
     for bad in ("first-hit:16", "next-hit:16:clean", "first-hit:0:clean", "first-hit:x:clean"):
         with pytest.raises(SystemExit, match="--variant"):
             aux_features.parse_variant(bad)
+
+
+def test_closed_form_sigma_summary_and_selection():
+    rows = []
+    for crop, oidn in (("a", 1.0), ("b", 4.0)):
+        for spp in (8, 64):
+            # sigma=2: 2x OIDN on crop a, 0.5x on b (geometric mean 1); sigma=8: 0.9x on both.
+            rows.append({"crop": crop, "spp": spp, "mc": 3 * oidn, "oidn": oidn,
+                         "sigma=2": oidn * (2.0 if crop == "a" else 0.5),
+                         "sigma=8": 0.9 * oidn, "mixer m": oidn})
+    summary = closed_form_sigma.summarize(rows, [2.0, 8.0], ["m"])
+    assert summary["sigma=2"]["geometric_mean"] == pytest.approx(1.0)
+    assert summary["sigma=8"]["geometric_mean"] == pytest.approx(0.9)
+    assert summary["mc"]["median"] == pytest.approx(3.0)
+    # crop means per spp: (2 + 2) / (1 + 4) = 0.8, the metric a bright crop dominates
+    assert summary["sigma=2"]["mean_over_spp_of_crop_mean_ratio"] == pytest.approx(0.8)
+    text = closed_form_sigma.markdown(summary, rows, worst=1)
+    assert "best: **sigma=8**" in text  # the criterion picks 8 although 2 wins crop means
+    assert "| a | 8 |" in text or "| a | 64 |" in text  # the worst input at sigma=8 (a tie)
