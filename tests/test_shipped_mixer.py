@@ -104,6 +104,7 @@ def test_progressive_bench_quick():
     from jaxden import bench
 
     result = bench.run("progressive", quick=True)
-    keys = ("pd_over_oidn", "pd_single_over_oidn", "mixer_over_oidn", "tstat_over_oidn")
+    keys = ("pd_over_oidn", "pd_single_over_oidn", "mixer_over_oidn", "tstat_over_oidn",
+            "closed_form_over_oidn")
     assert all(np.isfinite(result[k]) and result[k] > 0 for k in keys)
     assert (result["width"], result["height"]) == (320, 180)

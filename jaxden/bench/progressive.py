@@ -10,7 +10,9 @@ compiled and warmed up before timing, timed alternately, median of the repeats:
   expect about 1 + K;
 - ``pd_single_over_oidn``: the same with one mixer call (``swap_average`` off, the paper's form);
 - ``mixer_over_oidn``: one mixer call (PDNet on the 18 input channels) / one OIDN call;
-- ``tstat_over_oidn``: the t-statistic scaling alone / one OIDN call.
+- ``tstat_over_oidn``: the t-statistic scaling alone / one OIDN call;
+- ``closed_form_over_oidn``: the closed-form mixer's alpha (``--mixer closed-form``: Eq. 9
+  with Gaussian local means, width 12 px) / one OIDN call; it replaces the mixer call.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ def bench_progressive(quick: bool) -> dict:
     from jaxden.denoisers import load_denoiser
     from jaxden.pdcache import denoise_with_sure
     from jaxden.progressive import (
+        closed_form_alpha,
         load_mixer,
         mixer_alpha,
         progressive_denoise,
@@ -56,11 +59,12 @@ def bench_progressive(quick: bool) -> dict:
         "pd_single": lambda: pd(False),
         "mixer": lambda: mixer_alpha(params, config, x, y, var, sure_map),
         "tstat": lambda: t_statistic_scaling(alpha, x, mixed, var, config.tstat),
+        "closed_form": lambda: closed_form_alpha(x, y, var, sure_map),
     }
     median = median_times(runners, repeats)
     return {
         **{f"{name}_over_oidn": median[name] / median["oidn"]
-           for name in ("pd", "pd_single", "mixer", "tstat")},
+           for name in ("pd", "pd_single", "mixer", "tstat", "closed_form")},
         **{f"{name}_s": value for name, value in median.items()},
         "denoiser": "oidn (CPU, high quality)",
         "mixer": "oidn-pd",
