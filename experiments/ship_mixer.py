@@ -2,6 +2,7 @@
 model card (NAME.md) from the training run and, when given, the PD report on the test set.
 
     python experiments/ship_mixer.py --workdir runs/mixer-oidn --name oidn-pd [--swap-average] \
+        [--config experiments/configs/mixer-oidn.toml] \
         [--report experiments/results/pd-oidn.json --report experiments/results/pd-oidn-high.json]
 
 The weights are the run's final checkpoint; the .json meta record gets the training config,
@@ -49,10 +50,11 @@ def _training_facts(workdir: Path) -> dict:
     }
 
 
-def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], size: int) -> str:
-    workdir = facts["workdir"]
+def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], size: int,
+          config_file: str = "experiments/configs/mixer-oidn.toml") -> str:
     """The model card; ``mc``: the resolved MixerConfig as a dict; ``reports``: (path, pd
-    report JSON) pairs, one section each."""
+    report JSON) pairs, one section each; ``config_file``: the committed training config."""
+    workdir = facts["workdir"]
     cfg = facts["train_config"]
     data = facts["dataset_config"] or {}
     lines = [
@@ -66,7 +68,11 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
         f"{mc['width']} channels, 6 layers, {len(mc['features'])} x 3 = "
         f"{3 * len(mc['features'])} input channels ({', '.join(mc['features'])}; the "
         f"non-radiance ones through `{mc.get('input_transform', 'atan')}`, see "
-        f"`jaxden.progressive.INPUT_TRANSFORMS`), head "
+        f"`jaxden.progressive.INPUT_TRANSFORMS`"
+        + (f"; closed_form: the alpha of the closed-form mixer, the paper's Eq. 9 with Gaussian "
+           f"local means of width {mc.get('closed_form_sigma')} px, "
+           f"`jaxden.progressive.closed_form_alpha`" if "closed_form" in mc["features"] else "")
+        + "), head "
         f"`{mc['head']}` (f_act, one alpha per colour channel). It mixes the Monte Carlo input x "
         f"and OIDN's output y per pixel; at inference the t-statistic scaling (window "
         f"{mc['tstat']['window']}, a = {mc['tstat']['a']}, c = {mc['tstat']['c']}, "
@@ -99,7 +105,7 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
         f"probe seed {mc['sure_seed']} (`jaxden dataset sure-cache`).",
         "",
         "## Training",
-        f"- Config: `experiments/configs/mixer-oidn.toml`; seed {cfg['seed']}; "
+        f"- Config: `{config_file}`; seed {cfg['seed']}; "
         f"{facts['steps']} steps of batch {cfg['data']['batch_size']} x "
         f"{cfg['data']['crop_size']}^2 crops (dihedral augmentation, swap of (x, var) and "
         f"(y, SURE) with probability {mc['swap_probability']}); loss {cfg['optim']['loss']}; "
@@ -111,9 +117,10 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
         f"(2 XLA host devices).",
         f"- Retrain: `jaxden dataset build experiments/configs/dataset-default.toml --out "
         f"{cfg['data']['dataset']}` then `XLA_FLAGS=--xla_force_host_platform_device_count=2 "
-        f"jaxden train experiments/configs/mixer-oidn.toml data.dataset={cfg['data']['dataset']}"
+        f"jaxden train {config_file} data.dataset={cfg['data']['dataset']}"
         f" --workdir {workdir}`, then `python experiments/ship_mixer.py --workdir {workdir} "
-        f"--name {name}{' --swap-average' if mc.get('swap_average') else ''}"
+        f"--name {name}{' --swap-average' if mc.get('swap_average') else ''} "
+        f"--config {config_file}"
         + "".join(f" --report {path}" for path, _ in reports) + "`.",
         "",
     ]
@@ -169,6 +176,9 @@ def main(argv=None) -> int:
                         help="pd_report.py pd JSON for the card (repeatable)")
     parser.add_argument("--swap-average", action="store_true",
                         help="ship with MixerConfig.swap_average = true (inference option)")
+    parser.add_argument("--config", default="experiments/configs/mixer-oidn.toml",
+                        help="the committed training config of the run (named in the card; "
+                             "the weights' tests compare the run's config with it)")
     args = parser.parse_args(argv)
 
     from jaxden.config import config_to_dict
@@ -190,7 +200,7 @@ def main(argv=None) -> int:
         oidn_version = "unavailable"
     extra = {
         "name": args.name, "trained_steps": facts["steps"], "seed": facts["train_config"]["seed"],
-        "train_config": facts["train_config"],
+        "train_config": facts["train_config"], "train_config_file": args.config,
         "dataset_manifest_sha256": facts["dataset_manifest_sha256"],
         "val_loss_final": facts["val_loss_final"], "jaxden_commit": commit,
         "pyoidn_version": oidn_version,
@@ -199,7 +209,8 @@ def main(argv=None) -> int:
     WEIGHTS_DIR.mkdir(exist_ok=True)
     save_mixer(path, params, config, **extra)
     reports = [(p, json.loads(Path(p).read_text())) for p in args.report]
-    card = _card(args.name, facts, config_to_dict(config), reports, path.stat().st_size)
+    card = _card(args.name, facts, config_to_dict(config), reports, path.stat().st_size,
+                 args.config)
     atomic_write_text(path.with_suffix(".md"), card)
     print(f"wrote {path} ({path.stat().st_size / 1024:.0f} KiB), {path.with_suffix('.json')} "
           f"and the model card {path.with_suffix('.md')}")
