@@ -3,7 +3,9 @@
 Each loss takes ``(prediction, target)`` of shape (..., H, W, C) (any leading batch
 dimensions) and returns a scalar: the per-image metric from :mod:`jaxden.metrics` averaged over
 the batch (equal image sizes, so this is the plain mean over every element). ``eps`` defaults
-to 0.01, as in OIDN, progressive denoising and WSKP.
+to 0.01, as in OIDN, progressive denoising and WSKP. :func:`log_ratio_loss` reduces the
+per-image losses (:data:`PER_IMAGE`) differently: the mean of their log ratios to a baseline
+image (training option ``optim.loss_reduction = "log_ratio"``).
 
 Gradients are taken through the whole expression, denominator included (for SMAPE the
 ``|prediction|`` term), as in the authors' PyTorch losses; the target gets gradients too if
@@ -34,6 +36,12 @@ def relmse_loss(prediction, target, eps: float = metrics.EPS):
     return jnp.mean(metrics.relmse(prediction, target, eps))
 
 
+def _relmse_sg_per_image(prediction, target, eps: float = metrics.EPS):
+    pred, target = metrics._pair(prediction, target, "relmse_sg")
+    scale = jnp.square(jax.lax.stop_gradient(pred)) + eps
+    return jnp.mean(jnp.square(pred - target) / scale, axis=(-3, -2, -1))
+
+
 def relmse_sg_loss(prediction, target, eps: float = metrics.EPS):
     """Mean of (x - y)^2 / (sg(x)^2 + eps), sg = stop_gradient: scalar.
 
@@ -44,9 +52,7 @@ def relmse_sg_loss(prediction, target, eps: float = metrics.EPS):
     in the denominator) and ``smape`` both pull x below mu where the reference noise is skewed
     (fireflies).
     """
-    pred, target = metrics._pair(prediction, target, "relmse_sg")
-    scale = jnp.square(jax.lax.stop_gradient(pred)) + eps
-    return jnp.mean(jnp.square(pred - target) / scale)
+    return jnp.mean(_relmse_sg_per_image(prediction, target, eps))
 
 
 def smape_loss(prediction, target, eps: float = metrics.EPS):
@@ -69,7 +75,48 @@ LOSSES = {
     "smape": smape_loss,
 }
 
+#: The same losses per image, (..., H, W, C) -> (...): for reductions other than the plain
+#: mean (``log_ratio_loss``).
+PER_IMAGE = {
+    "l1": metrics.mae,
+    "l2": metrics.mse,
+    "relmse": metrics.relmse,
+    "relmse_sg": _relmse_sg_per_image,
+    "smape": metrics.smape,
+}
+
+#: Floor inside the logarithms of :func:`log_ratio_loss` (a perfect image has loss 0).
+LOG_RATIO_FLOOR = 1e-12
+
+
+def log_ratio_loss(name: str, prediction, target, baseline):
+    """Mean over images of log(loss_i(prediction) / loss_i(baseline)): scalar.
+
+    ``loss_i`` is the per-image form of loss ``name`` (:data:`PER_IMAGE`); exp of the result is
+    the geometric mean over the batch of the per-image ratio to a baseline (for the mixer:
+    the denoised image y it must beat). Its gradient is that of each image's loss divided by
+    the image's own loss, so an input at 4096 spp, whose SMAPE is tens of times smaller than
+    at 2 spp, pulls as hard as one at 2 spp; with the plain mean the low-spp inputs decide.
+    The baseline carries no gradient (it is a constant of the batch).
+    """
+    per_image = PER_IMAGE[name]
+    floor = LOG_RATIO_FLOOR
+    base = jax.lax.stop_gradient(per_image(baseline, target))
+    return jnp.mean(jnp.log(per_image(prediction, target) + floor) - jnp.log(base + floor))
+
+
 __all__ = [
-    "LOSSES", "l1", "l1_loss", "l2", "l2_loss", "relmse", "relmse_loss", "relmse_sg",
-    "relmse_sg_loss", "smape", "smape_loss",
+    "LOSSES",
+    "PER_IMAGE",
+    "l1",
+    "l1_loss",
+    "l2",
+    "l2_loss",
+    "log_ratio_loss",
+    "relmse",
+    "relmse_loss",
+    "relmse_sg",
+    "relmse_sg_loss",
+    "smape",
+    "smape_loss",
 ]

@@ -17,6 +17,7 @@ registry are one task; the progressive-denoising mixer is another (``jaxden.prog
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -55,6 +56,11 @@ class OptimConfig:
     schedule: Literal["onecycle", "constant"] = "onecycle"
     warmup_fraction: float = 0.05
     loss: Literal["smape", "relmse", "relmse_sg", "l1", "l2"] = "smape"
+    # How the per-image losses of a batch become one number: "mean" (the plain mean over
+    # every pixel) or "log_ratio" (the mean of log(loss_i / loss_i(baseline)), the baseline
+    # being the task's image to beat: every image weighs the same, whatever its noise level;
+    # jaxden.losses.log_ratio_loss).
+    loss_reduction: Literal["mean", "log_ratio"] = "mean"
     grad_clip_norm: float | None = None
 
     def __post_init__(self):
@@ -192,13 +198,24 @@ def make_optimizer(optim: OptimConfig) -> optax.GradientTransformation:
     return optax.chain(*parts)
 
 
-def loss_function(name: str) -> Callable[[jax.Array, jax.Array], jax.Array]:
+def loss_function(name: str, reduction: str = "mean") -> Callable[..., jax.Array]:
+    """``loss(prediction, target, baseline=None) -> scalar``: loss ``name`` reduced over the
+    batch by ``reduction`` ('mean', or 'log_ratio' against ``baseline``)."""
     from jaxden import losses
 
     table = losses.LOSSES
     if name not in table:
         raise ConfigError(f"unknown loss {name!r}; choose from {', '.join(table)}")
-    return table[name]
+    if reduction == "mean":
+        return lambda prediction, target, baseline=None: table[name](prediction, target)
+    if reduction == "log_ratio":
+        def log_ratio(prediction, target, baseline=None):
+            if baseline is None:
+                raise ValueError("the log_ratio loss needs the baseline image")
+            return losses.log_ratio_loss(name, prediction, target, baseline)
+
+        return log_ratio
+    raise ConfigError(f"unknown loss reduction {reduction!r}; choose from mean, log_ratio")
 
 
 @jax.tree_util.register_dataclass
@@ -214,7 +231,7 @@ def make_train_step(task: Task, optimizer: optax.GradientTransformation, loss_fn
 
     def objective(params, batch):
         prediction = task.predict(params, batch)
-        return loss_fn(prediction, task.target(batch))
+        return loss_fn(prediction, task.target(batch), task.baseline(batch))
 
     def train_step(state: TrainState, batch) -> tuple[TrainState, dict[str, jax.Array]]:
         loss, grads = jax.value_and_grad(objective)(state.params, batch)
@@ -230,7 +247,9 @@ def make_eval_step(task: Task, loss_fn):
     def eval_step(params, batch) -> dict[str, jax.Array]:
         prediction = task.predict(params, batch)
         target = task.target(batch)
-        return {"loss": loss_fn(prediction, target), "baseline_loss": loss_fn(task.baseline(batch), target)}
+        baseline = task.baseline(batch)
+        return {"loss": loss_fn(prediction, target, baseline),
+                "baseline_loss": loss_fn(baseline, target, baseline)}
 
     return eval_step
 
@@ -361,7 +380,7 @@ def train_and_evaluate(
     ``stop_after``: stop after this many steps of this call (for tests of resumption).
     """
     from jaxden.checkpoint import Checkpointer
-    from jaxden.config import config_diff, config_to_dict, dump_config
+    from jaxden.config import config_diff, config_to_dict, dump_config, load_config
 
     workdir = Path(workdir)
     if workdir.exists() and not workdir.is_dir():
@@ -371,6 +390,9 @@ def train_and_evaluate(
     saved_json = workdir / "config.json"
     if saved_json.exists():
         previous = json.loads(saved_json.read_text())
+        with contextlib.suppress(ConfigError, TypeError, ValueError):
+            # Today's defaults for fields added since the run started (same run).
+            previous = config_to_dict(load_config(previous, TrainConfig))
         differences = config_diff(previous, resolved)
         if differences:
             raise ConfigError(
@@ -381,7 +403,7 @@ def train_and_evaluate(
     # Everything the config can get wrong fails here, before the workdir records the config
     # (a failed start must not leave a workdir that refuses the corrected config).
     task = make_task(config)
-    loss_fn = loss_function(config.optim.loss)
+    loss_fn = loss_function(config.optim.loss, config.optim.loss_reduction)
     optimizer = make_optimizer(config.optim)
     train_loader, val_loader = _loaders(config, task)
     mesh = data_mesh()

@@ -105,3 +105,44 @@ def test_short_aliases():
 def test_shape_mismatch_raises():
     with pytest.raises(FrameError, match="same shape"):
         losses.smape_loss(np.zeros((4, 4, 3)), np.zeros((4, 4, 1)))
+
+
+def test_log_ratio_loss_matches_numpy_and_is_scale_free_per_image(rng):
+    target = rng.random((3, 6, 7, 3)).astype(np.float32) + 0.1
+    # One error pattern for every image, at per-image scales (below).
+    error = np.broadcast_to(rng.normal(0.0, 1.0, (1,) + target.shape[1:]), target.shape)
+    base_error = np.broadcast_to(rng.normal(0.0, 1.0, (1,) + target.shape[1:]), target.shape)
+    error, base_error = error.astype(np.float32), base_error.astype(np.float32)
+    # Per-image error scales 100x apart: a 2-spp input beside a 4096-spp one.
+    scales = np.array([1.0, 0.1, 0.01], np.float32).reshape(3, 1, 1, 1)
+    prediction, baseline = target + 0.5 * scales * error, target + scales * base_error
+    for name in ("l1", "l2"):
+        per = {"l1": lambda a: np.mean(np.abs(a), axis=(1, 2, 3)),
+               "l2": lambda a: np.mean(np.square(a), axis=(1, 2, 3))}[name]
+        expected = np.mean(np.log(per(prediction.astype(np.float64) - target)
+                                  / per(baseline.astype(np.float64) - target)))
+        value = losses.log_ratio_loss(name, prediction, target, baseline)
+        np.testing.assert_allclose(value, expected, rtol=1e-5, err_msg=name)
+        # l1 and l2 are homogeneous in the error, so the per-image ratio, and with it the
+        # loss, do not see the per-image scale: every image weighs the same.
+        same = losses.log_ratio_loss(name, target + 0.5 * error, target, target + base_error)
+        np.testing.assert_allclose(value, same, rtol=1e-5, err_msg=name)
+        # ... whereas the plain mean is decided by the noisiest image.
+        plain_grad = jax.grad(losses.LOSSES[name])(prediction, target)
+        ratio_grad = jax.grad(losses.log_ratio_loss, argnums=1)(name, prediction, target,
+                                                                 baseline)
+        plain_norm = np.linalg.norm(np.asarray(plain_grad).reshape(3, -1) * scales.reshape(3, 1),
+                                    axis=1)
+        ratio_norm = np.linalg.norm(np.asarray(ratio_grad).reshape(3, -1) * scales.reshape(3, 1),
+                                    axis=1)
+        # Directional derivative along each image's own error scale: equal under log_ratio.
+        np.testing.assert_allclose(ratio_norm / ratio_norm[0], 1.0, rtol=1e-4, err_msg=name)
+        assert plain_norm[2] < 0.05 * plain_norm[0], name
+
+
+def test_log_ratio_loss_has_no_gradient_through_the_baseline(rng):
+    target = rng.random((2, 4, 4, 3)).astype(np.float32)
+    baseline = target + 0.1
+    grad = jax.grad(lambda b: losses.log_ratio_loss("smape", target + 0.2, target, b))(baseline)
+    assert not np.any(np.asarray(grad))
+    assert set(losses.PER_IMAGE) == set(losses.LOSSES)

@@ -155,3 +155,33 @@ def test_two_devices_give_the_same_loss_and_gradients_as_one(tiny_dataset):
     state, metrics = jax.jit(make_train_step(task, optimizer, loss_fn))(state, shard_batch(batch, mesh))
     assert int(state.step) == 1 and np.isfinite(float(metrics["loss"]))
     assert optax.global_norm(state.params) > 0
+
+
+def test_log_ratio_reduction_trains_and_a_run_from_before_the_field_resumes(tiny_dataset, tmp_path):
+    config = small_config(tiny_dataset, "wskp", steps=4)
+    ratio = TrainConfig(**{**config.__dict__, "checkpoint_every": 2, "eval_every": 4,
+                           "optim": OptimConfig(steps=4, learning_rate=5e-3, loss="smape",
+                                                loss_reduction="log_ratio")})
+    result = train_and_evaluate(ratio, tmp_path / "ratio", progress=False)
+    # The baseline against itself: log 1 = 0; the model's value is a finite log ratio.
+    assert result["val_baseline_loss"] == 0.0 and np.isfinite(result["val_loss"]), result
+    # A workdir written before optim.loss_reduction existed (its config.json lacks the key)
+    # resumes: the absent field takes today's default, which is what that run used.
+    plain = TrainConfig(**{**config.__dict__, "checkpoint_every": 2, "eval_every": 4})
+    train_and_evaluate(plain, tmp_path / "old", progress=False, stop_after=2)
+    saved = json.loads((tmp_path / "old" / "config.json").read_text())
+    del saved["optim"]["loss_reduction"]
+    (tmp_path / "old" / "config.json").write_text(json.dumps(saved))
+    assert train_and_evaluate(plain, tmp_path / "old", progress=False)["step"] == 4
+    # ... but not with another reduction.
+    with pytest.raises(ConfigError, match="loss_reduction"):
+        train_and_evaluate(ratio, tmp_path / "old", progress=False)
+
+
+def test_unknown_loss_reduction_is_named():
+    from jaxden.train import load_train_config
+
+    with pytest.raises(ConfigError, match="loss_reduction"):
+        load_train_config("experiments/configs/train-wskp.toml", ["optim.loss_reduction=median"])
+    with pytest.raises(ConfigError, match="unknown loss reduction 'median'"):
+        loss_function("smape", "median")
