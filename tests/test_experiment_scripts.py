@@ -10,6 +10,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent.parent / "experiments"))
 import aux_features
 import closed_form_sigma
+import mix_combinations
 import pd_figure  # the experiment scripts are part of the repository: no skip
 import sure_stein
 
@@ -101,3 +102,25 @@ def test_closed_form_sigma_summary_and_selection():
     text = closed_form_sigma.markdown(summary, rows, worst=1)
     assert "best: **sigma=8**" in text  # the criterion picks 8 although 2 wins crop means
     assert "| a | 8 |" in text or "| a | 64 |" in text  # the worst input at sigma=8 (a tie)
+
+
+def test_mix_combinations_summary():
+    rows = []
+    for crop, oidn in (("a", 1.0), ("b", 3.0)):
+        for spp in (8, 64):
+            row = {"crop": crop, "spp": spp, "mc": [2.0 * oidn, 4.0], "oidn": [oidn, 1.0]}
+            # mixer: 0.9x OIDN in RMSE, 1.1x in relMSE; at 64 spp above MC on crop b only.
+            row["mixer"] = [0.9 * oidn, 1.1]
+            if spp == 64 and crop == "b":
+                row["mixer"] = [7.0, 1.1]
+            row["closed form"] = row["min"] = row["mean"] = [oidn, 1.0]
+            rows.append(row)
+    summary = mix_combinations.summarize(rows)["mixer"]
+    # 8 spp: (0.9 + 2.7) / 4 = 0.9; 64 spp: (0.9 + 7) / 4 = 1.975; mean over spp 1.4375
+    assert summary["rmse_over_oidn"] == pytest.approx(1.4375)
+    assert summary["relmse_over_oidn"] == pytest.approx(1.1)
+    assert summary["rmse_over_mc_at_max_spp"] == pytest.approx(7.9 / 8.0)
+    assert summary["worst_crop"] == "b" and summary["worst_crop_over_mc"] == pytest.approx(7 / 6)
+    assert summary["crops_above_mc"] == 1 and summary["max_spp"] == 64
+    text = mix_combinations.markdown(mix_combinations.summarize(rows))
+    assert "| mixer | 1.438 | 1.100 | 0.988 | 1.167 (b) | 1 of 2 |" in text
