@@ -239,9 +239,14 @@ def swap_inputs(key, x, y, var, sure, probability: float = 0.5):
 
 # ---------------------------------------------------------------------------------- alpha
 
-#: Raw output channels per alpha head: the paper's f_act (3 values per colour channel) and the
-#: "w/o f_act" ablation where the network predicts alpha directly.
-ALPHA_HEADS: dict[str, int] = {"f_act": 9, "sigmoid": 3, "clip": 3}
+#: Raw output channels per alpha head: the paper's f_act (3 values per colour channel), the
+#: "w/o f_act" ablation where the network predicts alpha directly, and ``closed_form_logit``
+#: (our addition): a correction to the closed-form alpha in logit space,
+#: alpha = sigmoid(logit(alpha_cf) + raw), so an output of 0 is Eq. 9 with local means.
+ALPHA_HEADS: dict[str, int] = {"f_act": 9, "sigmoid": 3, "clip": 3, "closed_form_logit": 3}
+
+#: alpha_cf is clipped to [eps, 1 - eps] before its logit in the ``closed_form_logit`` head.
+CLOSED_FORM_LOGIT_EPS = 1e-3
 
 
 @functools.partial(jax.jit, static_argnames=("grouping",))
@@ -296,7 +301,22 @@ def alpha_from_head(raw, head: str = "f_act", eps: float = 1e-6):
         return f_act(raw, eps)
     if head in ("sigmoid", "clip"):
         return alpha_direct(raw, head)
+    if head == "closed_form_logit":
+        raise ConfigError("the closed_form_logit head needs the closed-form alpha of the "
+                          "inputs: use mixer_alpha (or closed_form_logit_alpha)")
     raise ConfigError(f"unknown alpha head {head!r}; allowed: {', '.join(ALPHA_HEADS)}")
+
+
+def closed_form_logit_alpha(raw, alpha_cf):
+    """The ``closed_form_logit`` head: sigmoid(logit(clip(alpha_cf, eps, 1 - eps)) + raw).
+
+    ``raw`` (..., H, W, 3) network outputs, ``alpha_cf`` (..., H, W, 1 or 3) from
+    :func:`closed_form_alpha`; returns (..., H, W, 3) in (0, 1). Swap-consistent: logit(1 - a)
+    = -logit(a), so the swapped inputs (whose closed form is exactly 1 - alpha_cf) see the
+    same correction problem with the sign flipped.
+    """
+    a = jnp.clip(jnp.asarray(alpha_cf), CLOSED_FORM_LOGIT_EPS, 1.0 - CLOSED_FORM_LOGIT_EPS)
+    return jax.nn.sigmoid(jnp.log(a) - jnp.log1p(-a) + jnp.asarray(raw))
 
 
 @jax.jit
@@ -701,7 +721,10 @@ class MixerConfig:
       features: mixer inputs (:data:`MIXER_FEATURES`, 18 channels; :data:`MIXER_FEATURES_NO_SURE`
         for the "w/o SURE" ablation, 12 channels).
       head: ``"f_act"`` (paper Eq. 19, 9 outputs) or ``"sigmoid"`` / ``"clip"`` (the "w/o f_act"
-        ablation: alpha predicted directly, 3 outputs). See :data:`ALPHA_HEADS`.
+        ablation: alpha predicted directly, 3 outputs), or ``"closed_form_logit"`` (our
+        addition, 3 outputs: a logit-space correction of the closed-form alpha with this
+        config's ``closed_form_sigma`` / ``closed_form_per_channel``; an untrained network
+        starts at the closed form). See :data:`ALPHA_HEADS`.
       width: hidden channels (48). centred_head: start alpha near 0.5 (see
         :func:`jaxden.nn.mixer.head_bias`; our choice, the paper does not say).
       init_output_scale: factor on the initial output-layer kernel (0.1): with the full
@@ -753,7 +776,7 @@ class MixerConfig:
     kind: Literal["network", "closed_form"] = "network"
     closed_form_sigma: float = 12.0
     closed_form_per_channel: bool = False
-    head: Literal["f_act", "sigmoid", "clip"] = "f_act"
+    head: Literal["f_act", "sigmoid", "clip", "closed_form_logit"] = "f_act"
     width: int = 48
     centred_head: bool = True
     init_output_scale: float = 0.1
@@ -839,7 +862,8 @@ class MixerConfig:
 
     @property
     def uses_sure(self) -> bool:
-        return self.kind == "closed_form" or any(f in SURE_BASED_FEATURES for f in self.features)
+        return (self.kind == "closed_form" or self.head == "closed_form_logit"
+                or any(f in SURE_BASED_FEATURES for f in self.features))
 
 
 def mixer_layout(config: MixerConfig) -> dict:
@@ -937,6 +961,10 @@ def _mixer_alpha(params, x, y, var, sure, config: MixerConfig):
     raw = mixer_module(config).apply(params, inputs)
     if config.head == "f_act":
         return _f_act(raw, config.f_act_eps, "by_role")
+    if config.head == "closed_form_logit":
+        alpha_cf = _closed_form_alpha(x, y, var, sure, float(config.closed_form_sigma),
+                                      config.closed_form_per_channel)
+        return closed_form_logit_alpha(raw, alpha_cf)
     if config.head == "sigmoid":
         return jax.nn.sigmoid(raw)
     return jnp.clip(raw, 0.0, 1.0)

@@ -8,6 +8,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax
@@ -166,3 +167,35 @@ def test_closed_form_as_a_network_input_feature():
     with pytest.raises(ConfigError, match="unknown mixer feature"):
         P.MixerConfig(features=(*P.MIXER_FEATURES, "oracle"))
     assert "closed_form" not in P.MIXER_FEATURES_NO_SURE
+
+
+def test_closed_form_logit_head_starts_at_the_closed_form_and_corrects_it():
+    """head = closed_form_logit: alpha = sigmoid(logit(alpha_cf) + raw). With a zero output
+    layer it is the closed form (clipped to [eps, 1 - eps]), swap averaging included; a raw
+    output r moves the logit by exactly r; it needs SURE whatever the features."""
+    x, y, var, sure_map = _inputs(8)
+    config = P.MixerConfig(head="closed_form_logit", closed_form_sigma=2.0, width=8,
+                           features=P.MIXER_FEATURES_NO_SURE)
+    assert config.uses_sure and P.ALPHA_HEADS["closed_form_logit"] == 3
+    params = P.mixer_init(jax.random.PRNGKey(0), config)
+    out = params["params"]["conv_out"]
+    zero = jax.tree_util.tree_map(np.zeros_like, out)
+    flat = {"params": {**params["params"], "conv_out": zero}}
+    want = np.clip(np.asarray(P.closed_form_alpha(x, y, var, sure_map, sigma=2.0)),
+                   P.CLOSED_FORM_LOGIT_EPS, 1 - P.CLOSED_FORM_LOGIT_EPS)
+    got = np.asarray(P.mixer_alpha(flat, config, x, y, var, sure_map))
+    np.testing.assert_allclose(got, np.broadcast_to(want, got.shape), atol=2e-6)
+    averaged = dataclasses.replace(config, swap_average=True)
+    got = np.asarray(P._inference_alpha(flat, x, y, var, sure_map, averaged, True))
+    np.testing.assert_allclose(got, np.broadcast_to(want, got.shape), atol=4e-6)
+    shifted = {"params": {**params["params"],
+                          "conv_out": {"kernel": zero["kernel"],
+                                       "bias": np.array([0.5, -1.0, 2.0], np.float32)}}}
+    got = np.asarray(P.mixer_alpha(shifted, config, x, y, var, sure_map), np.float64)
+    logit = np.log(got) - np.log1p(-got)
+    np.testing.assert_allclose(logit - (np.log(want) - np.log1p(-want)),
+                               np.broadcast_to([0.5, -1.0, 2.0], got.shape), atol=2e-3)
+    with pytest.raises(FrameError, match="need 'sure'"):
+        P.mixer_alpha(params, config, x, y, var)
+    with pytest.raises(ConfigError, match="closed_form_logit head needs"):
+        P.alpha_from_head(np.zeros((2, 2, 3), np.float32), "closed_form_logit")

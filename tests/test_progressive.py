@@ -360,7 +360,7 @@ def test_alpha_heads_and_mix():
     raw = np.array([[[-2.0, 0.0, 0.3]]], np.float32)
     np.testing.assert_allclose(np.asarray(P.alpha_direct(raw)), 1 / (1 + np.exp(-raw)), rtol=1e-6)
     np.testing.assert_allclose(np.asarray(P.alpha_direct(raw, "clip")), [[[0.0, 0.0, 0.3]]])
-    assert P.ALPHA_HEADS == {"f_act": 9, "sigmoid": 3, "clip": 3}
+    assert P.ALPHA_HEADS == {"f_act": 9, "sigmoid": 3, "clip": 3, "closed_form_logit": 3}
     with pytest.raises(ConfigError, match="unknown alpha head"):
         P.alpha_from_head(raw, "softmax")
     x = np.array([[[1.0, 2.0, 3.0]]], np.float32)
