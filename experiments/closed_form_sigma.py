@@ -27,14 +27,9 @@ from pathlib import Path
 import numpy as np
 
 
-def evaluate(data: Path, split: str, sigmas: list[float], mixers: list[str]) -> list[dict]:
-    """One row per input: crop, spp, RMSE of MC, OIDN, the closed-form mix per sigma and each
-    trained mixer's mix (no t-test, the mixer config's swap averaging)."""
+def open_oidn_cache(data: Path):
+    """The dataset's complete OIDN SURE cache and its input item ids by (crop, spp)."""
     from jaxden.pdcache import SureCache, default_cache_dir
-    from jaxden.pdreport import iter_crops
-    from jaxden.progressive import _inference_alpha, closed_form_alpha, load_mixer
-
-    loaded = {spec: load_mixer(spec) for spec in mixers}
 
     cache = SureCache(data, default_cache_dir(data, "oidn"))
     if not cache.complete:
@@ -42,6 +37,18 @@ def evaluate(data: Path, split: str, sigmas: list[float], mixers: list[str]) -> 
                          f"sure-cache {data} --denoiser oidn`")
     items = {(item.crop, item.spp): item.id for item in cache.dataset.items
              if item.kind == "input"}
+    return cache, items
+
+
+def evaluate(data: Path, split: str, sigmas: list[float], mixers: list[str]) -> list[dict]:
+    """One row per input: crop, spp, RMSE of MC, OIDN, the closed-form mix per sigma and each
+    trained mixer's mix (no t-test, the mixer config's swap averaging)."""
+    from jaxden.pdreport import iter_crops
+    from jaxden.progressive import _inference_alpha, closed_form_alpha, load_mixer
+
+    loaded = {spec: load_mixer(spec) for spec in mixers}
+
+    cache, items = open_oidn_cache(data)
     rows = []
     for crop, reference, inputs in iter_crops(data, split):
         ref = np.asarray(reference.color, np.float64)

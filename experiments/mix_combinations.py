@@ -30,9 +30,9 @@ COMBINATIONS = ("mixer", "closed form", "min", "mean")
 def evaluate(data: Path, split: str, mixer: str) -> list[dict]:
     """One row per input: crop, spp and (RMSE, relMSE) of MC, OIDN and each combination."""
     import jax.numpy as jnp
+    from closed_form_sigma import open_oidn_cache
 
     from jaxden import metrics
-    from jaxden.pdcache import SureCache, default_cache_dir
     from jaxden.pdreport import iter_crops
     from jaxden.progressive import (
         _inference_alpha,
@@ -43,12 +43,7 @@ def evaluate(data: Path, split: str, mixer: str) -> list[dict]:
     )
 
     params, config = load_mixer(mixer)
-    cache = SureCache(data, default_cache_dir(data, "oidn"))
-    if not cache.complete:
-        raise SystemExit(f"{data}: the OIDN SURE cache is incomplete; run `jaxden dataset "
-                         f"sure-cache {data} --denoiser oidn`")
-    items = {(item.crop, item.spp): item.id for item in cache.dataset.items
-             if item.kind == "input"}
+    cache, items = open_oidn_cache(data)
     rows = []
     for crop, reference, inputs in iter_crops(data, split):
         ref = np.asarray(reference.color)
