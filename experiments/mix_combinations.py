@@ -68,7 +68,9 @@ def evaluate(data: Path, split: str, mixer: str) -> list[dict]:
     return rows
 
 
-def summarize(rows: list[dict]) -> dict[str, dict]:
+def summarize(rows: list[dict], names=COMBINATIONS) -> dict[str, dict]:
+    """Per name of ``names`` (a key of every row): RMSE and relMSE over OIDN, over MC at the
+    highest spp, and the worst crop there."""
     spps = sorted({r["spp"] for r in rows})
     top = spps[-1]
 
@@ -76,7 +78,7 @@ def summarize(rows: list[dict]) -> dict[str, dict]:
         return float(np.mean([r[name][metric] for r in rows if r["spp"] == spp]))
 
     out = {}
-    for name in COMBINATIONS:
+    for name in names:
         over_oidn = [float(np.mean([crop_mean(name, m, s) / crop_mean("oidn", m, s)
                                     for s in spps])) for m in (0, 1)]
         per_crop = {r["crop"]: r[name][0] / r["mc"][0] for r in rows if r["spp"] == top}

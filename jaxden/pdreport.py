@@ -76,11 +76,10 @@ def _errors(image, reference) -> dict[str, float]:
     }
 
 
-def oracle_mix(x, y, reference, block: int = ORACLE_BLOCK) -> np.ndarray:
-    """The best mix ``x + alpha (y - x)`` with one alpha in [0, 1] per channel and per
-    ``block`` x ``block`` tile, fitted by least squares to the reference: an upper bound on
-    what a mixer whose alpha varies on that scale can reach (it sees the reference, so it is
-    not a method). Tiles at the right/bottom edge may be smaller."""
+def oracle_alpha(x, y, reference, block: int = ORACLE_BLOCK) -> np.ndarray:
+    """The alpha of :func:`oracle_mix`: one value in [0, 1] per channel and per ``block`` x
+    ``block`` tile, the least-squares fit of ``x + alpha (y - x)`` to the reference, spread over
+    the tile's pixels; (H, W, C) float64."""
     x, y, r = (np.asarray(a, np.float64) for a in (x, y, reference))
     h, w = x.shape[:2]
     out = np.empty_like(x)
@@ -90,9 +89,17 @@ def oracle_mix(x, y, reference, block: int = ORACLE_BLOCK) -> np.ndarray:
             d = (y - x)[tile]
             num = np.sum((r - x)[tile] * d, axis=(0, 1))
             den = np.sum(d * d, axis=(0, 1))
-            alpha = np.clip(np.divide(num, den, out=np.zeros_like(num), where=den > 0), 0, 1)
-            out[tile] = x[tile] + alpha * d
-    return out.astype(np.float32)
+            out[tile] = np.clip(np.divide(num, den, out=np.zeros_like(num), where=den > 0), 0, 1)
+    return out
+
+
+def oracle_mix(x, y, reference, block: int = ORACLE_BLOCK) -> np.ndarray:
+    """The best mix ``x + alpha (y - x)`` with one alpha in [0, 1] per channel and per
+    ``block`` x ``block`` tile, fitted by least squares to the reference: an upper bound on
+    what a mixer whose alpha varies on that scale can reach (it sees the reference, so it is
+    not a method). Tiles at the right/bottom edge may be smaller."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    return (x + oracle_alpha(x, y, reference, block) * (y - x)).astype(np.float32)
 
 
 def _progress(iterable, total: int | None, show: bool, what: str):

@@ -307,16 +307,22 @@ def alpha_from_head(raw, head: str = "f_act", eps: float = 1e-6):
     raise ConfigError(f"unknown alpha head {head!r}; allowed: {', '.join(ALPHA_HEADS)}")
 
 
-def closed_form_logit_alpha(raw, alpha_cf):
-    """The ``closed_form_logit`` head: sigmoid(logit(clip(alpha_cf, eps, 1 - eps)) + raw).
+def closed_form_logit_alpha(raw, alpha_cf, bound: float | None = None,
+                            eps: float = CLOSED_FORM_LOGIT_EPS):
+    """The ``closed_form_logit`` head: sigmoid(logit(clip(alpha_cf, eps, 1 - eps)) + c).
 
     ``raw`` (..., H, W, 3) network outputs, ``alpha_cf`` (..., H, W, 1 or 3) from
-    :func:`closed_form_alpha`; returns (..., H, W, 3) in (0, 1). Swap-consistent: logit(1 - a)
-    = -logit(a), so the swapped inputs (whose closed form is exactly 1 - alpha_cf) see the
-    same correction problem with the sign flipped.
+    :func:`closed_form_alpha`; returns (..., H, W, 3) in (0, 1). The correction is c = raw,
+    or with a ``bound`` B, c = B tanh(raw / B): the logit then never moves more than B from
+    Eq. 9's (a trust region around the closed form; slope 1 at raw = 0). Swap-consistent:
+    logit(1 - a) = -logit(a) and the bound is odd, so the swapped inputs (whose closed form is
+    exactly 1 - alpha_cf) see the same correction problem with the sign flipped.
     """
-    a = jnp.clip(jnp.asarray(alpha_cf), CLOSED_FORM_LOGIT_EPS, 1.0 - CLOSED_FORM_LOGIT_EPS)
-    return jax.nn.sigmoid(jnp.log(a) - jnp.log1p(-a) + jnp.asarray(raw))
+    a = jnp.clip(jnp.asarray(alpha_cf), eps, 1.0 - eps)
+    correction = jnp.asarray(raw)
+    if bound is not None:
+        correction = bound * jnp.tanh(correction / bound)
+    return jax.nn.sigmoid(jnp.log(a) - jnp.log1p(-a) + correction)
 
 
 @jax.jit
@@ -733,6 +739,11 @@ class MixerConfig:
       f_act_eps: the eps of f_act (1e-6).
       input_transform: ``"atan"`` (the authors') or ``"log"`` (a signed log; our addition) for
         the var, SURE, residual and divergence inputs; see :data:`INPUT_TRANSFORMS`.
+      logit_bound: with the ``closed_form_logit`` head, None (the correction is the raw
+        output) or B > 0: the correction is B tanh(raw / B), so alpha's logit stays within B
+        of Eq. 9's whatever the inputs (see :func:`closed_form_logit_alpha`).
+      logit_eps: with the ``closed_form_logit`` head, alpha_cf is clipped to [eps, 1 - eps]
+        before its logit (default :data:`CLOSED_FORM_LOGIT_EPS`).
 
     Closed-form mixer (no network; our addition, see :func:`closed_form_alpha`):
       kind: ``"network"`` (the paper's PDNet) or ``"closed_form"`` (the paper's Eq. 9 with
@@ -782,6 +793,8 @@ class MixerConfig:
     init_output_scale: float = 0.1
     f_act_eps: float = 1e-6
     input_transform: Literal["atan", "log"] = "atan"
+    logit_bound: float | None = None
+    logit_eps: float = CLOSED_FORM_LOGIT_EPS
     swap_probability: float = 0.5
     tstat: TStatConfig = TStatConfig()
     swap_average: bool = False
@@ -831,6 +844,23 @@ class MixerConfig:
             raise ConfigError(
                 f"MixerConfig.input_transform: unknown transform {self.input_transform!r}; "
                 f"allowed: {', '.join(INPUT_TRANSFORMS)}"
+            )
+        if self.logit_bound is not None and not (
+                isinstance(self.logit_bound, (int, float)) and not isinstance(self.logit_bound, bool)
+                and math.isfinite(self.logit_bound) and self.logit_bound > 0):
+            raise ConfigError(
+                f"MixerConfig.logit_bound: expected a number > 0 or none, got {self.logit_bound!r}"
+            )
+        if not (isinstance(self.logit_eps, (int, float)) and not isinstance(self.logit_eps, bool)
+                and 0.0 < self.logit_eps < 0.5):
+            raise ConfigError(
+                f"MixerConfig.logit_eps: expected a number in (0, 0.5), got {self.logit_eps!r}"
+            )
+        if self.head != "closed_form_logit" and (
+                self.logit_bound is not None or self.logit_eps != CLOSED_FORM_LOGIT_EPS):
+            raise ConfigError(
+                f"MixerConfig.logit_bound / logit_eps apply only to head = 'closed_form_logit' "
+                f"(head is {self.head!r})"
             )
         if not 0.0 <= self.swap_probability <= 1.0:
             raise ConfigError(
@@ -964,7 +994,7 @@ def _mixer_alpha(params, x, y, var, sure, config: MixerConfig):
     if config.head == "closed_form_logit":
         alpha_cf = _closed_form_alpha(x, y, var, sure, float(config.closed_form_sigma),
                                       config.closed_form_per_channel)
-        return closed_form_logit_alpha(raw, alpha_cf)
+        return closed_form_logit_alpha(raw, alpha_cf, config.logit_bound, config.logit_eps)
     if config.head == "sigmoid":
         return jax.nn.sigmoid(raw)
     return jnp.clip(raw, 0.0, 1.0)

@@ -199,3 +199,70 @@ def test_closed_form_logit_head_starts_at_the_closed_form_and_corrects_it():
         P.mixer_alpha(params, config, x, y, var)
     with pytest.raises(ConfigError, match="closed_form_logit head needs"):
         P.alpha_from_head(np.zeros((2, 2, 3), np.float32), "closed_form_logit")
+
+
+def test_closed_form_logit_bound_is_a_trust_region_around_the_closed_form():
+    """logit_bound = B: the correction is B tanh(raw / B). Whatever the raw output (here up to
+    +-1e4, as a firefly's linear radiance input can drive a ReLU network), alpha's logit stays
+    within B of the closed form's; near raw = 0 it is the unbounded head (slope 1); the bound
+    is odd, so swap averaging of a zero network is still the closed form."""
+    a = np.array([0.001, 0.02, 0.3, 0.5, 0.97, 0.999], np.float32)[:, None, None] * np.ones(
+        (1, 2, 3), np.float32)
+    logit_a = np.log(a.astype(np.float64)) - np.log1p(-a.astype(np.float64))
+    for bound in (0.5, 2.0, 3.0):
+        for raw in (-1e4, -40.0, -1.0, 1.0, 40.0, 1e4):
+            got = np.asarray(P.closed_form_logit_alpha(np.full(a.shape, raw, np.float32), a,
+                                                       bound), np.float64)
+            shift = np.log(got) - np.log1p(-got) - logit_a
+            want = bound * np.tanh(raw / bound)
+            np.testing.assert_allclose(shift, want, atol=2e-3 * max(1.0, abs(want)))
+            assert np.all(np.abs(shift) <= bound + 1e-3)
+        small = np.full(a.shape, 1e-3, np.float32)
+        np.testing.assert_allclose(P.closed_form_logit_alpha(small, a, bound),
+                                   P.closed_form_logit_alpha(small, a), atol=1e-6)
+    # Unbounded, a huge raw output overrides the closed form completely.
+    assert float(np.max(P.closed_form_logit_alpha(np.full(a.shape, -40.0, np.float32), a))) < 1e-3
+    # eps: alpha_cf = 1 is clipped to 1 - eps before the logit.
+    one = np.ones((2, 2, 3), np.float32)
+    zero_raw = np.zeros_like(one)
+    np.testing.assert_allclose(P.closed_form_logit_alpha(zero_raw, one, None, 1e-4), 1 - 1e-4,
+                               atol=1e-6)
+    x, y, var, sure_map = _inputs(8)
+    config = P.MixerConfig(head="closed_form_logit", closed_form_sigma=2.0, width=8,
+                           logit_bound=2.0, logit_eps=1e-4)
+    params = P.mixer_init(jax.random.PRNGKey(0), config)
+    zero = jax.tree_util.tree_map(np.zeros_like, params["params"]["conv_out"])
+    flat = {"params": {**params["params"], "conv_out": zero}}
+    want = np.clip(np.asarray(P.closed_form_alpha(x, y, var, sure_map, sigma=2.0)), 1e-4,
+                   1 - 1e-4)
+    got = np.asarray(P._inference_alpha(flat, x, y, var, sure_map, config, True))
+    np.testing.assert_allclose(got, np.broadcast_to(want, got.shape), atol=4e-6)
+    loud = {"params": {**params["params"], "conv_out": {
+        "kernel": zero["kernel"], "bias": np.array([1e3, -1e3, 0.0], np.float32)}}}
+    got = np.asarray(P.mixer_alpha(loud, config, x, y, var, sure_map), np.float64)
+    shift = np.log(got) - np.log1p(-got) - (np.log(want) - np.log1p(-want))
+    np.testing.assert_allclose(shift, np.broadcast_to([2.0, -2.0, 0.0], got.shape), atol=5e-3)
+
+
+@pytest.mark.parametrize("fields, match", [
+    ({"head": "closed_form_logit", "logit_bound": 0.0}, "logit_bound: expected a number > 0"),
+    ({"head": "closed_form_logit", "logit_bound": float("nan")}, "logit_bound"),
+    ({"head": "closed_form_logit", "logit_bound": True}, "logit_bound"),
+    ({"head": "closed_form_logit", "logit_eps": 0.5}, r"logit_eps: expected a number in \(0, 0.5\)"),
+    ({"head": "closed_form_logit", "logit_eps": 0}, "logit_eps"),
+    ({"logit_bound": 2.0}, "apply only to head = 'closed_form_logit'"),
+    ({"head": "sigmoid", "logit_eps": 1e-4}, "apply only to head"),
+])
+def test_closed_form_logit_bound_config_errors(fields, match):
+    with pytest.raises(ConfigError, match=match):
+        P.MixerConfig(**fields)
+
+
+def test_closed_form_logit_bound_loads_from_toml_overrides(tmp_path):
+    from jaxden.config import load_config
+
+    config = load_config(P.MixerConfig(), P.MixerConfig, overrides=[
+        "head=closed_form_logit", "logit_bound=3", "logit_eps=1e-4"])
+    assert config.logit_bound == 3 and config.logit_eps == 1e-4
+    with pytest.raises(ConfigError, match="logit_bound"):
+        load_config(P.MixerConfig(), P.MixerConfig, overrides=["logit_bound=3"])

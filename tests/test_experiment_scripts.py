@@ -1,5 +1,6 @@
 """Pure helpers of the experiment scripts (experiments/*.py), tested without data or renders."""
 
+import math
 import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -9,6 +10,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent.parent / "experiments"))
 import aux_features
+import cflogit_bound
 import closed_form_sigma
 import mix_combinations
 import pd_figure  # the experiment scripts are part of the repository: no skip
@@ -124,3 +126,23 @@ def test_mix_combinations_summary():
     assert summary["crops_above_mc"] == 1 and summary["max_spp"] == 64
     text = mix_combinations.markdown(mix_combinations.summarize(rows))
     assert "| mixer | 1.438 | 1.100 | 0.988 | 1.167 (b) | 1 of 2 |" in text
+
+
+def test_cflogit_bound_interpolates_from_the_closed_form_to_the_oracle():
+    """B = 0 is the closed form, B = inf the oracle (both clipped to [eps, 1 - eps]); in
+    between the logit moves min(|c*|, B) toward the oracle, never past it."""
+    rng = np.random.default_rng(3)
+    a_cf = rng.uniform(0, 1, (6, 6, 3))
+    a_cf[0, 0] = 1.0
+    oracle = rng.uniform(0, 1, (6, 6, 3))
+    oracle[0, 0] = 0.0
+    got = cflogit_bound.bounded_alphas(a_cf, oracle, (0.0, 1.0, math.inf))
+    eps = cflogit_bound.EPS
+    np.testing.assert_allclose(got[0.0], np.clip(a_cf, eps, 1 - eps), rtol=1e-9)
+    np.testing.assert_allclose(got[math.inf], np.clip(oracle, eps, 1 - eps), rtol=1e-9)
+    shift = cflogit_bound.logit(got[1.0]) - cflogit_bound.logit(a_cf)
+    wanted = cflogit_bound.logit(oracle) - cflogit_bound.logit(a_cf)
+    np.testing.assert_allclose(shift, np.clip(wanted, -1, 1), atol=1e-9)
+    assert got[1.0][0, 0, 0] == pytest.approx(1 / (1 + np.exp(-(np.log((1 - eps) / eps) - 1))))
+    assert cflogit_bound.bound_name(math.inf) == "B=inf (oracle)"
+    assert cflogit_bound.bound_name(2.0) == "B=2"
