@@ -13,6 +13,12 @@ the render should win). SURE: 4 finite-difference probes, seed 0, as in the PD r
 ``--mixer untrained:SPEC`` shows where training started (SPEC's config, seed-0 init). Also
 listed: the crop's mean variance, the t-test's Gaussian width sigma_s for it, and the mean
 absolute first-layer weight of each mixer on each input feature.
+
+``--worst-pixels N`` adds, per crop, spp and mixer, the N pixels where PD (swap-averaged
+alpha, after the t-test) is furthest from the reference: x, y, the reference, var and SURE
+(means over the colour channels), the closed form's alpha (:func:`closed_form_alpha`, default
+width) and the mixer's single, swapped and averaged alpha there. This is how a mixer that
+overrides the closed form on a firefly shows itself.
 """
 
 from __future__ import annotations
@@ -37,7 +43,24 @@ def _load(spec: str):
     return load_mixer(spec)
 
 
-def evaluate(data: Path, crops, spp, mixers, denoiser: str = "oidn", seed: int = 0):
+def worst_pixels(truth, x, y, var, sure, alphas: dict, z, count: int) -> list[dict]:
+    """The ``count`` pixels with the largest squared error of ``z`` (summed over channels),
+    with the channel means of the inputs and of each alpha of ``alphas`` there."""
+    error = np.sum((np.asarray(z, np.float64) - truth) ** 2, axis=-1)
+    order = np.argsort(error, axis=None)[::-1][:count]
+    pixels = []
+    for flat in order:
+        i, j = np.unravel_index(flat, error.shape)
+        entry = {"pixel": [int(i), int(j)], "error": float(np.sqrt(error[i, j]))}
+        for name, image in (("x", x), ("y", y), ("reference", truth), ("var", var),
+                            ("sure", sure), *alphas.items()):
+            entry[name] = float(np.mean(np.asarray(image)[i, j]))
+        pixels.append(entry)
+    return pixels
+
+
+def evaluate(data: Path, crops, spp, mixers, denoiser: str = "oidn", seed: int = 0,
+             worst: int = 0):
     import jax
     import jax.numpy as jnp
 
@@ -48,6 +71,7 @@ def evaluate(data: Path, crops, spp, mixers, denoiser: str = "oidn", seed: int =
         _gaussian_sigma,
         _mixer_alpha,
         _mixer_swap_args,
+        closed_form_alpha,
         mix,
         t_statistic_scaling,
     )
@@ -78,11 +102,17 @@ def evaluate(data: Path, crops, spp, mixers, denoiser: str = "oidn", seed: int =
                 swapped = 1.0 - _mixer_alpha(params, *_mixer_swap_args(config, x, y, var, sure),
                                              config)
                 entry = {"tstat_sigma": float(_gaussian_sigma(var, config.tstat))}
-                for name, alpha in (("single", single), ("swapped", swapped),
-                                    ("average", (single + swapped) / 2)):
+                alphas = {"single": single, "swapped": swapped, "average": (single + swapped) / 2}
+                pd = {}
+                for name, alpha in alphas.items():
                     scaled = t_statistic_scaling(alpha, x, mix(x, y, alpha), var, config.tstat)
+                    pd[name] = mix(x, y, scaled)
                     entry[name] = {"alpha": float(jnp.mean(alpha)),
-                                   "pd_over_mc": rmse(mix(x, y, scaled)) / mc}
+                                   "pd_over_mc": rmse(pd[name]) / mc}
+                if worst:
+                    alphas = {"closed_form": closed_form_alpha(x, y, var, sure), **alphas}
+                    entry["worst_pixels"] = worst_pixels(truth, x, y, var, sure, alphas,
+                                                         pd["average"], worst)
                 row["mixers"][spec] = entry
             rows.append(row)
     missing = sorted(set(crops) - found)
@@ -121,6 +151,20 @@ def markdown(rows, mixers, weights=None) -> str:
                 + " / ".join(f"{e[k]['alpha']:.3f}" for k in ("single", "swapped", "average"))
                 + " | " + " / ".join(f"{e[k]['pd_over_mc']:.3f}"
                                      for k in ("single", "swapped", "average")) + " |")
+    pixel_lines = []
+    for row in rows:
+        for spec in mixers:
+            for p in row["mixers"][spec].get("worst_pixels", []):
+                pixel_lines.append(
+                    f"| {row['crop']} | {row['spp']} | `{spec}` | {p['pixel'][0]}, {p['pixel'][1]} "
+                    f"| {p['error']:.3g} | {p['x']:.3g} | {p['y']:.3g} | {p['reference']:.3g} | "
+                    f"{p['var']:.3g} | {p['sure']:.3g} | {p['closed_form']:.3f} | "
+                    f"{p['single']:.3f} / {p['swapped']:.3f} / {p['average']:.3f} |")
+    if pixel_lines:
+        lines += ["", "Worst pixels of PD (swap-averaged alpha, after the t-test); channel means:",
+                  "", ("| crop | spp | mixer | row, col | PD error | x | y | reference | var | "
+                       "SURE | closed-form alpha | alpha single / swapped / average |"),
+                  "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---|", *pixel_lines]
     if weights:
         names = list(next(iter(weights.values())))
         lines += ["", "Mean |weight| of the first convolution, per input feature:", "",
@@ -139,13 +183,16 @@ def main(argv=None) -> int:
                         help="a mixer spec (shipped name, run folder or .msgpack), or "
                              "untrained:SPEC (its config, untrained); repeatable")
     parser.add_argument("--seed", type=int, default=0, help="SURE probe seed")
+    parser.add_argument("--worst-pixels", type=int, default=0, metavar="N",
+                        help="also list the N pixels with the largest PD error per input")
     parser.add_argument("--out", type=Path, required=True, help="output path without suffix")
     args = parser.parse_args(argv)
 
     from pd_report import provenance, write_report
 
     info = provenance(args, {"mixers": args.mixer, "crops": args.crop})
-    rows = evaluate(args.data, args.crop, args.spp, args.mixer, seed=args.seed)
+    rows = evaluate(args.data, args.crop, args.spp, args.mixer, seed=args.seed,
+                    worst=args.worst_pixels)
     weights = first_layer_weights(args.mixer)
     write_report(args.out, {"provenance": info, "rows": rows, "first_layer_weights": weights},
                  markdown(rows, args.mixer, weights))

@@ -146,3 +146,20 @@ def test_cflogit_bound_interpolates_from_the_closed_form_to_the_oracle():
     assert got[1.0][0, 0, 0] == pytest.approx(1 / (1 + np.exp(-(np.log((1 - eps) / eps) - 1))))
     assert cflogit_bound.bound_name(math.inf) == "B=inf (oracle)"
     assert cflogit_bound.bound_name(2.0) == "B=2"
+
+
+def test_mixer_alpha_worst_pixels_finds_the_largest_errors():
+    import mixer_alpha
+
+    truth = np.zeros((4, 5, 3))
+    x = np.ones((4, 5, 3))
+    z = np.zeros((4, 5, 3))
+    z[1, 2] = 3.0  # the worst pixel
+    z[3, 4, 0] = 2.0  # the second worst
+    alphas = {"a": np.full((4, 5, 3), 0.25)}
+    got = mixer_alpha.worst_pixels(truth, x, 2 * x, 3 * x, 4 * x, alphas, z, 2)
+    assert [p["pixel"] for p in got] == [[1, 2], [3, 4]]
+    assert got[0]["error"] == pytest.approx(np.sqrt(27)) and got[1]["error"] == pytest.approx(2)
+    assert (got[0]["x"], got[0]["y"], got[0]["var"], got[0]["sure"], got[0]["a"]) == (
+        1.0, 2.0, 3.0, 4.0, 0.25)
+    assert got[0]["reference"] == 0.0
