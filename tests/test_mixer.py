@@ -401,5 +401,7 @@ def test_load_mixer_from_a_run_on_another_device_count(tmp_path):
     params, config = P.load_mixer(workdir)
     assert config == P.MixerConfig(width=4)
     want = P.mixer_init(jax.random.PRNGKey(3), config)
+    # Equal to float32 rounding: the saving process draws its init on the CPU, this one on
+    # whatever backend it runs (an H100's normal draws differ from the CPU's in the last bit).
     for a, b in zip(jax.tree_util.tree_leaves(want), jax.tree_util.tree_leaves(params)):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-6, atol=1e-7)

@@ -753,6 +753,29 @@ def test_bench_registry_run_table_and_json(monkeypatch, capsys):
         bench.run("nope")
 
 
+def test_bench_frame_is_rendered_or_read_from_the_environment(tmp_path, monkeypatch):
+    """bench_frame renders the Cornell box (4 spp, seed 1), or reads $JAXDEN_BENCH_FRAME on a
+    machine without Mitsuba; a file of another size or without variance is refused."""
+    from jaxden.bench import BENCH_FRAME_ENV, bench_frame
+    from jaxden.io.exr import write_frame
+
+    monkeypatch.delenv(BENCH_FRAME_ENV, raising=False)
+    rendered = bench_frame((24, 16))
+    assert rendered.color.shape == (16, 24, 3) and rendered.variance is not None
+    path = tmp_path / "frame.exr"
+    write_frame(path, rendered)
+    monkeypatch.setenv(BENCH_FRAME_ENV, str(path))
+    read = bench_frame((24, 16))
+    np.testing.assert_array_equal(read.color, rendered.color)
+    np.testing.assert_array_equal(read.variance, rendered.variance)
+    with pytest.raises(JaxdenError, match=r"frame.exr: the frame is 24x16, the benchmark needs "
+                                          r"1280x720"):
+        bench_frame((1280, 720))
+    write_frame(path, rendered.replace(variance=None))
+    with pytest.raises(JaxdenError, match="variance"):
+        bench_frame((24, 16))
+
+
 @pytest.mark.slow
 def test_render_bench_quick(capsys):
     from jaxden import bench

@@ -61,6 +61,33 @@ def median_times(runners: dict[str, Callable[[], object]], repeats: int) -> dict
     return {name: statistics.median(values) for name, values in times.items()}
 
 
+#: Environment variable naming an EXR frame that :func:`bench_frame` reads instead of rendering
+#: (for machines without Mitsuba, e.g. a GPU machine: render it elsewhere with
+#: ``jaxden render cornell-box --spp 4 --seed 1 --size 1280x720 --half --out F.exr``).
+BENCH_FRAME_ENV = "JAXDEN_BENCH_FRAME"
+
+
+def bench_frame(size: tuple[int, int]):
+    """The benchmarks' input: the Cornell box at 4 spp, seed 1, ``size`` = (width, height),
+    rendered, or read from the EXR that ``$JAXDEN_BENCH_FRAME`` names (it must have that size,
+    colour and variance)."""
+    import os
+
+    path = os.environ.get(BENCH_FRAME_ENV)
+    if not path:
+        from jaxden.render.core import render_frame
+
+        return render_frame("cornell-box", 4, seed=1, size=size)
+    from jaxden.io.exr import read_frame
+
+    frame = read_frame(path, require=("color", "variance"))
+    height, width = frame.color.shape[:2]
+    if (width, height) != tuple(size):
+        raise JaxdenError(f"${BENCH_FRAME_ENV} = {path}: the frame is {width}x{height}, the "
+                          f"benchmark needs {size[0]}x{size[1]}")
+    return frame
+
+
 def names() -> list[str]:
     """Names of all registered benchmarks, sorted."""
     _discover()

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxden.bench import median_times, register
+from jaxden.bench import bench_frame, median_times, register
 
 MODELS = {"wskp3": "wskp3", "wskp6": "wskp", "kp": "kp", "unet": "unet"}
 
@@ -22,11 +22,10 @@ def bench_denoisers(quick: bool) -> dict:
     import jax
 
     from jaxden.denoisers import make_denoiser
-    from jaxden.render.core import render_frame
 
     size = (320, 180) if quick else (1280, 720)
     repeats = 3 if quick else 7
-    frame = render_frame("cornell-box", 4, seed=1, size=size)
+    frame = bench_frame(size)
     device_frame = jax.device_put(frame)
     runners = {}
     for key, name in MODELS.items():

@@ -17,7 +17,7 @@ compiled and warmed up before timing, timed alternately, median of the repeats:
 
 from __future__ import annotations
 
-from jaxden.bench import median_times, register
+from jaxden.bench import bench_frame, median_times, register
 
 
 @register("progressive")
@@ -35,11 +35,10 @@ def bench_progressive(quick: bool) -> dict:
         shipped_mixer_path,
         t_statistic_scaling,
     )
-    from jaxden.render.core import render_frame
 
     size = (320, 180) if quick else (1280, 720)
     repeats = 2 if quick else 3
-    frame = render_frame("cornell-box", 4, seed=1, size=size)
+    frame = bench_frame(size)
     oidn = load_denoiser("oidn")
     params, config = load_mixer(str(shipped_mixer_path("oidn")))
     key = jax.random.PRNGKey(0)

@@ -12,7 +12,7 @@ values), all jitted and compiled before timing, timed alternately, median of the
 
 from __future__ import annotations
 
-from jaxden.bench import median_times, register
+from jaxden.bench import bench_frame, median_times, register
 
 
 @register("sure")
@@ -20,12 +20,11 @@ def bench_sure(quick: bool) -> dict:
     import jax
 
     from jaxden.denoisers import make_denoiser
-    from jaxden.render.core import render_frame
     from jaxden.sure import sure
 
     size = (320, 180) if quick else (1280, 720)
     repeats = 3 if quick else 5
-    frame = jax.device_put(render_frame("cornell-box", 4, seed=1, size=size))
+    frame = jax.device_put(bench_frame(size))
     denoiser = make_denoiser("wskp", key=jax.random.PRNGKey(0)).deployed()
     definition, config, params = denoiser.definition, denoiser.config, denoiser.params
 
