@@ -22,6 +22,7 @@ import argparse
 import datetime
 import hashlib
 import json
+import math
 import os
 import platform
 import shlex
@@ -105,9 +106,12 @@ def cmd_pd(args: argparse.Namespace) -> None:
         if args.tstat:
             config = dataclasses.replace(
                 config, tstat=load_config(config.tstat, TStatConfig, overrides=args.tstat))
+        if args.logit_bound is not None:
+            config = dataclasses.replace(config, logit_bound=args.logit_bound or None)
         source = provenance(args, {"denoiser": args.denoiser[0],
                                    "mixer": _weights_identity(args.mixer),
                                    "swap_average": config.swap_average,
+                                   "logit_bound": config.logit_bound,
                                    "tstat": config_to_dict(config.tstat)})
         rows = pdreport.evaluate_progressive(args.data, args.denoiser[0], (params, config),
                                              split=args.split, seed=args.seed,
@@ -117,6 +121,19 @@ def cmd_pd(args: argparse.Namespace) -> None:
     name = "OIDN" if denoiser == "oidn" else denoiser
     result = {"summary": summary, "rows": rows, "provenance": source}
     write_report(Path(args.out), result, pdreport.markdown_progressive(summary, name))
+
+
+def _logit_bound(text: str) -> float:
+    """--logit-bound: a number > 0, or 'none' (0.0 here: no bound)."""
+    if text.strip().lower() == "none":
+        return 0.0
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a number > 0 or 'none', got {text!r}")
+    return value
 
 
 def cmd_sure(args: argparse.Namespace) -> None:
@@ -219,6 +236,9 @@ def main(argv=None) -> int:
                            help="override a field of the mixer's t-statistic config "
                                 "(jaxden.progressive.TStatConfig), e.g. sigma_min=1.0; "
                                 "repeatable")
+            p.add_argument("--logit-bound", default=None, type=_logit_bound, metavar="B|none",
+                           help="override a closed_form_logit mixer's logit_bound at inference "
+                                "(an ablation: 'none' removes the bound it was trained with)")
         if name == "sure-buffers":
             p.add_argument("--buffers", type=int, default=16,
                            help="independent sub-buffers per render (spp / buffers each)")
@@ -232,7 +252,13 @@ def main(argv=None) -> int:
     from jaxden.compile_cache import enable_compilation_cache
 
     enable_compilation_cache()
-    args.func(args)
+    from jaxden.errors import JaxdenError
+
+    try:
+        args.func(args)
+    except JaxdenError as error:  # a bad mixer, dataset or override: its message, no traceback
+        print(f"pd_report: error: {error}", file=sys.stderr)
+        return 2
     return 0
 
 

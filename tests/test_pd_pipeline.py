@@ -513,7 +513,7 @@ def test_mixer_alpha_script_matches_the_pipeline(trained):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
-def test_pd_report_script_tstat_override(trained, tmp_path):
+def test_pd_report_script_tstat_override(trained, tmp_path, capsys):
     """experiments/pd_report.py pd --tstat KEY=VALUE: the rows are those of the mixer with that
     t-statistic field changed, and the provenance records it; a bad key names the field."""
     sys.path.insert(0, str(Path(__file__).parent.parent / "experiments"))
@@ -541,10 +541,18 @@ def test_pd_report_script_tstat_override(trained, tmp_path):
                                             spp=(spp,))
     assert [r["pd_rmse"] for r in default] != pytest.approx([r["pd_rmse"] for r in rows],
                                                             rel=1e-6)  # c matters here
-    with pytest.raises(ConfigError, match="sigma_mn"):
-        pd_report.main(["pd", "--data", str(dataset), "--split", "all", "--denoiser", "oidn",
-                        "--mixer", str(workdir), "--tstat", "sigma_mn=1", "--out",
-                        str(tmp_path / "bad")])
+    # Bad overrides: the message names the field, exit status 2, no report written.
+    for option, value, match in (("--tstat", "sigma_mn=1", "sigma_mn"),
+                                 ("--logit-bound", "3", "apply only to head")):
+        assert pd_report.main(["pd", "--data", str(dataset), "--split", "all", "--denoiser",
+                               "oidn", "--mixer", str(workdir), option, value, "--out",
+                               str(tmp_path / "bad")]) == 2
+        assert match in capsys.readouterr().err
+        assert not (tmp_path / "bad.json").exists()
+    for text in ("0", "-1", "nan", "x"):
+        with pytest.raises(argparse.ArgumentTypeError, match="expected a number > 0 or 'none'"):
+            pd_report._logit_bound(text)
+    assert pd_report._logit_bound("None") == 0.0 and pd_report._logit_bound("2.5") == 2.5
 
 
 def test_pd_report_rows_match_direct_computation(trained):
