@@ -50,6 +50,20 @@ def _training_facts(workdir: Path) -> dict:
     }
 
 
+def _head_text(mc: dict) -> str:
+    """What the mixer's alpha head computes, for the card."""
+    if mc["head"] == "closed_form_logit":
+        bound = mc.get("logit_bound")
+        correction = "raw" if bound is None else f"{bound:g} tanh(raw / {bound:g})"
+        return (f"alpha = sigmoid(logit(alpha_cf) + {correction}), alpha_cf the paper's Eq. 9 "
+                f"with Gaussian local means of width {mc.get('closed_form_sigma')} px clipped "
+                f"to [{mc.get('logit_eps'):g}, 1 - {mc.get('logit_eps'):g}]: the network "
+                f"corrects the closed form within a bounded logit; our addition")
+    if mc["head"] == "f_act":
+        return "the paper's f_act = (x1 - x2) / max(x3, eps), clipped to [0, 1]"
+    return f"alpha predicted directly ({mc['head']}; the paper's 'w/o f_act' ablation)"
+
+
 def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], size: int,
           config_file: str = "experiments/configs/mixer-oidn.toml") -> str:
     """The model card; ``mc``: the resolved MixerConfig as a dict; ``reports``: (path, pd
@@ -73,7 +87,8 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
            f"local means of width {mc.get('closed_form_sigma')} px, "
            f"`jaxden.progressive.closed_form_alpha`" if "closed_form" in mc["features"] else "")
         + "), head "
-        f"`{mc['head']}` (f_act, one alpha per colour channel). It mixes the Monte Carlo input x "
+        f"`{mc['head']}` ({_head_text(mc)}, one alpha per colour channel). It mixes the Monte "
+        f"Carlo input x "
         f"and OIDN's output y per pixel; at inference the t-statistic scaling (window "
         f"{mc['tstat']['window']}, a = {mc['tstat']['a']}, c = {mc['tstat']['c']}, "
         f"per_channel = {str(mc['tstat']['per_channel']).lower()}) makes the result consistent"

@@ -48,7 +48,7 @@ def test_shipped_mixer_files_and_model_card():
         assert needle in card
     params, config = P.load_mixer("oidn-pd")
     assert config.features[:len(P.MIXER_FEATURES)] == P.MIXER_FEATURES
-    assert config.head == "f_act"
+    assert config.head == "closed_form_logit" and config.logit_bound == 4.0  # since session 10
     leaves = jax.tree_util.tree_leaves(params)
     assert all(np.all(np.isfinite(np.asarray(leaf))) for leaf in leaves)
     assert P.shipped_mixer_path("unet") is None and P.shipped_progressive_denoiser("unet") is None
