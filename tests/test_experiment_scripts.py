@@ -163,3 +163,16 @@ def test_mixer_alpha_worst_pixels_finds_the_largest_errors():
     assert (got[0]["x"], got[0]["y"], got[0]["var"], got[0]["sure"], got[0]["a"]) == (
         1.0, 2.0, 3.0, 4.0, 0.25)
     assert got[0]["reference"] == 0.0
+
+
+def test_ship_mixer_card_describes_the_head():
+    import ship_mixer
+
+    bounded = ship_mixer._head_text({"head": "closed_form_logit", "logit_bound": 4.0,
+                                     "logit_eps": 1e-4, "closed_form_sigma": 12.0})
+    assert "4 tanh(raw / 4)" in bounded and "12.0 px" in bounded and "[0.0001, 1 - 0.0001]" in bounded
+    unbounded = ship_mixer._head_text({"head": "closed_form_logit", "logit_bound": None,
+                                       "logit_eps": 1e-3, "closed_form_sigma": 12.0})
+    assert "logit(alpha_cf) + raw)" in unbounded
+    assert "f_act" in ship_mixer._head_text({"head": "f_act"})
+    assert "w/o f_act" in ship_mixer._head_text({"head": "sigmoid"})
