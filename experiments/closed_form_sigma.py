@@ -73,19 +73,26 @@ def evaluate(data: Path, split: str, sigmas: list[float], mixers: list[str]) -> 
     return rows
 
 
-def summarize(rows: list[dict], sigmas: list[float], mixers: list[str]
-              ) -> dict[str, dict[str, float]]:
-    keys = ["mc"] + [f"sigma={s:g}" for s in sigmas] + [f"mixer {m}" for m in mixers]
+def ratio_summary(rows: list[dict], keys: list[str], base: str = "oidn"
+                  ) -> dict[str, dict[str, float]]:
+    """Per key, the error ``row[key]`` over ``row[base]``: geometric mean and median over the
+    rows (inputs), and the mean over spp of the per-spp ratio of crop means."""
     spps = sorted({r["spp"] for r in rows})
     out = {}
     for key in keys:
-        ratios = np.array([r[key] / r["oidn"] for r in rows])
+        ratios = np.array([r[key] / r[base] for r in rows])
         per_spp = [np.mean([r[key] for r in rows if r["spp"] == s])
-                   / np.mean([r["oidn"] for r in rows if r["spp"] == s]) for s in spps]
+                   / np.mean([r[base] for r in rows if r["spp"] == s]) for s in spps]
         out[key] = {"geometric_mean": float(np.exp(np.mean(np.log(ratios)))),
                     "median": float(np.median(ratios)),
                     "mean_over_spp_of_crop_mean_ratio": float(np.mean(per_spp))}
     return out
+
+
+def summarize(rows: list[dict], sigmas: list[float], mixers: list[str]
+              ) -> dict[str, dict[str, float]]:
+    keys = ["mc"] + [f"sigma={s:g}" for s in sigmas] + [f"mixer {m}" for m in mixers]
+    return ratio_summary(rows, keys)
 
 
 def markdown(summary: dict[str, dict[str, float]], rows: list[dict], worst: int = 5) -> str:

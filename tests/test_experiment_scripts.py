@@ -1,5 +1,6 @@
 """Pure helpers of the experiment scripts (experiments/*.py), tested without data or renders."""
 
+import argparse
 import math
 import sys
 import xml.etree.ElementTree as ET
@@ -12,6 +13,7 @@ sys.path.insert(0, str(Path(__file__).parent.parent / "experiments"))
 import aux_features
 import cflogit_bound
 import closed_form_sigma
+import closed_form_stops
 import mix_combinations
 import pd_figure  # the experiment scripts are part of the repository: no skip
 import sure_stein
@@ -176,3 +178,26 @@ def test_ship_mixer_card_describes_the_head():
     assert "logit(alpha_cf) + raw)" in unbounded
     assert "f_act" in ship_mixer._head_text({"head": "f_act"})
     assert "w/o f_act" in ship_mixer._head_text({"head": "sigmoid"})
+
+
+def test_closed_form_stops_summary_and_selection():
+    rows = []
+    for crop, oidn in (("a", [1.0, 0.1]), ("b", [4.0, 0.2])):
+        for spp in (8, 64):
+            # stops=none: RMSE 0.9x, relMSE 2x; stops=1: RMSE 0.95x, relMSE 0.8x (wins on the
+            # mean of the two geometric means, 0.875 against 1.45).
+            rows.append({"crop": crop, "spp": spp, "mc": [3 * oidn[0], 5 * oidn[1]],
+                         "oidn": oidn, "stops=none": [0.9 * oidn[0], 2 * oidn[1]],
+                         "stops=1": [0.95 * oidn[0], 0.8 * oidn[1]]})
+    keys = ["mc", "stops=none", "stops=1"]
+    summary = closed_form_stops.summarize(rows, keys)
+    assert summary["rmse"]["stops=none"]["geometric_mean"] == pytest.approx(0.9)
+    assert summary["relmse"]["stops=1"]["median"] == pytest.approx(0.8)
+    assert summary["relmse"]["mc"]["mean_over_spp_of_crop_mean_ratio"] == pytest.approx(5.0)
+    assert closed_form_stops.best_stops(summary, keys) == "stops=1"
+    assert "best: **stops=1**" in closed_form_stops.markdown(summary, keys, len(rows))
+    assert closed_form_stops.parse_stops("none") is None
+    assert closed_form_stops.parse_stops("0.5") == 0.5
+    for bad in ("0", "-1", "x"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            closed_form_stops.parse_stops(bad)
