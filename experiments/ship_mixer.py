@@ -55,8 +55,13 @@ def _head_text(mc: dict) -> str:
     if mc["head"] == "closed_form_logit":
         bound = mc.get("logit_bound")
         correction = "raw" if bound is None else f"{bound:g} tanh(raw / {bound:g})"
+        stops = mc.get("closed_form_stops")
+        strata = ("" if stops is None else
+                  f" over neighbours of similar brightness (strata {stops:g} stops wide, "
+                  f"`closed_form_stops`)")
         return (f"alpha = sigmoid(logit(alpha_cf) + {correction}), alpha_cf the paper's Eq. 9 "
-                f"with Gaussian local means of width {mc.get('closed_form_sigma')} px clipped "
+                f"with Gaussian local means of width {mc.get('closed_form_sigma')} px{strata} "
+                f"clipped "
                 f"to [{mc.get('logit_eps'):g}, 1 - {mc.get('logit_eps'):g}]: the network "
                 f"corrects the closed form within a bounded logit; our addition")
     if mc["head"] == "f_act":

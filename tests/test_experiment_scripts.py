@@ -175,7 +175,11 @@ def test_ship_mixer_card_describes_the_head():
     assert "4 tanh(raw / 4)" in bounded and "12.0 px" in bounded and "[0.0001, 1 - 0.0001]" in bounded
     unbounded = ship_mixer._head_text({"head": "closed_form_logit", "logit_bound": None,
                                        "logit_eps": 1e-3, "closed_form_sigma": 12.0})
-    assert "logit(alpha_cf) + raw)" in unbounded
+    assert "logit(alpha_cf) + raw)" in unbounded and "brightness" not in unbounded
+    strata = ship_mixer._head_text({"head": "closed_form_logit", "logit_bound": 4.0,
+                                    "logit_eps": 1e-4, "closed_form_sigma": 12.0,
+                                    "closed_form_stops": 1.0})
+    assert "similar brightness (strata 1 stops wide" in strata
     assert "f_act" in ship_mixer._head_text({"head": "f_act"})
     assert "w/o f_act" in ship_mixer._head_text({"head": "sigmoid"})
 
