@@ -98,7 +98,7 @@ def cmd_pd(args: argparse.Namespace) -> None:
         import dataclasses
 
         from jaxden.config import config_to_dict, load_config
-        from jaxden.progressive import TStatConfig, load_mixer
+        from jaxden.progressive import MixerConfig, TStatConfig, load_mixer
 
         params, config = load_mixer(args.mixer)
         if args.swap_average is not None:
@@ -108,10 +108,14 @@ def cmd_pd(args: argparse.Namespace) -> None:
                 config, tstat=load_config(config.tstat, TStatConfig, overrides=args.tstat))
         if args.logit_bound is not None:
             config = dataclasses.replace(config, logit_bound=args.logit_bound or None)
+        if args.mixer_set:
+            config = load_config(config, MixerConfig, overrides=args.mixer_set)
         source = provenance(args, {"denoiser": args.denoiser[0],
                                    "mixer": _weights_identity(args.mixer),
                                    "swap_average": config.swap_average,
                                    "logit_bound": config.logit_bound,
+                                   "mixer_overrides": args.mixer_set,
+                                   "closed_form_stops": config.closed_form_stops,
                                    "tstat": config_to_dict(config.tstat)})
         rows = pdreport.evaluate_progressive(args.data, args.denoiser[0], (params, config),
                                              split=args.split, seed=args.seed,
@@ -239,6 +243,10 @@ def main(argv=None) -> int:
             p.add_argument("--logit-bound", default=None, type=_logit_bound, metavar="B|none",
                            help="override a closed_form_logit mixer's logit_bound at inference "
                                 "(an ablation: 'none' removes the bound it was trained with)")
+            p.add_argument("--mixer-set", action="append", default=[], metavar="KEY=VALUE",
+                           help="override a field of the mixer's config "
+                                "(jaxden.progressive.MixerConfig) at inference, e.g. "
+                                "closed_form_stops=1; repeatable")
         if name == "sure-buffers":
             p.add_argument("--buffers", type=int, default=16,
                            help="independent sub-buffers per render (spp / buffers each)")

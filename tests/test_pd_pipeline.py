@@ -543,7 +543,9 @@ def test_pd_report_script_tstat_override(trained, tmp_path, capsys):
                                                             rel=1e-6)  # c matters here
     # Bad overrides: the message names the field, exit status 2, no report written.
     for option, value, match in (("--tstat", "sigma_mn=1", "sigma_mn"),
-                                 ("--logit-bound", "3", "apply only to head")):
+                                 ("--logit-bound", "3", "apply only to head"),
+                                 ("--mixer-set", "closed_form_stop=1", "closed_form_stop"),
+                                 ("--mixer-set", "closed_form_stops=0", "closed_form_stops")):
         assert pd_report.main(["pd", "--data", str(dataset), "--split", "all", "--denoiser",
                                "oidn", "--mixer", str(workdir), option, value, "--out",
                                str(tmp_path / "bad")]) == 2
@@ -553,6 +555,15 @@ def test_pd_report_script_tstat_override(trained, tmp_path, capsys):
         with pytest.raises(argparse.ArgumentTypeError, match="expected a number > 0 or 'none'"):
             pd_report._logit_bound(text)
     assert pd_report._logit_bound("None") == 0.0 and pd_report._logit_bound("2.5") == 2.5
+    # --mixer-set: the closed form with strata set on the command line is the spec with them.
+    for name, argv in (("set", ["--mixer", "closed-form", "--mixer-set", "closed_form_stops=1"]),
+                       ("spec", ["--mixer", "closed-form:stops=1"])):
+        assert pd_report.main(["pd", "--data", str(dataset), "--split", "all", "--denoiser",
+                               "oidn", "--spp", str(spp), *argv,
+                               "--out", str(tmp_path / name)]) == 0
+    by_set, by_spec = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("set", "spec"))
+    assert by_set["provenance"]["closed_form_stops"] == 1.0
+    assert [r["pd_rmse"] for r in by_set["rows"]] == [r["pd_rmse"] for r in by_spec["rows"]]
 
 
 def test_pd_report_rows_match_direct_computation(trained):
