@@ -37,20 +37,26 @@ def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
+def run_identity(argv: list[str] | None = None) -> dict:
+    """The command line (``argv``: default sys.argv[1:]) and the git commit a run started at;
+    code changes make it "+dirty", finished results being rewritten do not."""
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                            text=True, cwd=ROOT).stdout.strip()
+    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
+                            ":(exclude)experiments/results"],
+                           capture_output=True, text=True, cwd=ROOT).stdout.strip()
+    argv = sys.argv[1:] if argv is None else argv
+    return {"command": f"python experiments/{Path(sys.argv[0]).name} " + shlex.join(argv),
+            "commit": commit + ("+dirty" if dirty else "")}
+
+
 def provenance(args: argparse.Namespace, extra: dict) -> dict:
     """Where a result comes from; taken when the run starts (the commit it ran)."""
     from jaxden.data.layout import load_manifest, manifest_path
 
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                            text=True, cwd=ROOT).stdout.strip()
-    # Code changes make a run "+dirty"; finished results being rewritten do not.
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
-                            ":(exclude)experiments/results"],
-                           capture_output=True, text=True, cwd=ROOT).stdout.strip()
     manifest = load_manifest(args.data)
     return {
-        "command": f"python experiments/{Path(sys.argv[0]).name} " + shlex.join(sys.argv[1:]),
-        "commit": commit + ("+dirty" if dirty else ""),
+        **run_identity(),
         "date": datetime.date.today().isoformat(),
         "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.platform()}",
         "dataset": {"dir": str(args.data), "split": getattr(args, "split", None),

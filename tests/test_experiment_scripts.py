@@ -205,3 +205,25 @@ def test_closed_form_stops_summary_and_selection():
     for bad in ("0", "-1", "x"):
         with pytest.raises(argparse.ArgumentTypeError):
             closed_form_stops.parse_stops(bad)
+
+
+def test_demo_mixers_bands_and_specs():
+    import demo_mixers
+
+    reference = np.zeros((2, 2, 3))
+    reference[0] = 0.5  # top row in [0.3, 1), bottom row in [0, 0.02)
+    image = reference + 0.1
+    rows = demo_mixers.band_rows(reference, {"m": image}, {"m": np.full((2, 2, 3), 0.25)})
+    assert [r["band"] for r in rows] == [[0.0, 0.02], [0.3, 1.0]]
+    assert rows[0]["fraction"] == 0.5 and rows[0]["alpha m"] == 0.25
+    assert rows[0]["m"] == pytest.approx(0.01 / 0.01)  # relMSE eps 0.01
+    assert rows[1]["m"] == pytest.approx(0.01 / 0.26)
+    _, config = demo_mixers.load("closed-form|closed_form_stops=2, closed_form_sigma=3")
+    assert (config.closed_form_stops, config.closed_form_sigma) == (2.0, 3.0)
+    from jaxden.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="closed_form_stop"):
+        demo_mixers.load("closed-form|closed_form_stop=2")
+    assert demo_mixers.parse_band("cornell-box:64") == ("cornell-box", 64)
+    with pytest.raises(argparse.ArgumentTypeError):
+        demo_mixers.parse_band("cornell-box")
