@@ -108,6 +108,6 @@ def test_progressive_bench_quick():
 
     result = bench.run("progressive", quick=True)
     keys = ("pd_over_oidn", "pd_single_over_oidn", "mixer_over_oidn", "tstat_over_oidn",
-            "closed_form_over_oidn")
+            "closed_form_over_oidn", "closed_form_stops_over_closed_form")
     assert all(np.isfinite(result[k]) and result[k] > 0 for k in keys)
     assert (result["width"], result["height"]) == (320, 180)

@@ -12,7 +12,10 @@ compiled and warmed up before timing, timed alternately, median of the repeats:
 - ``mixer_over_oidn``: one mixer call (PDNet on the 18 input channels) / one OIDN call;
 - ``tstat_over_oidn``: the t-statistic scaling alone / one OIDN call;
 - ``closed_form_over_oidn``: the closed-form mixer's alpha (``--mixer closed-form``: Eq. 9
-  with Gaussian local means, width 12 px) / one OIDN call; it replaces the mixer call.
+  with Gaussian local means, width 12 px) / one OIDN call; it replaces the mixer call;
+- ``closed_form_stops_over_closed_form``: the range-aware closed form (``closed_form_stops =
+  1``: one blurred pair of local sums per occupied brightness stratum) / the plain one, the
+  cost of the strata.
 """
 
 from __future__ import annotations
@@ -59,11 +62,13 @@ def bench_progressive(quick: bool) -> dict:
         "mixer": lambda: mixer_alpha(params, config, x, y, var, sure_map),
         "tstat": lambda: t_statistic_scaling(alpha, x, mixed, var, config.tstat),
         "closed_form": lambda: closed_form_alpha(x, y, var, sure_map),
+        "closed_form_stops": lambda: closed_form_alpha(x, y, var, sure_map, stops=1.0),
     }
     median = median_times(runners, repeats)
     return {
         **{f"{name}_over_oidn": median[name] / median["oidn"]
            for name in ("pd", "pd_single", "mixer", "tstat", "closed_form")},
+        "closed_form_stops_over_closed_form": median["closed_form_stops"] / median["closed_form"],
         **{f"{name}_s": value for name, value in median.items()},
         "denoiser": "oidn (CPU, high quality)",
         "mixer": "oidn-pd",
