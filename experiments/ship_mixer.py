@@ -6,8 +6,20 @@ model card (NAME.md) from the training run and, when given, the PD report on the
         [--report experiments/results/pd-oidn.json --report experiments/results/pd-oidn-high.json]
 
 The weights are the run's final checkpoint; the .json meta record gets the training config,
-the steps, the dataset's manifest hash and the final validation loss. Rerunning with a report
-rewrites the same weights (bit-identical) and adds the measured metrics to the card.
+the steps, the dataset's manifest hash, the final validation loss and (``training_facts``)
+everything the card says of the training. Rerunning with a report rewrites the same weights
+(bit-identical) and adds the measured metrics to the card.
+
+``--set KEY=VALUE`` changes a field of the shipped MixerConfig at inference (recorded in the
+.json as ``inference_overrides`` and stated in the card), e.g. ``closed_form_stops=1``.
+``--reship NAME`` re-exports weights already shipped, without their training run: the same
+parameters, the training facts from their .json (for weights shipped before
+``training_facts`` existed: the .json's train config, steps and final validation loss, the
+untrained / OIDN validation losses and logged minutes read back from the card, the dataset
+config from ``--dataset-config``).
+
+    python experiments/ship_mixer.py --reship oidn-pd --set closed_form_stops=1 \
+        --config experiments/configs/mixer-oidn-cflogit.toml --report A.json --report B.json
 """
 
 from __future__ import annotations
@@ -16,6 +28,7 @@ import argparse
 import dataclasses
 import hashlib
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -50,6 +63,51 @@ def _training_facts(workdir: Path) -> dict:
     }
 
 
+_VALIDATION = re.compile(
+    r"Validation (?P<metric>\w+) \(val split, \d+ batches\): (?P<initial>[\d.]+) untrained -> "
+    r"[\d.]+ trained \(OIDN alone: (?P<baseline>[\d.]+)\); (?P<minutes>\d+) min of logged")
+_WORKDIR = re.compile(r"python experiments/ship_mixer\.py --workdir (\S+)")
+
+
+def facts_from_shipped(meta: dict, card: str, dataset_config_file: Path | None = None) -> dict:
+    """The training facts of shipped weights (see the module doc): ``meta["training_facts"]``
+    when recorded, else rebuilt from the .json record and the card's text."""
+    if "training_facts" in meta:
+        return meta["training_facts"]
+    validation, workdir = _VALIDATION.search(card), _WORKDIR.search(card)
+    if validation is None or workdir is None:
+        raise SystemExit("--reship: the weights' .json has no training_facts and their card has "
+                         "no 'Validation ...' line or ship_mixer.py --workdir command to read "
+                         "them from")
+    if dataset_config_file is None:
+        raise SystemExit("--reship: weights shipped before training_facts existed need "
+                         "--dataset-config (the dataset config they were trained on)")
+    import tomllib
+
+    dataset = tomllib.loads(Path(dataset_config_file).read_text())
+    dataset["name"] = Path(meta["train_config"]["data"]["dataset"]).name
+    return {
+        "workdir": workdir.group(1),
+        "train_config": meta["train_config"],
+        "steps": meta["trained_steps"],
+        "seconds_logged": 60.0 * int(validation.group("minutes")),
+        "val_loss_initial": float(validation.group("initial")),
+        "val_loss_final": meta["val_loss_final"],
+        "val_baseline_loss": float(validation.group("baseline")),
+        "val_metric": validation.group("metric"),
+        "dataset_manifest_sha256": meta["dataset_manifest_sha256"],
+        "dataset_config": dataset,
+    }
+
+
+def _overrides_text(overrides: list[str]) -> str:
+    if not overrides:
+        return ""
+    return (" Shipped with " + ", ".join(f"`{o}`" for o in overrides) + " set at inference "
+            "after training (`ship_mixer.py --set`): the network learned its correction on the "
+            "training config's settings; the measurements below are of the shipped ones.")
+
+
 def _head_text(mc: dict) -> str:
     """What the mixer's alpha head computes, for the card."""
     if mc["head"] == "closed_form_logit":
@@ -70,7 +128,8 @@ def _head_text(mc: dict) -> str:
 
 
 def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], size: int,
-          config_file: str = "experiments/configs/mixer-oidn.toml") -> str:
+          config_file: str = "experiments/configs/mixer-oidn.toml",
+          overrides: tuple[str, ...] = ()) -> str:
     """The model card; ``mc``: the resolved MixerConfig as a dict; ``reports``: (path, pd
     report JSON) pairs, one section each; ``config_file``: the committed training config."""
     workdir = facts["workdir"]
@@ -100,7 +159,7 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
         + (" and alpha is the mean of the mixer's alpha and 1 - alpha of its swapped call "
            "(`swap_average`, a second mixer call; our addition, see `MixerConfig`). "
            if mc.get("swap_average") else ". ")
-        + f"{size / 1024:.0f} KiB of float32 parameters.",
+        + f"{size / 1024:.0f} KiB of float32 parameters." + _overrides_text(list(overrides)),
         "",
         "Use: `jaxden progressive IN.exr --denoiser oidn --out OUT.exr` (the mixer defaults to "
         f"`{name}` for OIDN), or `jaxden.progressive.shipped_progressive_denoiser('oidn')`. "
@@ -141,6 +200,7 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
         f" --workdir {workdir}`, then `python experiments/ship_mixer.py --workdir {workdir} "
         f"--name {name}{' --swap-average' if mc.get('swap_average') else ''} "
         f"--config {config_file}"
+        + "".join(f" --set {o}" for o in overrides)
         + "".join(f" --report {path}" for path, _ in reports) + "`.",
         "",
     ]
@@ -190,47 +250,71 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--workdir", required=True, help="training workdir of the mixer")
-    parser.add_argument("--name", default="oidn-pd", help="weights name in jaxden/weights/")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--workdir", help="training workdir of the mixer")
+    source.add_argument("--reship", metavar="NAME",
+                        help="re-export weights shipped as jaxden/weights/NAME.* (no run needed)")
+    parser.add_argument("--name", default=None,
+                        help="weights name in jaxden/weights/ (default oidn-pd, or NAME)")
     parser.add_argument("--report", action="append", default=[],
                         help="pd_report.py pd JSON for the card (repeatable)")
     parser.add_argument("--swap-average", action="store_true",
                         help="ship with MixerConfig.swap_average = true (inference option)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="ship with this MixerConfig field changed at inference (repeatable)")
     parser.add_argument("--config", default="experiments/configs/mixer-oidn.toml",
                         help="the committed training config of the run (named in the card; "
                              "the weights' tests compare the run's config with it)")
+    parser.add_argument("--dataset-config", type=Path,
+                        default=Path("experiments/configs/dataset-default.toml"),
+                        help="with --reship of weights without training_facts: the dataset "
+                             "config they were trained on")
     args = parser.parse_args(argv)
+    name = args.name or args.reship or "oidn-pd"
 
-    from jaxden.config import config_to_dict
+    from jaxden.config import config_to_dict, load_config
     from jaxden.denoisers import WEIGHTS_DIR
     from jaxden.fileio import atomic_write_text
-    from jaxden.progressive import load_mixer, save_mixer
+    from jaxden.progressive import MixerConfig, load_mixer, save_mixer
 
-    workdir = Path(args.workdir)
-    params, config = load_mixer(workdir)
-    if args.swap_average:
-        config = dataclasses.replace(config, swap_average=True)
-    facts = _training_facts(workdir)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
                             text=True, cwd=ROOT).stdout.strip()
-    try:
-        import pyoidn
-        oidn_version = getattr(pyoidn, "__version__", "unknown")
-    except ImportError:
-        oidn_version = "unavailable"
+    if args.reship:
+        shipped = WEIGHTS_DIR / f"{args.reship}.msgpack"
+        params, config = load_mixer(str(shipped))
+        meta = json.loads(shipped.with_suffix(".json").read_text())
+        card_text = shipped.with_suffix(".md").read_text()
+        facts = facts_from_shipped(meta, card_text, args.dataset_config)
+        versions = {"jaxden_commit": meta["jaxden_commit"],
+                    "pyoidn_version": meta["pyoidn_version"], "reshipped_commit": commit}
+        if not args.set:  # a plain re-ship keeps the overrides it was shipped with
+            args.set = list(meta.get("inference_overrides", []))
+    else:
+        params, config = load_mixer(Path(args.workdir))
+        facts = _training_facts(Path(args.workdir))
+        try:
+            import pyoidn
+            oidn_version = getattr(pyoidn, "__version__", "unknown")
+        except ImportError:
+            oidn_version = "unavailable"
+        versions = {"jaxden_commit": commit, "pyoidn_version": oidn_version}
+    if args.swap_average:
+        config = dataclasses.replace(config, swap_average=True)
+    if args.set:
+        config = load_config(config, MixerConfig, overrides=args.set)
     extra = {
-        "name": args.name, "trained_steps": facts["steps"], "seed": facts["train_config"]["seed"],
+        "name": name, "trained_steps": facts["steps"], "seed": facts["train_config"]["seed"],
         "train_config": facts["train_config"], "train_config_file": args.config,
         "dataset_manifest_sha256": facts["dataset_manifest_sha256"],
-        "val_loss_final": facts["val_loss_final"], "jaxden_commit": commit,
-        "pyoidn_version": oidn_version,
+        "val_loss_final": facts["val_loss_final"], **versions,
+        "training_facts": facts, "inference_overrides": list(args.set),
     }
-    path = WEIGHTS_DIR / f"{args.name}.msgpack"
+    path = WEIGHTS_DIR / f"{name}.msgpack"
     WEIGHTS_DIR.mkdir(exist_ok=True)
     save_mixer(path, params, config, **extra)
     reports = [(p, json.loads(Path(p).read_text())) for p in args.report]
-    card = _card(args.name, facts, config_to_dict(config), reports, path.stat().st_size,
-                 args.config)
+    card = _card(name, facts, config_to_dict(config), reports, path.stat().st_size,
+                 args.config, tuple(args.set))
     atomic_write_text(path.with_suffix(".md"), card)
     print(f"wrote {path} ({path.stat().st_size / 1024:.0f} KiB), {path.with_suffix('.json')} "
           f"and the model card {path.with_suffix('.md')}")

@@ -1,6 +1,7 @@
 """Pure helpers of the experiment scripts (experiments/*.py), tested without data or renders."""
 
 import argparse
+import json
 import math
 import sys
 import xml.etree.ElementTree as ET
@@ -227,3 +228,53 @@ def test_demo_mixers_bands_and_specs():
     assert demo_mixers.parse_band("cornell-box:64") == ("cornell-box", 64)
     with pytest.raises(argparse.ArgumentTypeError):
         demo_mixers.parse_band("cornell-box")
+
+
+def test_ship_mixer_reship_sets_inference_fields_and_keeps_the_weights(tmp_path, monkeypatch):
+    """--reship re-exports shipped weights without their run: the parameters byte for byte,
+    the training facts (read back from the card for weights shipped before training_facts),
+    the --set field changed in the shipped config and stated in the card."""
+    import shutil
+
+    import ship_mixer
+
+    import jaxden.denoisers
+    from jaxden import progressive as P
+
+    for suffix in (".msgpack", ".json", ".md"):
+        shutil.copy(jaxden.denoisers.WEIGHTS_DIR / f"oidn-pd{suffix}", tmp_path)
+    meta = json.loads((tmp_path / "oidn-pd.json").read_text())
+    meta.pop("training_facts", None)  # as shipped before session 11: facts from the card
+    meta.pop("inference_overrides", None)
+    (tmp_path / "oidn-pd.json").write_text(json.dumps(meta))
+    original_card = (tmp_path / "oidn-pd.md").read_text()
+    validation = next(line for line in original_card.splitlines() if "- Validation" in line)
+    _, original_config = P.load_mixer(str(tmp_path / "oidn-pd.msgpack"))
+    weights = (tmp_path / "oidn-pd.msgpack").read_bytes()
+    monkeypatch.setattr(jaxden.denoisers, "WEIGHTS_DIR", tmp_path)
+    root = Path(__file__).parent.parent
+    monkeypatch.chdir(root)
+    assert ship_mixer.main(["--reship", "oidn-pd", "--set", "closed_form_stops=2",
+                            "--config", meta["train_config_file"]]) == 0
+    assert (tmp_path / "oidn-pd.msgpack").read_bytes() == weights
+    shipped = json.loads((tmp_path / "oidn-pd.json").read_text())
+    assert shipped["inference_overrides"] == ["closed_form_stops=2"]
+    assert shipped["model_config"]["closed_form_stops"] == 2.0
+    assert shipped["train_config"] == meta["train_config"]
+    assert shipped["jaxden_commit"] == meta["jaxden_commit"] and shipped["reshipped_commit"]
+    facts = shipped["training_facts"]
+    assert facts["steps"] == meta["trained_steps"] and facts["val_metric"] == "smape"
+    assert facts["dataset_config"]["crop_size"] == 128
+    _, config = P.load_mixer(str(tmp_path / "oidn-pd.msgpack"))
+    import dataclasses
+
+    assert config == dataclasses.replace(original_config, closed_form_stops=2.0)
+    card = (tmp_path / "oidn-pd.md").read_text()
+    assert validation in card  # the training facts survive the round trip exactly
+    assert "Shipped with `closed_form_stops=2` set at inference" in card
+    assert "--set closed_form_stops=2" in card
+    # A second re-ship reads the recorded facts and keeps the recorded overrides.
+    assert ship_mixer.main(["--reship", "oidn-pd", "--config", meta["train_config_file"]]) == 0
+    assert json.loads((tmp_path / "oidn-pd.json").read_text())["inference_overrides"] == [
+        "closed_form_stops=2"]
+    assert (tmp_path / "oidn-pd.md").read_text() == card
