@@ -49,6 +49,14 @@ def test_shipped_mixer_files_and_model_card():
     params, config = P.load_mixer("oidn-pd")
     assert config.features[:len(P.MIXER_FEATURES)] == P.MIXER_FEATURES
     assert config.head == "closed_form_logit" and config.logit_bound == 4.0  # since session 10
+    # Since session 11 the closed form under the logit is range-aware, set at inference: the
+    # shipped config is the trained one with exactly the recorded overrides applied.
+    assert config.closed_form_stops == 1.0
+    assert meta["inference_overrides"] == ["closed_form_stops=1"]
+    trained = load_config(meta["train_config"]["model_config"], P.MixerConfig)
+    assert trained.closed_form_stops is None
+    assert config == load_config(trained, P.MixerConfig,
+                                 overrides=["swap_average=true", *meta["inference_overrides"]])
     leaves = jax.tree_util.tree_leaves(params)
     assert all(np.all(np.isfinite(np.asarray(leaf))) for leaf in leaves)
     assert P.shipped_mixer_path("unet") is None and P.shipped_progressive_denoiser("unet") is None
