@@ -120,16 +120,23 @@ def markdown(summary: dict[str, dict[str, float]], rows: list[dict], worst: int 
     return "\n".join(lines)
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def cache_sweep_parser(doc: str) -> argparse.ArgumentParser:
+    """The arguments every sweep over a dataset's OIDN SURE cache takes: --data, --split,
+    --mixer (repeatable) and --out."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     parser.add_argument("--data", type=Path, required=True,
                         help="complete dataset folder with an OIDN SURE cache")
     parser.add_argument("--split", default="all", help="split (train, val, test, all)")
-    parser.add_argument("--sigma", type=float, nargs="+", required=True)
     parser.add_argument("--mixer", action="append", default=[],
                         help="a trained mixer to list beside (spec; repeatable). On its own "
                              "training data it is not a held-out comparison")
     parser.add_argument("--out", type=Path, required=True, help="output path without suffix")
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = cache_sweep_parser(__doc__)
+    parser.add_argument("--sigma", type=float, nargs="+", required=True)
     args = parser.parse_args(argv)
 
     from pd_report import provenance, write_report

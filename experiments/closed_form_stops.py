@@ -23,7 +23,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from closed_form_sigma import open_oidn_cache, ratio_summary
+from closed_form_sigma import cache_sweep_parser, open_oidn_cache, ratio_summary
 
 SIGMA = 12.0
 
@@ -112,15 +112,9 @@ def markdown(summary: dict, keys: list[str], count: int) -> str:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", type=Path, required=True,
-                        help="complete dataset folder with an OIDN SURE cache")
-    parser.add_argument("--split", default="all", help="split (train, val, test, all)")
+    parser = cache_sweep_parser(__doc__)
     parser.add_argument("--stops", type=parse_stops, nargs="+", required=True,
                         help="stratum widths in stops, or 'none' for plain local means")
-    parser.add_argument("--mixer", action="append", default=[],
-                        help="a trained mixer to list beside (spec; repeatable)")
-    parser.add_argument("--out", type=Path, required=True, help="output path without suffix")
     args = parser.parse_args(argv)
 
     from pd_report import provenance, write_report
