@@ -1,18 +1,19 @@
-"""What a trained mixer does on given crops: its alpha against the evidence it is fed.
+"""What mixers do on given crops of any dataset: their alpha against the evidence they are fed.
 
-    python experiments/mixer_alpha.py --data data/test-high-chain --crop s006-c000 s001-c000 \
-        --spp 64 1024 4096 --mixer oidn-pd --mixer runs/mixer-oidn-chain-log \
-        --out experiments/results/mixer-alpha-high
+    python experiments/mixer_alpha.py --data $JAXDEN_HOME/data/test-high-chain \
+        --crop s006-c000 s001-c000 --spp 64 1024 4096 --mixer oidn-pd \
+        --mixer untrained:oidn-pd --worst-pixels 3 --out /tmp/mixer-alpha
 
 For every crop, spp and mixer: the mean alpha of the mixer's single call (the paper's), of its
 swapped call (1 - alpha(y, x)) and of their average (``swap_average``), each before the
 t-statistic scaling; RMSE over MC's of PD with each alpha (after the scaling) and of OIDN
-alone; and the median over pixels and channels of SURE(y) / var(x), the evidence of which
+alone (or ``--denoiser``: any registered denoiser or checkpoint that the mixers take); and
+the median over pixels and channels of SURE(y) / var(x), the evidence of which
 image is closer to the truth (above 1: y's estimated squared error exceeds x's variance, so
 the render should win). SURE: 4 finite-difference probes, seed 0, as in the PD reports.
 ``--mixer untrained:SPEC`` shows where training started (SPEC's config, seed-0 init). Also
 listed: the crop's mean variance, the t-test's Gaussian width sigma_s for it, and the mean
-absolute first-layer weight of each mixer on each input feature.
+absolute first-layer weight of each network mixer on each input feature.
 
 ``--worst-pixels N`` adds, per crop, spp and mixer, the N pixels where PD (swap-averaged
 alpha, after the t-test) is furthest from the reference: x, y, the reference, var and SURE
@@ -35,7 +36,7 @@ def _load(spec: str):
     initialised parameters (seed 0), the starting point of its training."""
     import jax
 
-    from jaxden.progressive import load_mixer, mixer_init
+    from jaxden.progressive.mixer import load_mixer, mixer_init
 
     if spec.startswith("untrained:"):
         _, config = load_mixer(spec.split(":", 1)[1])
@@ -64,17 +65,12 @@ def evaluate(data: Path, crops, spp, mixers, denoiser: str = "oidn", seed: int =
     import jax
     import jax.numpy as jnp
 
-    from jaxden.denoisers import load_denoiser
-    from jaxden.pdcache import denoise_with_sure
-    from jaxden.pdreport import iter_crops
-    from jaxden.progressive import (
-        _gaussian_sigma,
-        _mixer_alpha,
-        _mixer_swap_args,
-        closed_form_alpha,
-        mix,
-        t_statistic_scaling,
-    )
+    from jaxden.denoise.registry import load_denoiser
+    from jaxden.progressive.heads import mix
+    from jaxden.progressive.mixer import _mixer_alpha, _mixer_swap_args, closed_form_alpha
+    from jaxden.progressive.report import iter_crops
+    from jaxden.progressive.tstat import _gaussian_sigma, t_statistic_scaling
+    from jaxden.sure.denoiser import denoise_with_sure
 
     model = load_denoiser(denoiser)
     loaded = {spec: _load(spec) for spec in mixers}
@@ -94,7 +90,7 @@ def evaluate(data: Path, crops, spp, mixers, denoiser: str = "oidn", seed: int =
 
             mc = rmse(x)
             ratio = np.asarray(sure, np.float64) / np.maximum(np.asarray(var, np.float64), 1e-20)
-            row = {"crop": crop.id, "spp": level, "oidn_over_mc": rmse(y) / mc,
+            row = {"crop": crop.id, "spp": level, "denoiser_over_mc": rmse(y) / mc,
                    "sure_over_var_median": float(np.median(ratio)),
                    "var_mean": float(np.mean(np.asarray(var, np.float64))), "mixers": {}}
             for spec, (params, config) in loaded.items():
@@ -122,30 +118,34 @@ def evaluate(data: Path, crops, spp, mixers, denoiser: str = "oidn", seed: int =
 
 
 def first_layer_weights(mixers) -> dict:
-    """Mean |weight| of each mixer's first convolution per input feature (3 channels each)."""
+    """Mean |weight| of each network mixer's first convolution per input feature (3 channels
+    each); mixers without one (the closed form) are left out."""
     import jax
 
-    from jaxden.progressive import mixer_channel_slices
+    from jaxden.progressive.inputs import mixer_channel_slices
 
     out = {}
     for spec in mixers:
         params, config = _load(spec)
-        kernel = next(np.asarray(v) for path, v in jax.tree_util.tree_leaves_with_path(params)
-                      if "conv_in" in jax.tree_util.keystr(path) and np.ndim(v) == 4)
+        kernel = next((np.asarray(v) for path, v in jax.tree_util.tree_leaves_with_path(params)
+                       if "conv_in" in jax.tree_util.keystr(path) and np.ndim(v) == 4), None)
+        if kernel is None:
+            continue
         out[spec] = {name: float(np.mean(np.abs(kernel[:, :, s, :])))
                      for name, s in mixer_channel_slices(tuple(config.features)).items()}
     return out
 
 
-def markdown(rows, mixers, weights=None) -> str:
-    lines = ["| crop | spp | OIDN / MC | median SURE / var | mean var | mixer | t-test sigma_s | "
-             "alpha single / swapped / average | PD / MC single / swapped / average |",
+def markdown(rows, mixers, weights=None, denoiser: str = "OIDN") -> str:
+    lines = [(f"| crop | spp | {denoiser} / MC | median SURE / var | mean var | mixer | "
+              "t-test sigma_s | alpha single / swapped / average | "
+              "PD / MC single / swapped / average |"),
              "|---|---:|---:|---:|---:|---|---:|---|---|"]
     for row in rows:
         for spec in mixers:
             e = row["mixers"][spec]
             lines.append(
-                f"| {row['crop']} | {row['spp']} | {row['oidn_over_mc']:.3f} | "
+                f"| {row['crop']} | {row['spp']} | {row['denoiser_over_mc']:.3f} | "
                 f"{row['sure_over_var_median']:.2f} | {row['var_mean']:.2e} | `{spec}` | "
                 f"{e['tstat_sigma']:.3g} | "
                 + " / ".join(f"{e[k]['alpha']:.3f}" for k in ("single", "swapped", "average"))
@@ -182,6 +182,9 @@ def main(argv=None) -> int:
     parser.add_argument("--mixer", action="append", required=True,
                         help="a mixer spec (shipped name, run folder or .msgpack), or "
                              "untrained:SPEC (its config, untrained); repeatable")
+    parser.add_argument("--denoiser", default="oidn",
+                        help="the denoiser whose output the mixers mix (a registered name or a "
+                             "checkpoint; default oidn)")
     parser.add_argument("--seed", type=int, default=0, help="SURE probe seed")
     parser.add_argument("--worst-pixels", type=int, default=0, metavar="N",
                         help="also list the N pixels with the largest PD error per input")
@@ -190,12 +193,14 @@ def main(argv=None) -> int:
 
     from pd_report import provenance, write_report
 
-    info = provenance(args, {"mixers": args.mixer, "crops": args.crop})
-    rows = evaluate(args.data, args.crop, args.spp, args.mixer, seed=args.seed,
-                    worst=args.worst_pixels)
+    info = provenance(args, {"mixers": args.mixer, "crops": args.crop,
+                             "denoiser": args.denoiser})
+    rows = evaluate(args.data, args.crop, args.spp, args.mixer, denoiser=args.denoiser,
+                    seed=args.seed, worst=args.worst_pixels)
     weights = first_layer_weights(args.mixer)
+    name = "OIDN" if args.denoiser == "oidn" else args.denoiser
     write_report(args.out, {"provenance": info, "rows": rows, "first_layer_weights": weights},
-                 markdown(rows, args.mixer, weights))
+                 markdown(rows, args.mixer, weights, name))
     return 0
 
 

@@ -1,11 +1,12 @@
 """The paper's Figure 10 on our data: convergence plots and a progressive image series.
 
     # error vs spp (log-log), mean over the test crops, from pd_report.py's JSON (no rendering)
-    python experiments/pd_figure.py convergence --report experiments/results/pd-oidn-high.json \
+    python experiments/pd_figure.py convergence \
+        --report experiments/results/pd-oidn-test-high-shipped.json \
         --out experiments/results/fig10-convergence-high
     # one held-out crop at several spp: MC | OIDN | PD(OIDN) | alpha' | reference (sRGB previews)
-    python experiments/pd_figure.py images --data data/test-high --crop s002-c000 \
-        --spp 64 512 4096 --out experiments/results/fig10-s002
+    python experiments/pd_figure.py images --data $JAXDEN_HOME/data/test-high-chain \
+        --crop s002-c000 --spp 64 512 4096 --out experiments/results/fig10-s002
 
 ``convergence`` writes OUT.svg (RMSE and relMSE panels: MC, OIDN, PD(OIDN), the oracle mix)
 and OUT.json (the plotted means and the report's provenance). ``images`` writes OUT.png (rows:
@@ -124,11 +125,12 @@ def cmd_images(args) -> None:
     from pd_report import _weights_identity, provenance
 
     from jaxden import metrics
-    from jaxden.denoisers import load_denoiser
+    from jaxden.denoise.registry import load_denoiser
     from jaxden.fileio import atomic_write_text
     from jaxden.io.png import preview, write_png
-    from jaxden.pdreport import iter_crops
-    from jaxden.progressive import load_mixer, progressive_denoise
+    from jaxden.progressive.mixer import load_mixer
+    from jaxden.progressive.pipeline import progressive_denoise
+    from jaxden.progressive.report import iter_crops
 
     found = None
     for crop, reference, inputs in iter_crops(args.data, "all", tuple(args.spp)):

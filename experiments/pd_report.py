@@ -1,19 +1,21 @@
-"""Progressive-denoising reports on a held-out rendered test set (jaxden.pdreport).
+"""Progressive-denoising reports on a held-out rendered test set (jaxden.progressive.report).
 
     # the paper's Table 3 / Fig. 10 on our data: MC, OIDN, PD(OIDN) per spp
-    python experiments/pd_report.py pd --data data/test --denoiser oidn --mixer oidn-pd \
-        --out experiments/results/pd-oidn
+    python experiments/pd_report.py pd --data $JAXDEN_HOME/data/test-chain --denoiser oidn \
+        --mixer oidn-pd --out experiments/results/pd-oidn-test-shipped
     # SURE accuracy: image-mean SURE vs noise-corrected true MSE, per denoiser and spp
-    python experiments/pd_report.py sure --data data/test --denoiser oidn \
-        --denoiser runs/wskp-default --out experiments/results/sure-accuracy
+    python experiments/pd_report.py sure --data $JAXDEN_HOME/data/test --denoiser oidn \
+        --denoiser $JAXDEN_HOME/runs/wskp-default --out experiments/results/sure-accuracy
     # the same on fresh renders made of 16 sub-buffers: Stein SURE vs sub-buffer SURE
-    python experiments/pd_report.py sure-buffers --data data/test-high --denoiser oidn \
-        --denoiser runs/wskp-default --buffers 16 --spp 64 128 256 512 1024 \
+    python experiments/pd_report.py sure-buffers --data $JAXDEN_HOME/data/test-high \
+        --denoiser oidn --denoiser $JAXDEN_HOME/runs/wskp-default --buffers 16 \
+        --spp 64 128 256 512 1024 \
         --out experiments/results/sure-buffers-high
 
 Each run writes OUT.json (per-crop rows, per-spp summary, headline ratios, provenance: the
 command, git commit, dataset manifest hash and config, seeds, weights hash) and OUT.md (the
-tables). The test set comes from experiments/configs/dataset-test.toml.
+tables). The test sets come from experiments/configs/dataset-test{,-high}.toml; every
+report in experiments/results/ and its command is listed in experiments/README.md.
 """
 
 from __future__ import annotations
@@ -50,6 +52,16 @@ def run_identity(argv: list[str] | None = None) -> dict:
             "commit": commit + ("+dirty" if dirty else "")}
 
 
+def package_version(name: str) -> str:
+    """An installed package's version from its metadata, or "not installed"."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version(name)
+    except PackageNotFoundError:
+        return "not installed"
+
+
 def provenance(args: argparse.Namespace, extra: dict) -> dict:
     """Where a result comes from; taken when the run starts (the commit it ran)."""
     from jaxden.data.layout import load_manifest, manifest_path
@@ -59,6 +71,7 @@ def provenance(args: argparse.Namespace, extra: dict) -> dict:
         **run_identity(),
         "date": datetime.date.today().isoformat(),
         "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.platform()}",
+        "versions": {name: package_version(name) for name in ("pyoidn", "mitsuba", "jax")},
         "dataset": {"dir": str(args.data), "split": getattr(args, "split", None),
                     "manifest_sha256": _sha256(manifest_path(args.data)),
                     "config": manifest.config},
@@ -68,7 +81,7 @@ def provenance(args: argparse.Namespace, extra: dict) -> dict:
 
 
 def _weights_identity(spec: str) -> dict:
-    from jaxden.denoisers import WEIGHTS_DIR
+    from jaxden.denoise.registry import WEIGHTS_DIR
 
     path = Path(spec)
     if not path.exists() and (WEIGHTS_DIR / f"{spec}.msgpack").is_file():
@@ -94,7 +107,7 @@ def write_report(out: Path, result: dict, table: str) -> None:
 
 
 def cmd_pd(args: argparse.Namespace) -> None:
-    from jaxden import pdreport
+    from jaxden.progressive import report as pdreport
 
     if args.from_json:  # re-tabulate a finished run (its rows and provenance) without rerunning
         previous = json.loads(Path(args.from_json).read_text())
@@ -104,7 +117,8 @@ def cmd_pd(args: argparse.Namespace) -> None:
         import dataclasses
 
         from jaxden.config import config_to_dict, load_config
-        from jaxden.progressive import MixerConfig, TStatConfig, load_mixer
+        from jaxden.progressive.mixer import MixerConfig, load_mixer
+        from jaxden.progressive.tstat import TStatConfig
 
         params, config = load_mixer(args.mixer)
         if args.swap_average is not None:
@@ -147,7 +161,7 @@ def _logit_bound(text: str) -> float:
 
 
 def cmd_sure(args: argparse.Namespace) -> None:
-    from jaxden import pdreport
+    from jaxden.progressive import report as pdreport
 
     if args.from_json:  # re-tabulate a finished run (its rows and provenance) without rerunning
         previous = json.loads(Path(args.from_json).read_text())
@@ -163,7 +177,7 @@ def cmd_sure(args: argparse.Namespace) -> None:
 
 
 def cmd_sure_buffers(args: argparse.Namespace) -> None:
-    from jaxden import pdreport
+    from jaxden.progressive import report as pdreport
 
     if args.from_json:  # re-tabulate a finished run (its rows and provenance) without rerunning
         previous = json.loads(Path(args.from_json).read_text())

@@ -3,7 +3,8 @@ model card (NAME.md) from the training run and, when given, the PD report on the
 
     python experiments/ship_mixer.py --workdir runs/mixer-oidn --name oidn-pd [--swap-average] \
         [--config experiments/configs/mixer-oidn.toml] \
-        [--report experiments/results/pd-oidn.json --report experiments/results/pd-oidn-high.json]
+        [--report experiments/results/pd-oidn-test-shipped.json \
+         --report experiments/results/pd-oidn-test-high-shipped.json]
 
 The weights are the run's final checkpoint; the .json meta record gets the training config,
 the steps, the dataset's manifest hash, the final validation loss and (``training_facts``)
@@ -34,6 +35,17 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
+
+
+def pyoidn_version() -> str:
+    """The installed pyoidn's version (its package metadata: pyoidn has no ``__version__``),
+    or "not installed"."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("pyoidn")
+    except PackageNotFoundError:
+        return "not installed"
 
 
 def _log(workdir: Path) -> list[dict]:
@@ -129,9 +141,15 @@ def _head_text(mc: dict) -> str:
 
 def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], size: int,
           config_file: str = "experiments/configs/mixer-oidn.toml",
-          overrides: tuple[str, ...] = ()) -> str:
+          overrides: tuple[str, ...] = (), versions: dict | None = None) -> str:
     """The model card; ``mc``: the resolved MixerConfig as a dict; ``reports``: (path, pd
-    report JSON) pairs, one section each; ``config_file``: the committed training config."""
+    report JSON) pairs, one section each; ``config_file``: the committed training config;
+    ``versions``: the .json's version fields (``pyoidn_version`` and, when it differed,
+    ``pyoidn_version_trained``)."""
+    versions = versions or {}
+    oidn = f"pyoidn {versions.get('pyoidn_version', pyoidn_version())}"
+    if versions.get("pyoidn_version_trained"):
+        oidn += f" (trained with {versions['pyoidn_version_trained']})"
     workdir = facts["workdir"]
     cfg = facts["train_config"]
     data = facts["dataset_config"] or {}
@@ -178,7 +196,7 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
         f"split by scene (train/val {data.get('splits', {}).get('train')}/"
         f"{data.get('splits', {}).get('val')}); features (albedo, normal): "
         f"{data.get('aux', 'first-hit')}, min(spp, {data.get('feature_spp', 16)}) samples.",
-        f"- Denoiser: OIDN via pyoidn (CPU, 'high' quality, HDR, albedo + normal); SURE of its "
+        f"- Denoiser: OIDN via {oidn} (CPU, 'high' quality, HDR, albedo + normal); SURE of its "
         f"output by forward differences, {mc['sure_probes']} probes, eps "
         f"{mc['sure_eps'] if mc['sure_eps'] is not None else '1e-2 (default for black boxes)'}, "
         f"probe seed {mc['sure_seed']} (`jaxden dataset sure-cache`).",
@@ -212,7 +230,10 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
         lines += [
             f"## Measured on `{prov['dataset']['dir']}` ({data.get('name', '?')}: "
             f"{min(s['per_spp'], key=int)}..{s['max_spp']} spp)",
-            f"From `{path}` (`{prov['command']}`, commit {prov['commit']}): {s['crops']} crops "
+            f"From `{path}` (`{prov['command']}`, commit {prov['commit']}"
+            + (f"; the file was renamed from `{prov['renamed_from']}.json`"
+               if prov.get("renamed_from") else "")
+            + f"): {s['crops']} crops "
             f"of procedural scenes and render seeds never seen in training, errors against "
             f"{data['reference_spp']}-spp references, mean over crops, then the per-spp ratio "
             f"averaged over spp. The oracle mix fits one alpha per 8^2 tile and channel to the "
@@ -273,30 +294,29 @@ def main(argv=None) -> int:
     name = args.name or args.reship or "oidn-pd"
 
     from jaxden.config import config_to_dict, load_config
-    from jaxden.denoisers import WEIGHTS_DIR
+    from jaxden.denoise.registry import WEIGHTS_DIR
     from jaxden.fileio import atomic_write_text
-    from jaxden.progressive import MixerConfig, load_mixer, save_mixer
+    from jaxden.progressive.mixer import MixerConfig, load_mixer, save_mixer
 
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
                             text=True, cwd=ROOT).stdout.strip()
+    oidn_version = pyoidn_version()
     if args.reship:
         shipped = WEIGHTS_DIR / f"{args.reship}.msgpack"
         params, config = load_mixer(str(shipped))
         meta = json.loads(shipped.with_suffix(".json").read_text())
         card_text = shipped.with_suffix(".md").read_text()
         facts = facts_from_shipped(meta, card_text, args.dataset_config)
-        versions = {"jaxden_commit": meta["jaxden_commit"],
-                    "pyoidn_version": meta["pyoidn_version"], "reshipped_commit": commit}
+        versions = {"jaxden_commit": meta["jaxden_commit"], "pyoidn_version": oidn_version,
+                    "reshipped_commit": commit}
+        trained_with = meta.get("pyoidn_version_trained", meta.get("pyoidn_version"))
+        if trained_with not in (None, "unknown", oidn_version):
+            versions["pyoidn_version_trained"] = trained_with
         if not args.set:  # a plain re-ship keeps the overrides it was shipped with
             args.set = list(meta.get("inference_overrides", []))
     else:
         params, config = load_mixer(Path(args.workdir))
         facts = _training_facts(Path(args.workdir))
-        try:
-            import pyoidn
-            oidn_version = getattr(pyoidn, "__version__", "unknown")
-        except ImportError:
-            oidn_version = "unavailable"
         versions = {"jaxden_commit": commit, "pyoidn_version": oidn_version}
     if args.swap_average:
         config = dataclasses.replace(config, swap_average=True)
@@ -314,7 +334,7 @@ def main(argv=None) -> int:
     save_mixer(path, params, config, **extra)
     reports = [(p, json.loads(Path(p).read_text())) for p in args.report]
     card = _card(name, facts, config_to_dict(config), reports, path.stat().st_size,
-                 args.config, tuple(args.set))
+                 args.config, tuple(args.set), versions)
     atomic_write_text(path.with_suffix(".md"), card)
     print(f"wrote {path} ({path.stat().st_size / 1024:.0f} KiB), {path.with_suffix('.json')} "
           f"and the model card {path.with_suffix('.md')}")

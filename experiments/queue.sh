@@ -1,0 +1,28 @@
+#!/usr/bin/env bash
+# The background job queue: dataset builds, then training runs, each resumable. Run it again
+# after an interruption and it carries on where it stopped (finished steps are skipped).
+#   setsid nohup experiments/queue.sh > "$JAXDEN_HOME/queue.log" 2>&1 &
+# Data and runs live under $JAXDEN_HOME (default ~/jaxden-work), outside the checkout.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+H="${JAXDEN_HOME:-$HOME/jaxden-work}"
+J=.venv/bin/jaxden
+mkdir -p "$H/data" "$H/runs"
+step() {  # step NAME COMMAND...: run unless $H/done/NAME exists, time it
+  local name=$1; shift
+  if [ -e "$H/done/$name" ]; then echo "queue: $name already done"; return 0; fi
+  echo "queue: $name started $(date -Is)"
+  local t0=$SECONDS
+  if "$@"; then
+    mkdir -p "$H/done"; echo "$((SECONDS - t0)) s" > "$H/done/$name"
+    echo "queue: $name finished in $((SECONDS - t0)) s"
+  else
+    echo "queue: $name FAILED (exit $?)"; return 1
+  fi
+}
+step data-rt $J dataset build experiments/configs/dataset-rt.toml --out "$H/data/rt" || exit 1
+step data-rt-test $J dataset build experiments/configs/dataset-rt-test.toml --out "$H/data/rt-test" || exit 1
+for extra in "$H"/queue.d/*.sh; do   # later steps, added without editing this file
+  [ -e "$extra" ] && source "$extra"
+done
+echo "queue: all done $(date -Is)"
