@@ -29,6 +29,7 @@ import jax
 import numpy as np
 
 from jaxden.errors import CheckpointError
+from jaxden.fileio import check_json_fields, read_json
 
 
 class _QuietOrbaxMetadata(logging.Filter):
@@ -42,6 +43,8 @@ class _QuietOrbaxMetadata(logging.Filter):
 logging.getLogger("absl").addFilter(_QuietOrbaxMetadata())
 
 CHECKPOINT_SUBDIR = "checkpoints"
+#: The fields every meta record (checkpoint or released weights) must have, with their types.
+META_FIELDS = {"kind": str, "model?": str, "model_config?": dict, "step?": int}
 
 
 def _ocp():
@@ -89,8 +92,16 @@ class Checkpointer:
     def read_meta(self, step: int | None = None) -> dict[str, Any]:
         ocp = _ocp()
         step = self._resolve_step(step)
-        restored = self._manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))
-        return dict(restored.meta)
+        where = f"{self.directory / str(step)}: the checkpoint's meta record"
+        try:
+            restored = self._manager.restore(
+                step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))
+            meta = restored.meta
+        except Exception as error:  # noqa: BLE001 - orbax raises many kinds on bad files
+            first = str(error).strip().splitlines()[0] if str(error).strip() else ""
+            raise CheckpointError(f"{where} cannot be read ({type(error).__name__}: "
+                                  f"{first[:200]})") from None
+        return dict(check_json_fields(meta, META_FIELDS, where, CheckpointError))
 
     def restore(
         self, target: Any = None, step: int | None = None, expect: dict[str, Any] | None = None
@@ -163,6 +174,22 @@ def check_meta(meta: dict[str, Any], expect: dict[str, Any], where: str) -> None
         raise CheckpointError(f"{where}: checkpoint of another model or config ({'; '.join(problems)})")
 
 
+def check_finite_params(params: Any, where: str) -> None:
+    """Raise CheckpointError unless every parameter is a floating-point array of finite
+    values: weights with NaN, inf or an integer dtype would denoise to a NaN, inf or zero
+    image without complaint."""
+    for path, leaf in jax.tree_util.tree_leaves_with_path(params):
+        array = np.asarray(leaf)
+        name = jax.tree_util.keystr(path)
+        if not np.issubdtype(array.dtype, np.floating):
+            raise CheckpointError(f"{where}: parameter {name} has dtype {array.dtype}; weights "
+                                  f"must be floating point")
+        if not np.isfinite(array).all():
+            bad = int(array.size - np.count_nonzero(np.isfinite(array)))
+            raise CheckpointError(f"{where}: parameter {name} holds {bad} non-finite value(s) "
+                                  f"(NaN or inf): the weights are broken (a diverged run?)")
+
+
 def check_same_structure(params: Any, target: Any, where: str) -> None:
     """Raise CheckpointError naming the first leaf whose path or shape differs."""
     got = {jax.tree_util.keystr(p): np.shape(v) for p, v in jax.tree_util.tree_leaves_with_path(params)}
@@ -205,10 +232,8 @@ def load_weights(
     meta_path = path.with_suffix(".json")
     if not path.is_file() or not meta_path.is_file():
         raise CheckpointError(f"{path}: released weights need both {path.name} and {meta_path.name}")
-    try:
-        meta = json.loads(meta_path.read_text())
-    except json.JSONDecodeError as error:
-        raise CheckpointError(f"{meta_path}: not valid JSON ({error})") from None
+    meta = read_json(meta_path, "the weights' meta record", error=CheckpointError,
+                     fields=META_FIELDS)
     if expect:
         check_meta(meta, expect, where=str(path))
     try:
@@ -217,6 +242,7 @@ def load_weights(
         raise CheckpointError(f"{path}: corrupt weights file ({error})") from None
     check_same_structure(state, target, where=str(path))
     params = serialization.from_state_dict(target, state)
+    check_finite_params(params, str(path))
     return params, meta
 
 
@@ -242,6 +268,7 @@ def load_trained_params(
         checkpointer.close()
     params = state["params"] if isinstance(state, dict) and "params" in state else state
     check_same_structure(params, target, where=where)
+    check_finite_params(params, where)
     return params, meta
 
 
@@ -252,10 +279,8 @@ def read_checkpoint_meta(source: str | os.PathLike) -> dict[str, Any]:
         meta_path = source.with_suffix(".json")
         if not meta_path.is_file():
             raise CheckpointError(f"{source}: no {meta_path.name} beside it")
-        try:
-            return json.loads(meta_path.read_text())
-        except json.JSONDecodeError as error:
-            raise CheckpointError(f"{meta_path}: not valid JSON ({error})") from None
+        return read_json(meta_path, "the weights' meta record", error=CheckpointError,
+                         fields=META_FIELDS)
     checkpointer = Checkpointer(source, create=False)
     try:
         return checkpointer.read_meta()

@@ -139,6 +139,54 @@ class _Mismatch(Exception):
     """Internal: a value does not fit a type; carries the message tail."""
 
 
+#: No config int may exceed this in size (seeds, counts, sizes): 2^53, exact in a float.
+MAX_INT = 2**53
+
+
+def bounded(default: Any = dataclasses.MISSING, *, low: float | None = None,
+            high: float | None = None, low_open: bool = False, unit: str = "",
+            **field_options) -> Any:
+    """A dataclass field whose value must lie in [low, high] (``low_open``: (low, high]),
+    checked by :func:`load_config` for every source (TOML, ``key=value`` overrides, compact
+    CLI specs) and by :func:`check_ranges` in ``__post_init__``; None passes (optional)."""
+    metadata = {"range": (low, high, low_open, unit)}
+    if default is dataclasses.MISSING:
+        return dataclasses.field(metadata=metadata, **field_options)
+    return dataclasses.field(default=default, metadata=metadata, **field_options)
+
+
+def _range_text(low, high, low_open: bool, unit: str) -> str:
+    def show(value, infinite):
+        if value is None:
+            return infinite
+        return str(value) if isinstance(value, int) else f"{value:g}"
+
+    left = "(" if low_open else "["
+    text = f"{left}{show(low, '-inf')}, {show(high, 'inf')}]"
+    return text + (f" ({unit})" if unit else "")
+
+
+def check_ranges(instance: Any) -> None:
+    """Raise ConfigError for a field of a dataclass instance outside its declared range
+    (:func:`bounded`); numbers inside tuples are checked one by one."""
+    for field in dataclasses.fields(instance):
+        bounds = field.metadata.get("range")
+        if bounds is None:
+            continue
+        low, high, low_open, unit = bounds
+        value = getattr(instance, field.name)
+        values = value if isinstance(value, (tuple, list)) else (value,)
+        for item in values:
+            if item is None or isinstance(item, bool) or not isinstance(item, (int, float)):
+                continue
+            too_low = low is not None and (item <= low if low_open else item < low)
+            too_high = high is not None and item > high
+            if too_low or too_high or not math.isfinite(item):
+                raise ConfigError(
+                    f"{type(instance).__name__}.{field.name}: {item!r} is outside the valid "
+                    f"range {_range_text(low, high, low_open, unit)}")
+
+
 def _convert(tp: Any, value: Any, source: _Source, path: tuple[str, ...]) -> Any:
     if tp is Any:
         return value
@@ -168,10 +216,15 @@ def _convert(tp: Any, value: Any, source: _Source, path: tuple[str, ...]) -> Any
         raise _Mismatch(f"expected bool (true or false), found {_found(value)}")
     if tp is int:
         if isinstance(value, int) and not isinstance(value, bool):
+            if not -MAX_INT <= value <= MAX_INT:
+                raise _Mismatch(f"expected an int of at most {MAX_INT:.3g} in size, found "
+                                f"{_found(value)}")
             return value
         raise _Mismatch(f"expected int, found {_found(value)}")
     if tp is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
+            if not math.isfinite(float(value)):
+                raise _Mismatch(f"expected a finite number, found {_found(value)}")
             return float(value)
         raise _Mismatch(f"expected float, found {_found(value)}")
     if tp is str:
@@ -274,7 +327,9 @@ def _build(cls: type[T], data: Any, source: _Source, path: tuple[str, ...]) -> T
                 f"({cls.__name__}), expected {_type_name(hints[name])}"
             )
     try:
-        return cls(**kwargs)
+        instance = cls(**kwargs)
+        check_ranges(instance)
+        return instance
     except (ConfigError, ValueError) as error:
         where = f"table [{'.'.join(path)}]: " if path else ""
         applied = [text for key, text in source.overrides.items() if key[: len(path)] == path]

@@ -5,12 +5,23 @@ features, plus an independent high-spp reference; denoises every level with OIDN
 mixer for OIDN ships with the package, with progressive denoising PD(OIDN); writes every frame
 as EXR and prints a table of errors against the reference (linear HDR relMSE, SMAPE, RMSE and
 HDR-FLIP), also saved as ``summary.json`` and ``summary.md``.
+
+So that the results can be looked at, it also writes (nothing here changes what is rendered or
+measured):
+
+- a PNG preview of every frame beside its EXR (``SCENE/reference.png``, ``SCENE/spp00004.png``,
+  ``SCENE/spp00004.oidn.png``, ...), tone mapped at one exposure per scene
+  (:func:`jaxden.report.tonemap.auto_stops` of the reference), and PD's alpha map as
+  ``SCENE/spp00004.pd_oidn.alpha.exr`` / ``.alpha.png`` (white = all denoised);
+- ``convergence.svg`` and ``convergence.png``: error vs spp, log-log, with MC's 1/spp rate;
+- ``report.html``: the interactive report of :mod:`jaxden.report` over the whole folder.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -31,30 +42,79 @@ class DemoSettings:
 QUICK = DemoSettings(scenes=("cornell-box",), size=(64, 64), spp_levels=(4, 16, 64), reference_spp=1024)
 
 
-def _metrics(image: np.ndarray, reference: np.ndarray) -> dict[str, float]:
+def _metrics(image: np.ndarray, reference: np.ndarray, flip_maps: dict | None = None,
+             key: tuple | None = None) -> dict[str, float]:
+    """The demo's metrics; FLIP's per-pixel map (the same call returns it) is kept in
+    ``flip_maps[key]`` for the report."""
     from jaxden import metrics
 
+    flip_mean, flip_map = metrics.flip(image, reference, "HDR", return_map=True)
+    if flip_maps is not None:
+        flip_maps[key] = (float(flip_mean), flip_map)
     return {
         "relmse": float(metrics.relmse(image, reference)),
         "smape": float(metrics.smape(image, reference)),
         "rmse": float(metrics.rmse(image, reference)),
-        "flip": float(metrics.flip(image, reference, "HDR")),
+        "flip": float(flip_mean),
     }
 
 
 def _progressive_denoiser():
     """``frame -> (image, alpha)`` for PD(OIDN) if a shipped mixer exists, else None."""
     try:
-        from jaxden.progressive import shipped_progressive_denoiser
+        from jaxden.progressive.pipeline import shipped_progressive_denoiser
     except ImportError:
         return None
     return shipped_progressive_denoiser("oidn")
 
 
-def run_demo(out: Path, quick: bool = False, settings: DemoSettings | None = None) -> dict:
-    from jaxden.denoisers import make_denoiser
+def _write_preview(path: Path, image, stops: float) -> None:
+    from jaxden.io.png import write_png
+    from jaxden.report.tonemap import tonemap
+
+    # a preview must not stop the demo: NaN (never seen) shows black, +inf white
+    write_png(path, tonemap(np.nan_to_num(np.asarray(image), nan=0.0, posinf=1e30), stops))
+
+
+def _write_plots(out: Path, rows: list[dict]) -> list[Path]:
+    from jaxden.fileio import atomic_write_bytes
+    from jaxden.report.figures import convergence_figure, png_bytes, svg_bytes
+
+    figure = convergence_figure(rows, title="jaxden demo: error vs spp (linear HDR)")
+    paths = [out / "convergence.svg", out / "convergence.png"]
+    atomic_write_bytes(paths[0], svg_bytes(figure))
+    atomic_write_bytes(paths[1], png_bytes(figure))
+    return paths
+
+
+def _this_run(out: Path, settings: DemoSettings):
+    """The files of ``out`` that this run wrote: an earlier run into the same folder (other
+    scenes, sizes or spp levels) must not mix into the report."""
+    from jaxden.report import discover
+
+    found = discover(out)
+    scenes = []
+    for scene in found.scenes:
+        if scene.name in settings.scenes:
+            images, alphas = ({key: path for key, path in table.items()
+                               if key[0] in settings.spp_levels}
+                              for table in (scene.images, scene.alphas))
+            scenes.append(dataclasses.replace(scene, images=images, alphas=alphas))
+    return dataclasses.replace(found, scenes=tuple(scenes), metric_files=())
+
+
+def run_demo(out: Path, quick: bool = False, settings: DemoSettings | None = None,
+             report: bool = True, progress: bool = True) -> dict:
+    """Render, denoise, measure and write everything (module docstring) under ``out``;
+    returns the summary (also ``summary.json``). ``report``: also write the plots and
+    ``report.html``; ``progress``: a progress bar over the renders on stderr."""
+    from tqdm import tqdm
+
+    from jaxden.denoise.registry import make_denoiser
     from jaxden.io.exr import write_frame, write_image
+    from jaxden.io.png import write_png
     from jaxden.render.core import render_frame
+    from jaxden.report.tonemap import alpha_preview, auto_stops
 
     settings = settings or (QUICK if quick else DemoSettings())
     out = Path(out)
@@ -63,30 +123,51 @@ def run_demo(out: Path, quick: bool = False, settings: DemoSettings | None = Non
     out.mkdir(parents=True, exist_ok=True)
     oidn = make_denoiser("oidn")
     progressive = _progressive_denoiser()
-    rows = []
+    rows, flip_maps = [], {}
     started = time.perf_counter()
+    renders = tqdm(total=len(settings.scenes) * (1 + len(settings.spp_levels)), unit="render",
+                   desc="demo", file=sys.stderr, disable=not progress, dynamic_ncols=True)
+
+    def say(text: str) -> None:  # above the progress bar, on stdout as before
+        renders.write(text, file=sys.stdout)
+        sys.stdout.flush()
+
     for scene in settings.scenes:
         folder = out / scene
         folder.mkdir(exist_ok=True)
-        print(f"[{scene}] reference at {settings.reference_spp} spp ...", flush=True)
+        say(f"[{scene}] reference at {settings.reference_spp} spp ...")
+        renders.set_postfix_str(f"{scene} reference")
         reference = render_frame(scene, settings.reference_spp, seed=settings.seed + 1_000_003,
                                  size=settings.size)
+        renders.update()
         write_frame(folder / "reference.exr", reference, attributes={"scene": scene})
+        stops = auto_stops(reference.color)
+        _write_preview(folder / "reference.png", reference.color, stops)
         for spp in settings.spp_levels:
+            renders.set_postfix_str(f"{scene} {spp} spp")
             frame = render_frame(scene, spp, seed=settings.seed + spp, size=settings.size)
             write_frame(folder / f"spp{spp:05d}.exr", frame,
                         attributes={"scene": scene, "seed": settings.seed + spp})
             results = {"mc": frame.color}
             results["oidn"] = np.asarray(oidn(frame))
+            alphas = {}
             if progressive is not None:
-                results["pd_oidn"], _ = progressive(frame)
+                results["pd_oidn"], alphas["pd_oidn"] = progressive(frame)
             for method, image in results.items():
+                stem = f"spp{spp:05d}" if method == "mc" else f"spp{spp:05d}.{method}"
                 if method != "mc":
-                    write_image(folder / f"spp{spp:05d}.{method}.exr", np.asarray(image))
+                    write_image(folder / f"{stem}.exr", np.asarray(image))
+                _write_preview(folder / f"{stem}.png", image, stops)
                 rows.append({"scene": scene, "spp": spp, "method": method,
-                             **_metrics(np.asarray(image), reference.color)})
-            print(f"[{scene}] {spp:>5} spp: " + "  ".join(
-                f"{r['method']} relMSE {r['relmse']:.4f}" for r in rows[-len(results):]), flush=True)
+                             **_metrics(np.asarray(image), reference.color, flip_maps,
+                                        (scene, spp, method))})
+            for method, alpha in alphas.items():
+                write_image(folder / f"spp{spp:05d}.{method}.alpha.exr", np.asarray(alpha))
+                write_png(folder / f"spp{spp:05d}.{method}.alpha.png", alpha_preview(alpha))
+            renders.update()
+            say(f"[{scene}] {spp:>5} spp: " + "  ".join(
+                f"{r['method']} relMSE {r['relmse']:.4f}" for r in rows[-len(results):]))
+    renders.close()
     summary = {
         "settings": dataclasses.asdict(settings),
         "metrics": "linear HDR against an independent reference render; relMSE = mean((x-r)^2/"
@@ -99,7 +180,16 @@ def run_demo(out: Path, quick: bool = False, settings: DemoSettings | None = Non
     (out / "summary.md").write_text(table + "\n")
     print()
     print(table)
-    print(f"\nwrote {out}/ (EXR frames per scene, summary.json, summary.md) in {summary['seconds']} s")
+    print(f"\nwrote {out}/ (EXR frames and PNG previews per scene, summary.json, summary.md) "
+          f"in {summary['seconds']} s")
+    if report:
+        from jaxden.report import build_report
+
+        plots = _write_plots(out, rows)
+        path = build_report(out, out / "report.html", title="jaxden demo", progress=progress,
+                            found=_this_run(out, settings), flip_maps=flip_maps)
+        print(f"wrote {', '.join(p.name for p in plots)} (error vs spp)")
+        print(f"report: {path}  (open it in a web browser)")
     return summary
 
 

@@ -9,6 +9,7 @@ final name once complete (and removed if anything fails). Temporary names match
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import tempfile
 from collections.abc import Callable, Iterator
@@ -77,7 +78,14 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None], suffix: 
         raise OutputError(f"cannot write {path}: {error.strerror or error}") from None
     os.close(fd)
     try:
-        write(tmp)
+        try:
+            write(tmp)
+        except OSError as error:
+            raise OutputError(f"cannot write {path}: {error.strerror or error}") from None
+        except RuntimeError as error:  # OpenEXR's C++ errors ("No space left on device", ...)
+            reason = str(error).replace(tmp, str(path)).strip().splitlines()
+            raise OutputError(f"cannot write {path}: {reason[0] if reason else 'failed'}") \
+                from None
         os.chmod(tmp, 0o666 & ~_UMASK)
         try:
             os.replace(tmp, path)
@@ -132,3 +140,69 @@ def folder_lock(directory: str | os.PathLike, name: str, what: str) -> Iterator[
 
 __all__ = ["JaxdenError", "OutputError", "all_or_nothing", "atomic_write", "atomic_write_bytes",
            "atomic_write_text", "check_outputs", "folder_lock"]
+
+
+# ------------------------------------------------------------------------------------ JSON
+_JSON_TYPES = {dict: "an object", list: "a list", str: "a string", int: "a whole number",
+               float: "a number", bool: "true or false", type(None): "null"}
+
+
+def _json_type_name(types) -> str:
+    types = types if isinstance(types, tuple) else (types,)
+    return " or ".join(_JSON_TYPES.get(t, t.__name__) for t in types)
+
+
+def _is_instance(value, types) -> bool:
+    types = types if isinstance(types, tuple) else (types,)
+    if isinstance(value, bool) and bool not in types:
+        return False  # JSON true is not a number here
+    if float in types and isinstance(value, int) and not isinstance(value, bool):
+        return True
+    return isinstance(value, types)
+
+
+def read_json(path: str | os.PathLike, what: str, *, error=JaxdenError, kind=dict,
+              fields: dict | None = None):
+    """Read the JSON file ``path`` (``what`` it is, for messages: "the dataset manifest",
+    "the weights' meta record"): its top level must be ``kind`` and, for objects, each of
+    ``fields`` (``{name: type or (types...)}``; a name ending in ``?`` is optional) must have
+    that type. Anything else (missing, unreadable, not UTF-8, malformed, wrongly typed) raises
+    ``error`` with one line naming the file and the field. Every JSON file jaxden reads goes
+    through here or :func:`check_json_fields`."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise error(f"{path}: {what} is missing") from None
+    except (OSError, UnicodeDecodeError) as problem:
+        reason = getattr(problem, "strerror", None) or problem
+        raise error(f"{path}: cannot read {what}: {reason}") from None
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as problem:
+        raise error(f"{path}: {what} is not valid JSON ({problem.msg} at line "
+                    f"{problem.lineno}, column {problem.colno})") from None
+    if not _is_instance(data, kind):
+        raise error(f"{path}: {what} must be {_json_type_name(kind)} at its top level, found "
+                    f"{_json_type_name(type(data))}")
+    if fields and isinstance(data, dict):
+        check_json_fields(data, fields, f"{path}: {what}", error)
+    return data
+
+
+def check_json_fields(data: dict, fields: dict, where: str, error=JaxdenError) -> dict:
+    """Check that ``data[name]`` has the type ``fields[name]`` (a trailing ``?`` on the name:
+    optional, may be absent or null); raise ``error`` naming ``where`` and the field."""
+    if not isinstance(data, dict):
+        raise error(f"{where}: expected an object, found {_json_type_name(type(data))}")
+    for name, types in fields.items():
+        optional = name.endswith("?")
+        key = name.rstrip("?")
+        if key not in data or (optional and data[key] is None):
+            if optional:
+                continue
+            raise error(f"{where}: field {key!r} is missing")
+        if not _is_instance(data[key], types):
+            raise error(f"{where}: field {key!r} must be {_json_type_name(types)}, found "
+                        f"{_json_type_name(type(data[key]))} {str(data[key])[:40]!r}")
+    return data

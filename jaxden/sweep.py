@@ -11,9 +11,16 @@ A sweep file (TOML, e.g. ``experiments/sweeps/pd-ablations.toml``)::
     seed = [0, 1]
     # name = [...]                         # optional: run names (no override)
 
-    [evaluate]                             # optional, for mixer runs
-    pd = ["data/test-high"]                # PD report of each run on these datasets
+    [evaluate]                             # optional
+    pd = ["data/test-high"]                # mixer runs: PD report on these datasets
     spp = [64, 256, 1024]                  # only these spp levels (default: all)
+    denoise = ["$JAXDEN_HOME/data/rt-test"]   # denoiser runs: PSNR, SSIM, relMSE, FLIP
+    denoise_spp = [1]                      #   at these input spp (default 1)
+    sequences = ["$JAXDEN_HOME/data/rt-seq"]  # denoiser runs: per frame and with temporal
+                                           #   accumulation (jaxden.denoise.report)
+
+Paths may use ``~`` and ``$JAXDEN_HOME`` (default ``~/jaxden-work``), here and in overrides
+such as ``data.dataset=$JAXDEN_HOME/data/rt``.
 
 ``jaxden sweep FILE --workdir DIR`` trains every run in ``DIR/<run name>/`` (its resolved config,
 checkpoints and ``metrics.jsonl``, as ``jaxden train`` writes them), evaluates it, and writes the
@@ -52,12 +59,24 @@ NAME_AXIS = "name"
 class EvaluateConfig:
     """What to measure after each run's training (mixer runs: the PD report per dataset)."""
 
-    pd: tuple[str, ...] = ()  # dataset folders for jaxden.pdreport.evaluate_progressive
+    pd: tuple[str, ...] = ()  # dataset folders for jaxden.progressive.report.evaluate_progressive
     spp: tuple[int, ...] | None = None
     split: str = "test"
     probes: int = 4
     seed: int = 0
     denoiser: str = ""  # default: the mixer's own denoiser
+    # Denoiser runs (WSKP, KP, U-Net, ...): jaxden.denoise.report on these datasets at these
+    # spp (Tables 1/6 of the WSKP paper), and on sequence sets (frame by frame and after
+    # temporal accumulation).
+    denoise: tuple[str, ...] = ()
+    denoise_spp: tuple[int, ...] = (1,)
+    sequences: tuple[str, ...] = ()
+
+    def __post_init__(self):
+        from jaxden.paths import expand_path
+
+        for name in ("pd", "denoise", "sequences"):
+            object.__setattr__(self, name, tuple(expand_path(p) for p in getattr(self, name)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -150,7 +169,8 @@ def plan_runs(config: SweepConfig, axes: dict[str, list[Any]]) -> list[Run]:
 def _run_one(task: tuple[str, str, tuple[str, ...], dict, dict[str, Any], bool]) -> dict:
     """Train, evaluate and record one run (module level: the local executor pickles it)."""
     from jaxden.fileio import atomic_write_text
-    from jaxden.train import load_train_config, train_and_evaluate
+    from jaxden.train.config import load_train_config
+    from jaxden.train.loop import train_and_evaluate
 
     run_dir, base, overrides, evaluate, values, progress = task
     run_dir = Path(run_dir)
@@ -167,8 +187,8 @@ def _run_one(task: tuple[str, str, tuple[str, ...], dict, dict[str, Any], bool])
         if train_config.model != "mixer":
             raise ConfigError(f"[evaluate] pd needs mixer runs; run {run_dir.name} trains "
                               f"{train_config.model!r}")
-        from jaxden import pdreport
-        from jaxden.progressive import load_mixer
+        from jaxden.progressive import report as pdreport
+        from jaxden.progressive.mixer import load_mixer
 
         params, mixer_config = load_mixer(run_dir)
         denoiser = evaluate["denoiser"] or mixer_config.denoiser
@@ -181,6 +201,21 @@ def _run_one(task: tuple[str, str, tuple[str, ...], dict, dict[str, Any], bool])
             evaluations[f"pd:{dataset}"] = {"headline": summary["headline"],
                                             "max_spp": summary["max_spp"],
                                             "crops": summary["crops"]}
+    if evaluate.get("denoise") or evaluate.get("sequences"):
+        if train_config.model == "mixer":
+            raise ConfigError(f"[evaluate] denoise / sequences need denoiser runs; run "
+                              f"{run_dir.name} trains a mixer (use pd)")
+        from jaxden.denoise import report as denoise_report
+        from jaxden.denoise.registry import load_denoiser
+
+        model = load_denoiser(run_dir)
+        for dataset in evaluate.get("denoise", ()):
+            rows = denoise_report.evaluate_denoiser(
+                dataset, model, split=evaluate["split"], spp=tuple(evaluate["denoise_spp"]))
+            evaluations[f"den:{dataset}"] = denoise_report.summarize(rows)
+        for dataset in evaluate.get("sequences", ()):
+            rows = denoise_report.evaluate_sequences(dataset, model)
+            evaluations[f"seq:{dataset}"] = denoise_report.summarize(rows)
     result = {"run": run_dir.name, "values": values, "overrides": list(overrides),
               "config": resolved, "evaluate": evaluate,
               "train": {k: v for k, v in train.items() if isinstance(v, (int, float, str))},
@@ -202,7 +237,7 @@ def run_sweep(path: str | Path, workdir: str | Path, overrides=(), *, executor: 
     if workdir.exists() and not workdir.is_dir():
         raise ConfigError(f"--workdir {workdir} is a file, not a folder")
     # Every run's config must load before any training starts.
-    from jaxden.train import load_train_config
+    from jaxden.train.config import load_train_config
 
     for run in runs:
         try:
@@ -211,7 +246,8 @@ def run_sweep(path: str | Path, workdir: str | Path, overrides=(), *, executor: 
             raise ConfigError(f"{path}: run {run.name}: {error}") from None
     workdir.mkdir(parents=True, exist_ok=True)
     evaluate = config_to_dict(config.evaluate)
-    evaluate["pd"] = [str(Path(p)) for p in config.evaluate.pd]
+    for name in ("pd", "denoise", "sequences"):
+        evaluate[name] = [str(Path(p)) for p in getattr(config.evaluate, name)]
     tasks = [(str(workdir / run.name), str(base), run.overrides, evaluate, run.values, progress)
              for run in runs]
     by_name = {}
@@ -263,7 +299,18 @@ def _metrics(result: dict) -> dict[str, float]:
         if isinstance(result["train"].get(key), (int, float)):
             out[key] = float(result["train"][key])
     for name, evaluation in result.get("evaluations", {}).items():
-        label = name.split(":", 1)[1].rstrip("/").split("/")[-1]
+        kind, _, path = name.partition(":")
+        label = path.rstrip("/").split("/")[-1]
+        if kind in ("den", "seq"):
+            prefixes = {"den": "den"} if kind == "den" else {"den": "den", "temporal": "tdn"}
+            for title, prefix in prefixes.items():
+                for metric, shown in (("psnr", "PSNR"), ("ssim", "SSIM"), ("relmse", "relMSE"),
+                                      ("flip", "FLIP")):
+                    key = f"{prefix}_{metric}"
+                    if key in evaluation:
+                        suffix = "" if title == "den" else f" {title}"
+                        out[f"{label}{suffix} {shown}"] = evaluation[key]
+            continue
         head = evaluation["headline"]
         out[f"{label} PD/den RMSE"] = head["pd_over_denoiser"]["rmse"]
         out[f"{label} PD/den relMSE"] = head["pd_over_denoiser"]["relmse"]

@@ -16,8 +16,9 @@ import numpy as np
 import pytest
 
 from jaxden import progressive as P
+from jaxden.progressive.mixer import _inference_alpha
 from jaxden.errors import CheckpointError, ConfigError, FrameError
-from jaxden.sure import sure
+from jaxden.sure.stein import sure
 
 
 def reference_alpha(x, y, var, sure_map, sigma: float, per_channel: bool) -> np.ndarray:
@@ -186,7 +187,7 @@ def test_closed_form_logit_head_starts_at_the_closed_form_and_corrects_it():
     got = np.asarray(P.mixer_alpha(flat, config, x, y, var, sure_map))
     np.testing.assert_allclose(got, np.broadcast_to(want, got.shape), atol=2e-6)
     averaged = dataclasses.replace(config, swap_average=True)
-    got = np.asarray(P._inference_alpha(flat, x, y, var, sure_map, averaged, True))
+    got = np.asarray(_inference_alpha(flat, x, y, var, sure_map, averaged, True))
     np.testing.assert_allclose(got, np.broadcast_to(want, got.shape), atol=4e-6)
     shifted = {"params": {**params["params"],
                           "conv_out": {"kernel": zero["kernel"],
@@ -235,7 +236,7 @@ def test_closed_form_logit_bound_is_a_trust_region_around_the_closed_form():
     flat = {"params": {**params["params"], "conv_out": zero}}
     want = np.clip(np.asarray(P.closed_form_alpha(x, y, var, sure_map, sigma=2.0)), 1e-4,
                    1 - 1e-4)
-    got = np.asarray(P._inference_alpha(flat, x, y, var, sure_map, config, True))
+    got = np.asarray(_inference_alpha(flat, x, y, var, sure_map, config, True))
     np.testing.assert_allclose(got, np.broadcast_to(want, got.shape), atol=4e-6)
     loud = {"params": {**params["params"], "conv_out": {
         "kernel": zero["kernel"], "bias": np.array([1e3, -1e3, 0.0], np.float32)}}}

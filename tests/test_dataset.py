@@ -22,7 +22,8 @@ from jaxden.data import (
     plan_dataset,
     verify_dataset,
 )
-from jaxden.data.builder import LOCK_NAME, synthetic_render
+from jaxden.data.builder import synthetic_render
+from jaxden.data.layout import LOCK_NAME
 from jaxden.data.layout import sha256_file
 from jaxden.errors import ConfigError, DatasetError
 from jaxden.executor import ExecutorError, make_executor
@@ -80,11 +81,10 @@ def test_shipped_configs_load():
     default = load_dataset_config(CONFIGS / "dataset-default.toml")
     assert tiny.crop_size <= min(tiny.size) and len(plan_dataset(tiny).items) <= 40
     assert default.crop_size == 128 and default.reference_spp >= max(default.spp)
-    if _real_renderer_available():
-        from jaxden.data.builder import check_scenes
+    from jaxden.data.builder import check_scenes
 
-        check_scenes(tiny.scene_ids())  # raises SceneError for a scene the renderer lacks
-        check_scenes(default.scene_ids())
+    check_scenes(tiny.scene_ids())  # raises SceneError for a scene the renderer lacks
+    check_scenes(default.scene_ids())
 
 
 @pytest.mark.parametrize(
@@ -356,7 +356,7 @@ def test_feature_options_reach_the_renderer_and_a_renderer_without_them_is_refus
 
 
 def test_refeature_refuses_incomplete_or_foreign_sources(tmp_path):
-    from jaxden.data.builder import refeature_dataset
+    from jaxden.data.refeature import refeature_dataset
 
     with pytest.raises(RuntimeError, match="simulated crash"):
         build(tmp_path / "part", render=CountingRender(crash_after=3))
@@ -491,17 +491,11 @@ def test_synthetic_render_variance_matches_noise():
 
 
 # ----------------------------------------------------------------------------- real renderer
-def _real_renderer_available() -> bool:
-    try:
-        import jaxden.io.exr  # noqa: F401
-        import jaxden.render.core  # noqa: F401
-        import jaxden.render.scenes  # noqa: F401
-    except ImportError:
-        return False
-    return True
+# Mitsuba is a required dependency (pyproject.toml) and jaxden.render is part of the package:
+# these tests run everywhere, with no skip guard (one that imported jaxden's own modules could
+# never fire, and a missing renderer must fail, not skip).
 
 
-@pytest.mark.skipif(not _real_renderer_available(), reason="jaxden.render not available yet")
 def test_tiny_config_end_to_end_with_mitsuba(tmp_path):
     """The shipped tiny config with the real renderer (8 renders, 10-20 s, mostly Mitsuba's
     kernel compilation): build, verify, load a batch."""
@@ -519,7 +513,6 @@ def test_tiny_config_end_to_end_with_mitsuba(tmp_path):
     assert np.isfinite(batch.reference.color).all() and (batch.input.variance >= 0).all()
 
 
-@pytest.mark.skipif(not _real_renderer_available(), reason="jaxden.render not available yet")
 def test_micro_build_with_mitsuba_stores_exactly_render_frame(tmp_path):
     """Two real renders (one crop, 2 spp + an 8 spp reference): the stored item equals
     render_frame called with the item's recorded scene, seed and crop."""
@@ -573,7 +566,7 @@ def test_micro_build_with_specular_chain_features(tmp_path):
 def test_refeature_equals_a_full_build_of_the_new_config(tmp_path):
     """`refeature` keeps the colour and re-renders the features: item for item, the result
     equals a full build of the new config, and differs from the source only in features."""
-    from jaxden.data.builder import refeature_dataset
+    from jaxden.data.refeature import refeature_dataset
     from jaxden.io.exr import read_frame
 
     source = DatasetConfig(name="src", scenes=("glossy-glass",), size=(40, 40), crop_size=24,
@@ -608,7 +601,6 @@ def test_refeature_equals_a_full_build_of_the_new_config(tmp_path):
     assert not (tmp_path / "d").exists()
 
 
-@pytest.mark.skipif(not _real_renderer_available(), reason="jaxden.render not available yet")
 def test_unknown_scene_is_rejected_before_rendering(tmp_path):
     from jaxden.errors import SceneError
 
@@ -623,23 +615,36 @@ def test_unknown_scene_is_rejected_before_rendering(tmp_path):
 
 KILL_SCRIPT = """
 import sys, time
+from pathlib import Path
 from jaxden.data import build_dataset, DatasetConfig, ProceduralConfig, SplitConfig
 from jaxden.data.builder import synthetic_render
 
-def slow_render(scene, spp, seed=0, size=None, *, crop=None):
-    time.sleep(float(sys.argv[2]))
+block_at, marker = int(sys.argv[2]), Path(sys.argv[3])
+calls = 0
+
+def blocking_render(scene, spp, seed=0, size=None, *, crop=None):
+    # Render call number block_at (0-based) announces itself and never returns: the block_at
+    # items before it are written (each file is written before the next render starts).
+    global calls
+    if calls == block_at:
+        marker.write_text(str(calls))
+        while True:
+            time.sleep(60)
+    calls += 1
     return synthetic_render(scene, spp, seed, size, crop=crop)
 
 config = DatasetConfig(scenes=("a", "b"), size=(24, 24), crop_size=8, crops_per_scene=3,
                        spp=(2, 4), reference_spp=8, splits=SplitConfig(train=1.0, val=0.0))
-build_dataset(config, sys.argv[1], executor="serial", render_fn=slow_render, progress=False)
+build_dataset(config, sys.argv[1], executor="serial", render_fn=blocking_render, progress=False)
 print("DONE")
 """
 
 
 def test_killed_build_resumes(tmp_path):
     """SIGKILL a real build process mid-way, rerun it: every item ends up built and verified,
-    and the files finished before the kill are untouched."""
+    and the files finished before the kill are untouched. The kill is deterministic: the
+    process is killed while its 8th render call blocks, after exactly 7 items (two crops of 3
+    items and one item of the third crop, not yet in the manifest) are on disk."""
     import signal
     import subprocess
     import sys
@@ -648,22 +653,24 @@ def test_killed_build_resumes(tmp_path):
     directory = tmp_path / "killed"
     script = tmp_path / "build.py"
     script.write_text(KILL_SCRIPT)
-    process = subprocess.Popen([sys.executable, str(script), str(directory), "0.05"])
-    deadline = time.monotonic() + 60
-    finished = lambda: [p for p in directory.rglob("*.exr") if not p.name.startswith(".")]  # noqa: E731
-    while len(finished()) < 6 and time.monotonic() < deadline:
-        time.sleep(0.02)
+    marker = tmp_path / "blocked"
+    process = subprocess.Popen([sys.executable, str(script), str(directory), "7", str(marker)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 240
+    while not marker.exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    blocked = marker.exists()
     process.send_signal(signal.SIGKILL)
-    process.wait()
+    out, err = process.communicate()
+    assert blocked, f"the build never reached its 8th render call:\n{out}\n{err[-3000:]}"
     assert process.returncode == -signal.SIGKILL
-    before = {
-        path: state
-        for path, state in file_states(directory).items()
-        if not Path(path).name.startswith(".")  # a temporary file the kill interrupted
-    }
-    assert 6 <= len(before) < 18
+    before = file_states(directory)
+    assert len(before) == 7, sorted(before)
+    assert not [p for p in directory.rglob("*") if p.name.startswith(".") and p.is_file()
+                and p.suffix == ".exr"]  # no temporary file: the kill hit no write
     result = subprocess.run(
-        [sys.executable, str(script), str(directory), "0"], capture_output=True, text=True
+        [sys.executable, str(script), str(directory), "-1", str(marker)], capture_output=True,
+        text=True, timeout=240,
     )
     assert result.returncode == 0 and "DONE" in result.stdout, result.stderr
     after = file_states(directory)

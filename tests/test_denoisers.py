@@ -5,7 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxden.denoisers import OIDNConfig, UNetConfig, make_denoiser
+from jaxden.denoise.models import UNetConfig
+from jaxden.denoise.oidn import OIDNConfig
+from jaxden.denoise.registry import make_denoiser
 from jaxden.errors import ConfigError, FrameError
 from jaxden.frame import Frame, stack
 

@@ -1,23 +1,17 @@
-"""Pure helpers of the experiment scripts (experiments/*.py), tested without data or renders."""
+"""The experiment scripts that stay in experiments/ (pd_report, pd_figure, mixer_alpha,
+ship_mixer), tested without data or renders."""
 
-import argparse
 import json
-import math
 import sys
 import xml.etree.ElementTree as ET
+from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent.parent / "experiments"))
-import aux_features
-import cflogit_bound
-import closed_form_sigma
-import closed_form_stops
-import mix_combinations
 import pd_figure  # the experiment scripts are part of the repository: no skip
-import sure_stein
 
 
 def _rows():
@@ -54,103 +48,6 @@ def test_svg_plot_is_valid_and_maps_log_values_to_ticks():
     assert mc[0][0] < mc[1][0] < mc[2][0] and mc[0][1] < mc[1][1] < mc[2][1]  # falls with spp
 
 
-def test_neighbour_mean_excludes_the_centre():
-    rng = np.random.default_rng(0)
-    values = rng.random((5, 6, 3))
-    got = sure_stein.neighbour_mean(values)
-    padded = np.pad(values, ((1, 1), (1, 1), (0, 0)), mode="edge")
-    i, j = 2, 3
-    window = padded[i:i + 3, j:j + 3]
-    np.testing.assert_allclose(got[i, j], (window.sum((0, 1)) - values[i, j]) / 8)
-    corner = padded[0:3, 0:3]
-    np.testing.assert_allclose(got[0, 0], (corner.sum((0, 1)) - values[0, 0]) / 8)
-
-
-def test_aux_features_ratios_are_ratios_of_crop_means():
-    names = ["first-hit:16:clean", "specular-chain:256:noisy"]
-    rows = []
-    for crop, errors in (("a", (1.0, 0.5)), ("b", (3.0, 3.0))):
-        for spp in (64, 256):
-            rows.append({"crop": crop, "spp": spp, "errors": {
-                name: {"rmse": e * 64 / spp, "relmse": e, "mse_nc": e * e}
-                for name, e in zip(names, errors)}})
-    summary = aux_features.summarize(rows, names)
-    # Per spp: (0.5 + 3) / (1 + 3) = 0.875 for RMSE and relMSE; (0.25 + 9) / (1 + 9) for MSE.
-    for spp in (64, 256):
-        ratio = summary["per_spp"][spp]["ratio"][names[1]]
-        assert ratio["rmse"] == pytest.approx(0.875) and ratio["relmse"] == pytest.approx(0.875)
-        assert ratio["mse_nc"] == pytest.approx(9.25 / 10)
-        assert summary["per_spp"][spp]["ratio"][names[0]]["rmse"] == 1.0
-    assert summary["per_crop"]["a"][names[1]]["rmse"] == pytest.approx(0.5)
-    assert summary["mean_over_spp"][names[1]]["rmse"] == pytest.approx(0.875)
-    assert aux_features.parse_variant("specular-chain:256:noisy") == ("specular-chain", 256, "noisy")
-    assert aux_features.parse_variant("none") == ("none", 0, "clean")
-    for bad in ("first-hit:16", "next-hit:16:clean", "first-hit:0:clean", "first-hit:x:clean"):
-        with pytest.raises(SystemExit, match="--variant"):
-            aux_features.parse_variant(bad)
-
-
-def test_closed_form_sigma_summary_and_selection():
-    rows = []
-    for crop, oidn in (("a", 1.0), ("b", 4.0)):
-        for spp in (8, 64):
-            # sigma=2: 2x OIDN on crop a, 0.5x on b (geometric mean 1); sigma=8: 0.9x on both.
-            rows.append({"crop": crop, "spp": spp, "mc": 3 * oidn, "oidn": oidn,
-                         "sigma=2": oidn * (2.0 if crop == "a" else 0.5),
-                         "sigma=8": 0.9 * oidn, "mixer m": oidn})
-    summary = closed_form_sigma.summarize(rows, [2.0, 8.0], ["m"])
-    assert summary["sigma=2"]["geometric_mean"] == pytest.approx(1.0)
-    assert summary["sigma=8"]["geometric_mean"] == pytest.approx(0.9)
-    assert summary["mc"]["median"] == pytest.approx(3.0)
-    # crop means per spp: (2 + 2) / (1 + 4) = 0.8, the metric a bright crop dominates
-    assert summary["sigma=2"]["mean_over_spp_of_crop_mean_ratio"] == pytest.approx(0.8)
-    text = closed_form_sigma.markdown(summary, rows, worst=1)
-    assert "best: **sigma=8**" in text  # the criterion picks 8 although 2 wins crop means
-    assert "| a | 8 |" in text or "| a | 64 |" in text  # the worst input at sigma=8 (a tie)
-
-
-def test_mix_combinations_summary():
-    rows = []
-    for crop, oidn in (("a", 1.0), ("b", 3.0)):
-        for spp in (8, 64):
-            row = {"crop": crop, "spp": spp, "mc": [2.0 * oidn, 4.0], "oidn": [oidn, 1.0]}
-            # mixer: 0.9x OIDN in RMSE, 1.1x in relMSE; at 64 spp above MC on crop b only.
-            row["mixer"] = [0.9 * oidn, 1.1]
-            if spp == 64 and crop == "b":
-                row["mixer"] = [7.0, 1.1]
-            row["closed form"] = row["min"] = row["mean"] = [oidn, 1.0]
-            rows.append(row)
-    summary = mix_combinations.summarize(rows)["mixer"]
-    # 8 spp: (0.9 + 2.7) / 4 = 0.9; 64 spp: (0.9 + 7) / 4 = 1.975; mean over spp 1.4375
-    assert summary["rmse_over_oidn"] == pytest.approx(1.4375)
-    assert summary["relmse_over_oidn"] == pytest.approx(1.1)
-    assert summary["rmse_over_mc_at_max_spp"] == pytest.approx(7.9 / 8.0)
-    assert summary["worst_crop"] == "b" and summary["worst_crop_over_mc"] == pytest.approx(7 / 6)
-    assert summary["crops_above_mc"] == 1 and summary["max_spp"] == 64
-    text = mix_combinations.markdown(mix_combinations.summarize(rows))
-    assert "| mixer | 1.438 | 1.100 | 0.988 | 1.167 (b) | 1 of 2 |" in text
-
-
-def test_cflogit_bound_interpolates_from_the_closed_form_to_the_oracle():
-    """B = 0 is the closed form, B = inf the oracle (both clipped to [eps, 1 - eps]); in
-    between the logit moves min(|c*|, B) toward the oracle, never past it."""
-    rng = np.random.default_rng(3)
-    a_cf = rng.uniform(0, 1, (6, 6, 3))
-    a_cf[0, 0] = 1.0
-    oracle = rng.uniform(0, 1, (6, 6, 3))
-    oracle[0, 0] = 0.0
-    got = cflogit_bound.bounded_alphas(a_cf, oracle, (0.0, 1.0, math.inf))
-    eps = cflogit_bound.EPS
-    np.testing.assert_allclose(got[0.0], np.clip(a_cf, eps, 1 - eps), rtol=1e-9)
-    np.testing.assert_allclose(got[math.inf], np.clip(oracle, eps, 1 - eps), rtol=1e-9)
-    shift = cflogit_bound.logit(got[1.0]) - cflogit_bound.logit(a_cf)
-    wanted = cflogit_bound.logit(oracle) - cflogit_bound.logit(a_cf)
-    np.testing.assert_allclose(shift, np.clip(wanted, -1, 1), atol=1e-9)
-    assert got[1.0][0, 0, 0] == pytest.approx(1 / (1 + np.exp(-(np.log((1 - eps) / eps) - 1))))
-    assert cflogit_bound.bound_name(math.inf) == "B=inf (oracle)"
-    assert cflogit_bound.bound_name(2.0) == "B=2"
-
-
 def test_mixer_alpha_worst_pixels_finds_the_largest_errors():
     import mixer_alpha
 
@@ -185,51 +82,6 @@ def test_ship_mixer_card_describes_the_head():
     assert "w/o f_act" in ship_mixer._head_text({"head": "sigmoid"})
 
 
-def test_closed_form_stops_summary_and_selection():
-    rows = []
-    for crop, oidn in (("a", [1.0, 0.1]), ("b", [4.0, 0.2])):
-        for spp in (8, 64):
-            # stops=none: RMSE 0.9x, relMSE 2x; stops=1: RMSE 0.95x, relMSE 0.8x (wins on the
-            # mean of the two geometric means, 0.875 against 1.45).
-            rows.append({"crop": crop, "spp": spp, "mc": [3 * oidn[0], 5 * oidn[1]],
-                         "oidn": oidn, "stops=none": [0.9 * oidn[0], 2 * oidn[1]],
-                         "stops=1": [0.95 * oidn[0], 0.8 * oidn[1]]})
-    keys = ["mc", "stops=none", "stops=1"]
-    summary = closed_form_stops.summarize(rows, keys)
-    assert summary["rmse"]["stops=none"]["geometric_mean"] == pytest.approx(0.9)
-    assert summary["relmse"]["stops=1"]["median"] == pytest.approx(0.8)
-    assert summary["relmse"]["mc"]["mean_over_spp_of_crop_mean_ratio"] == pytest.approx(5.0)
-    assert closed_form_stops.best_stops(summary, keys) == "stops=1"
-    assert "best: **stops=1**" in closed_form_stops.markdown(summary, keys, len(rows))
-    assert closed_form_stops.parse_stops("none") is None
-    assert closed_form_stops.parse_stops("0.5") == 0.5
-    for bad in ("0", "-1", "x"):
-        with pytest.raises(argparse.ArgumentTypeError):
-            closed_form_stops.parse_stops(bad)
-
-
-def test_demo_mixers_bands_and_specs():
-    import demo_mixers
-
-    reference = np.zeros((2, 2, 3))
-    reference[0] = 0.5  # top row in [0.3, 1), bottom row in [0, 0.02)
-    image = reference + 0.1
-    rows = demo_mixers.band_rows(reference, {"m": image}, {"m": np.full((2, 2, 3), 0.25)})
-    assert [r["band"] for r in rows] == [[0.0, 0.02], [0.3, 1.0]]
-    assert rows[0]["fraction"] == 0.5 and rows[0]["alpha m"] == 0.25
-    assert rows[0]["m"] == pytest.approx(0.01 / 0.01)  # relMSE eps 0.01
-    assert rows[1]["m"] == pytest.approx(0.01 / 0.26)
-    _, config = demo_mixers.load("closed-form|closed_form_stops=2, closed_form_sigma=3")
-    assert (config.closed_form_stops, config.closed_form_sigma) == (2.0, 3.0)
-    from jaxden.errors import ConfigError
-
-    with pytest.raises(ConfigError, match="closed_form_stop"):
-        demo_mixers.load("closed-form|closed_form_stop=2")
-    assert demo_mixers.parse_band("cornell-box:64") == ("cornell-box", 64)
-    with pytest.raises(argparse.ArgumentTypeError):
-        demo_mixers.parse_band("cornell-box")
-
-
 def test_ship_mixer_reship_sets_inference_fields_and_keeps_the_weights(tmp_path, monkeypatch):
     """--reship re-exports shipped weights without their run: the parameters byte for byte,
     the training facts (read back from the card for weights shipped before training_facts),
@@ -238,20 +90,21 @@ def test_ship_mixer_reship_sets_inference_fields_and_keeps_the_weights(tmp_path,
 
     import ship_mixer
 
-    import jaxden.denoisers
+    import jaxden.denoise.registry
     from jaxden import progressive as P
 
     for suffix in (".msgpack", ".json", ".md"):
-        shutil.copy(jaxden.denoisers.WEIGHTS_DIR / f"oidn-pd{suffix}", tmp_path)
+        shutil.copy(jaxden.denoise.registry.WEIGHTS_DIR / f"oidn-pd{suffix}", tmp_path)
     meta = json.loads((tmp_path / "oidn-pd.json").read_text())
-    meta.pop("training_facts", None)  # as shipped before session 11: facts from the card
+    meta.pop("training_facts", None)  # as shipped before commit ff78750: facts from the card
     meta.pop("inference_overrides", None)
+    meta["pyoidn_version"] = "unknown"  # as recorded before the version was read from metadata
     (tmp_path / "oidn-pd.json").write_text(json.dumps(meta))
     original_card = (tmp_path / "oidn-pd.md").read_text()
     validation = next(line for line in original_card.splitlines() if "- Validation" in line)
     _, original_config = P.load_mixer(str(tmp_path / "oidn-pd.msgpack"))
     weights = (tmp_path / "oidn-pd.msgpack").read_bytes()
-    monkeypatch.setattr(jaxden.denoisers, "WEIGHTS_DIR", tmp_path)
+    monkeypatch.setattr(jaxden.denoise.registry, "WEIGHTS_DIR", tmp_path)
     root = Path(__file__).parent.parent
     monkeypatch.chdir(root)
     assert ship_mixer.main(["--reship", "oidn-pd", "--set", "closed_form_stops=2",
@@ -262,6 +115,8 @@ def test_ship_mixer_reship_sets_inference_fields_and_keeps_the_weights(tmp_path,
     assert shipped["model_config"]["closed_form_stops"] == 2.0
     assert shipped["train_config"] == meta["train_config"]
     assert shipped["jaxden_commit"] == meta["jaxden_commit"] and shipped["reshipped_commit"]
+    installed = version("pyoidn")
+    assert shipped["pyoidn_version"] == installed and "pyoidn_version_trained" not in shipped
     facts = shipped["training_facts"]
     assert facts["steps"] == meta["trained_steps"] and facts["val_metric"] == "smape"
     assert facts["dataset_config"]["crop_size"] == 128
@@ -273,8 +128,111 @@ def test_ship_mixer_reship_sets_inference_fields_and_keeps_the_weights(tmp_path,
     assert validation in card  # the training facts survive the round trip exactly
     assert "Shipped with `closed_form_stops=2` set at inference" in card
     assert "--set closed_form_stops=2" in card
+    assert f"OIDN via pyoidn {installed} (CPU" in card
     # A second re-ship reads the recorded facts and keeps the recorded overrides.
     assert ship_mixer.main(["--reship", "oidn-pd", "--config", meta["train_config_file"]]) == 0
     assert json.loads((tmp_path / "oidn-pd.json").read_text())["inference_overrides"] == [
         "closed_form_stops=2"]
     assert (tmp_path / "oidn-pd.md").read_text() == card
+
+
+def test_ship_mixer_reship_keeps_a_known_training_version(tmp_path, monkeypatch):
+    """Weights trained with another pyoidn than the installed one say so in .json and card."""
+    import shutil
+
+    import ship_mixer
+
+    import jaxden.denoise.registry
+
+    for suffix in (".msgpack", ".json", ".md"):
+        shutil.copy(jaxden.denoise.registry.WEIGHTS_DIR / f"oidn-pd{suffix}", tmp_path)
+    meta = json.loads((tmp_path / "oidn-pd.json").read_text())
+    meta["pyoidn_version"] = "0.0.1"
+    (tmp_path / "oidn-pd.json").write_text(json.dumps(meta))
+    monkeypatch.setattr(jaxden.denoise.registry, "WEIGHTS_DIR", tmp_path)
+    monkeypatch.chdir(Path(__file__).parent.parent)
+    assert ship_mixer.main(["--reship", "oidn-pd", "--config", meta["train_config_file"]]) == 0
+    shipped = json.loads((tmp_path / "oidn-pd.json").read_text())
+    assert shipped["pyoidn_version"] == version("pyoidn")
+    assert shipped["pyoidn_version_trained"] == "0.0.1"
+    assert f"pyoidn {version('pyoidn')} (trained with 0.0.1)" in (tmp_path / "oidn-pd.md").read_text()
+
+
+def test_shipped_card_states_the_installed_pyoidn():
+    """The card in the package was written by the fixed ship_mixer.py, not left at 'unknown'."""
+    from jaxden.denoise.registry import WEIGHTS_DIR
+
+    meta = json.loads((WEIGHTS_DIR / "oidn-pd.json").read_text())
+    assert meta["pyoidn_version"] not in ("unknown", "unavailable")
+    assert f"OIDN via pyoidn {meta['pyoidn_version']}" in (WEIGHTS_DIR / "oidn-pd.md").read_text()
+
+
+def test_mixer_alpha_first_layer_weights_and_table():
+    """Per-feature first-layer weights of a network mixer; the closed form has none and is left
+    out; the table names the denoiser and lists worst pixels when there are any."""
+    import mixer_alpha
+
+    weights = mixer_alpha.first_layer_weights(["oidn-pd", "closed-form"])
+    assert list(weights) == ["oidn-pd"]
+    assert list(weights["oidn-pd"]) == ["hdr", "den", "var", "sure", "residual", "divergence"]
+    assert all(v > 0 for v in weights["oidn-pd"].values())
+    entry = {"tstat_sigma": 0.5, "single": {"alpha": 0.2, "pd_over_mc": 0.9},
+             "swapped": {"alpha": 0.4, "pd_over_mc": 0.8},
+             "average": {"alpha": 0.3, "pd_over_mc": 0.85},
+             "worst_pixels": [{"pixel": [1, 2], "error": 0.5, "x": 1.0, "y": 2.0,
+                               "reference": 0.1, "var": 0.01, "sure": 0.02,
+                               "closed_form": 0.7, "single": 0.2, "swapped": 0.4,
+                               "average": 0.3}]}
+    rows = [{"crop": "s000-c000", "spp": 8, "denoiser_over_mc": 0.5,
+             "sure_over_var_median": 1.5, "var_mean": 1e-3, "mixers": {"m": entry}}]
+    text = mixer_alpha.markdown(rows, ["m"], weights, "wskp")
+    assert text.startswith("| crop | spp | wskp / MC |")
+    assert "| s000-c000 | 8 | 0.500 | 1.50 | 1.00e-03 | `m` | 0.5 | 0.200 / 0.400 / 0.300 | " \
+           "0.900 / 0.800 / 0.850 |" in text
+    assert "| s000-c000 | 8 | `m` | 1, 2 | 0.5 | 1 | 2 | 0.1 | 0.01 | 0.02 | 0.700 |" in text
+    assert "| `oidn-pd` |" in text
+
+
+def test_pd_report_provenance_records_package_versions():
+    import pd_report
+
+    assert pd_report.package_version("pyoidn") == version("pyoidn")
+    assert pd_report.package_version("no-such-package-jaxden") == "not installed"
+
+
+def test_pd_tables_keeps_reports_of_the_same_build_only(tmp_path):
+    """pd_tables.sh remakes a report unless it was made on the dataset's current build."""
+    import hashlib
+    import subprocess
+
+    root = Path(__file__).parent.parent
+    script = (root / "experiments" / "pd_tables.sh").read_text()
+    function = script[script.index("current() {"):script.index("\n}\n", script.index("current() {")) + 3]
+    manifest = tmp_path / "data" / "manifest.json"
+    manifest.parent.mkdir()
+    manifest.write_text('{"items": []}')
+    sha = hashlib.sha256(manifest.read_bytes()).hexdigest()
+
+    def current(report: dict | None) -> int:
+        out = tmp_path / "report"
+        out.with_suffix(".json").unlink(missing_ok=True)
+        if report is not None:
+            out.with_suffix(".json").write_text(json.dumps(report))
+        command = f'python={sys.executable}\n{function}\ncurrent "{out}" "{manifest.parent}"'
+        return subprocess.run(["bash", "-c", command], cwd=root, check=False).returncode
+
+    assert current({"provenance": {"dataset": {"manifest_sha256": sha}}}) == 0
+    assert current({"provenance": {"dataset": {"manifest_sha256": "0" * 64}}}) == 1
+    assert current(None) == 1
+
+
+def test_every_result_file_is_listed_in_the_experiments_readme():
+    """experiments/results/ keeps only current files, each named in experiments/README.md with
+    the command that regenerates it; every script in experiments/ is listed there too."""
+    root = Path(__file__).parent.parent / "experiments"
+    index = (root / "README.md").read_text()
+    results = sorted(p for p in (root / "results").iterdir() if p.is_file())
+    assert results
+    assert [p.name for p in results if p.stem not in index] == []
+    scripts = sorted(p.name for p in root.iterdir() if p.suffix in (".py", ".sh"))
+    assert [name for name in scripts if name not in index] == []

@@ -103,7 +103,11 @@ def test_nan_is_error_by_default_and_zero_policy_repairs(tmp_path):
     color = frame.color.copy()
     color[2, 3, 1] = np.nan
     path = tmp_path / "n.exr"
-    exr.write_channels(path, {c: color[..., i] for i, c in enumerate("RGB")})
+    with pytest.raises(ExrError, match="refusing to write channel 'G' with 1 non-finite"):
+        exr.write_channels(path, {c: color[..., i] for i, c in enumerate("RGB")})
+    assert not path.exists() and not list(tmp_path.iterdir())
+    exr.write_channels(path, {c: color[..., i] for i, c in enumerate("RGB")},
+                       allow_nonfinite=True)  # as another renderer might
     with pytest.raises(ExrError, match=r"colou?r.*non-finite.*\(2, 3, 1\)"):
         exr.read_frame(path)
     repaired = exr.read_frame(path, nonfinite="zero")

@@ -1,4 +1,4 @@
-"""Tests for jaxden.kernels: the WSKP filter (unfold and box forms), fusion and decoder."""
+"""Tests for jaxden.denoise.kernels: the WSKP filter (unfold and box forms), fusion and decoder."""
 
 import jax
 import jax.numpy as jnp
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from jaxden import kernels
+from jaxden.denoise import kernels
 from jaxden.errors import ConfigError, FrameError
 
 

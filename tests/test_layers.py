@@ -1,4 +1,4 @@
-"""Tests for jaxden.nn.layers: RepVGG blocks and their re-parameterisation."""
+"""Tests for jaxden.denoise.nn.layers: RepVGG blocks and their re-parameterisation."""
 
 import flax.linen as nn
 import jax
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from jaxden.errors import ConfigError
-from jaxden.nn.layers import (
+from jaxden.denoise.nn.layers import (
     RepVGGBlock,
     RepVGGDeployBlock,
     reparameterize,

@@ -1,11 +1,12 @@
-"""Tests for jaxden.losses: values by hand, analytic gradients, and consistency with metrics."""
+"""Tests for jaxden.train.losses: values by hand, analytic gradients, and consistency with metrics."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxden import losses, metrics
+from jaxden.train import losses
+from jaxden import metrics
 from jaxden.errors import FrameError
 
 

@@ -1,4 +1,4 @@
-"""Tests of the mixer network (jaxden.nn.mixer.PDNet) and its pure wrappers in
+"""Tests of the mixer network (jaxden.progressive.network.PDNet) and its pure wrappers in
 jaxden.progressive: architecture against a literal NumPy forward pass, output shapes for the
 paper's configuration and its ablations, alpha in [0, 1], the swap-symmetry measure, and
 mixer checkpoints (round trip and every mismatch as a CheckpointError).
@@ -23,7 +23,7 @@ from jaxden import progressive as P
 from jaxden.checkpoint import save_weights
 from jaxden.config import load_config
 from jaxden.errors import CheckpointError, ConfigError, FrameError
-from jaxden.nn.mixer import PDNet, head_bias
+from jaxden.progressive.network import PDNet, head_bias
 
 # ------------------------------------------------------------------------ NumPy reference
 
@@ -376,28 +376,57 @@ os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
 import jax, jax.numpy as jnp, optax
 from jaxden import progressive as P
 from jaxden.checkpoint import Checkpointer
-from jaxden.train import TrainState, data_mesh, replicate
+from jaxden.progressive.mixer import _mixer_meta
+from jaxden.train.loop import TrainState
+from jaxden.train.sharding import data_mesh, replicate
 assert len(jax.devices()) == 2
 config = P.MixerConfig(width=4)
 params = P.mixer_init(jax.random.PRNGKey(3), config)
 optimizer = optax.adam(1e-3)
 state = replicate(TrainState(params, optimizer.init(params), jnp.asarray(5)), data_mesh())
 checkpointer = Checkpointer(sys.argv[1])
-checkpointer.save(5, state, P._mixer_meta(config))
+checkpointer.save(5, state, _mixer_meta(config))
 checkpointer.wait()
 checkpointer.close()
 """
 
 
+LOAD_ON_ONE_DEVICE = """
+import os, sys
+os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=1"
+import jax, numpy as np
+from jaxden import progressive as P
+assert len(jax.devices()) == 1, jax.devices()
+params, config = P.load_mixer(sys.argv[1])
+assert config == P.MixerConfig(width=4), config
+want = P.mixer_init(jax.random.PRNGKey(3), config)
+leaves = jax.tree_util.tree_leaves(params)
+assert len(leaves) == len(jax.tree_util.tree_leaves(want))
+for a, b in zip(jax.tree_util.tree_leaves(want), leaves):
+    assert len(b.devices()) == 1, b.sharding  # a plain one-device array, not a sharded view
+    np.testing.assert_array_equal(np.asarray(b), np.asarray(a))
+print("LOADED", len(leaves))
+"""
+
+
 def test_load_mixer_from_a_run_on_another_device_count(tmp_path):
     """`jaxden train` with two virtual CPU devices (as mixer-oidn.toml recommends) saves arrays
-    sharded over both; a one-device process must still load the mixer."""
+    sharded over both; a one-device process must still load the mixer. conftest gives this
+    process two devices, so the one-device load runs in a subprocess started with one."""
     import subprocess
     import sys
 
     workdir = tmp_path / "run"
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
     subprocess.run([sys.executable, "-c", SAVE_ON_TWO_DEVICES, str(workdir)], check=True,
-                   env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=300)
+                   env=env, timeout=300)
+    # Both processes draw the init on the CPU: the loaded arrays equal it exactly.
+    loaded = subprocess.run([sys.executable, "-c", LOAD_ON_ONE_DEVICE, str(workdir)],
+                            env=env, timeout=300, capture_output=True, text=True)
+    assert loaded.returncode == 0, loaded.stderr[-3000:]
+    assert loaded.stdout.split() == ["LOADED", str(len(jax.tree_util.tree_leaves(
+        P.mixer_init(jax.random.PRNGKey(3), P.MixerConfig(width=4)))))]
+    # ... and this (two-device) process loads it too.
     params, config = P.load_mixer(workdir)
     assert config == P.MixerConfig(width=4)
     want = P.mixer_init(jax.random.PRNGKey(3), config)

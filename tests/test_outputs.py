@@ -16,7 +16,7 @@ from jaxden.errors import ExrError, FrameError, OutputError
 from jaxden.fileio import all_or_nothing, atomic_write_text, check_outputs
 from jaxden.frame import Frame
 from jaxden.io.exr import read_frame, write_channels, write_frame
-from jaxden.sure import sure_buffers
+from jaxden.sure.buffers import sure_buffers
 
 
 def _files(folder: Path) -> list[str]:
@@ -191,7 +191,7 @@ def test_failed_training_start_leaves_no_workdir(tmp_path, capsys):
 
 def test_even_kernel_sizes_are_a_config_error():
     from jaxden.errors import ConfigError
-    from jaxden.nn.wskp import KPConfig, WSKPConfig, WSKPMRConfig
+    from jaxden.denoise.nn.wskp import KPConfig, WSKPConfig, WSKPMRConfig
 
     for make in (lambda: WSKPConfig(kernel_sizes=(3, 4)), lambda: WSKPMRConfig(kernel_sizes=()),
                  lambda: KPConfig(kernel_size=6)):

@@ -1,4 +1,4 @@
-"""Tests of the SURE cache (jaxden.pdcache): it builds, equals direct SURE calls with the same
+"""Tests of the SURE cache (jaxden.progressive.cache): it builds, equals direct SURE calls with the same
 probes, resumes without recomputing finished items, refuses another denoiser or setting, and
 cuts the same windows as the dataset loader.
 
@@ -19,17 +19,18 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxden import pdcache
+from jaxden.progressive import cache as pdcache
+from jaxden.progressive import cache_build
 from jaxden.config import load_config
 from jaxden.data.builder import build_dataset, synthetic_render
 from jaxden.data.config import DatasetConfig
 from jaxden.data.layout import load_manifest
 from jaxden.data.loader import DatasetLoader, dihedral
-from jaxden.denoisers import Denoiser, DenoiserDef, make_denoiser
+from jaxden.denoise.registry import Denoiser, DenoiserDef, make_denoiser
 from jaxden.errors import ConfigError, DatasetError
 from jaxden.io.exr import read_frame, read_header
-from jaxden.progressive import MixerConfig
-from jaxden.sure import draw_probes, sure, sure_blackbox
+from jaxden.progressive.mixer import MixerConfig
+from jaxden.sure.stein import draw_probes, sure, sure_blackbox
 
 TINY = "experiments/configs/dataset-tiny.toml"
 
@@ -79,7 +80,7 @@ def dataset(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def oidn_cache(dataset):
-    return pdcache.build_sure_cache(dataset, "oidn", progress=False)
+    return cache_build.build_sure_cache(dataset, "oidn", progress=False)
 
 
 def input_items(root, min_spp=2):
@@ -125,7 +126,7 @@ def test_cached_oidn_sure_equals_direct_blackbox_call(dataset, oidn_cache):
 
 
 def test_cached_jax_sure_equals_direct_jvp_call(dataset, tmp_path):
-    cache = pdcache.build_sure_cache(dataset, blur_denoiser(), tmp_path / "blur", seed=7,
+    cache = cache_build.build_sure_cache(dataset, blur_denoiser(), tmp_path / "blur", seed=7,
                                      progress=False)
     settings = cache.identity["settings"]
     assert settings["method"] == "jvp" and settings["eps"] is None
@@ -148,7 +149,7 @@ def _mtimes(directory):
 
 def test_rerun_recomputes_only_missing_damaged_or_stale_items(dataset, tmp_path, monkeypatch):
     out = tmp_path / "blur"
-    pdcache.build_sure_cache(dataset, blur_denoiser(), out, progress=False)
+    cache_build.build_sure_cache(dataset, blur_denoiser(), out, progress=False)
     items = input_items(dataset)
     deleted, truncated, unrecorded, stale = items[0], items[1], items[2], items[3]
     (out / deleted.path).unlink()
@@ -162,14 +163,14 @@ def test_rerun_recomputes_only_missing_damaged_or_stale_items(dataset, tmp_path,
     before = _mtimes(out)
 
     computed = []
-    original = pdcache.denoise_with_sure
+    original = cache_build.denoise_with_sure
 
     def counting(denoiser, frame, key, **kwargs):
         computed.append(kwargs["where"])
         return original(denoiser, frame, key, **kwargs)
 
-    monkeypatch.setattr(pdcache, "denoise_with_sure", counting)
-    cache = pdcache.build_sure_cache(dataset, blur_denoiser(), out, progress=False)
+    monkeypatch.setattr(cache_build, "denoise_with_sure", counting)
+    cache = cache_build.build_sure_cache(dataset, blur_denoiser(), out, progress=False)
     assert sorted(computed) == sorted(str(dataset / i.path) for i in (deleted, truncated, stale))
     after = _mtimes(out)
     for item in items[4:] + [unrecorded]:
@@ -179,13 +180,13 @@ def test_rerun_recomputes_only_missing_damaged_or_stale_items(dataset, tmp_path,
     assert cache.records[unrecorded.id]["source_sha256"] == unrecorded.sha256
 
     computed.clear()
-    pdcache.build_sure_cache(dataset, blur_denoiser(), out, progress=False)
+    cache_build.build_sure_cache(dataset, blur_denoiser(), out, progress=False)
     assert computed == []  # a complete cache is only checked
 
 
 def test_refuses_another_denoiser_or_setting(dataset, tmp_path):
     out = tmp_path / "blur"
-    pdcache.build_sure_cache(dataset, blur_denoiser(), out, progress=False)
+    cache_build.build_sure_cache(dataset, blur_denoiser(), out, progress=False)
     manifest = (out / pdcache.CACHE_MANIFEST).read_text()
     for spec, options, words in (
         (blur_denoiser(0.25), {}, "params_sha256"),
@@ -195,7 +196,7 @@ def test_refuses_another_denoiser_or_setting(dataset, tmp_path):
         (blur_denoiser(), {"method": "fd"}, "method"),
     ):
         with pytest.raises(DatasetError, match=f"another dataset, denoiser or setting.*{words}"):
-            pdcache.build_sure_cache(dataset, spec, out, progress=False, **options)
+            cache_build.build_sure_cache(dataset, spec, out, progress=False, **options)
     assert (out / pdcache.CACHE_MANIFEST).read_text() == manifest
 
 
@@ -204,28 +205,28 @@ def test_refuses_incomplete_dataset_foreign_folder_and_bad_options(dataset, tmp_
     foreign.mkdir()
     (foreign / "notes.txt").write_text("mine")
     with pytest.raises(DatasetError, match="not empty.*notes.txt"):
-        pdcache.build_sure_cache(dataset, blur_denoiser(), foreign, progress=False)
+        cache_build.build_sure_cache(dataset, blur_denoiser(), foreign, progress=False)
     with pytest.raises(ConfigError, match="black box.*fd"):
-        pdcache.build_sure_cache(dataset, "oidn", tmp_path / "x", method="jvp", progress=False)
+        cache_build.build_sure_cache(dataset, "oidn", tmp_path / "x", method="jvp", progress=False)
     with pytest.raises(ConfigError, match="num_probes"):
-        pdcache.build_sure_cache(dataset, "oidn", tmp_path / "x", num_probes=0, progress=False)
+        cache_build.build_sure_cache(dataset, "oidn", tmp_path / "x", num_probes=0, progress=False)
     partial = tmp_path / "partial"
     shutil.copytree(dataset, partial, ignore=shutil.ignore_patterns("derived"))
     data = json.loads((partial / "manifest.json").read_text())
     data["items"][0]["sha256"] = None
     (partial / "manifest.json").write_text(json.dumps(data))
     with pytest.raises(DatasetError, match="incomplete"):
-        pdcache.build_sure_cache(partial, "oidn", progress=False)
+        cache_build.build_sure_cache(partial, "oidn", progress=False)
 
 
 def test_open_training_cache_without_building(dataset, tmp_path, oidn_cache):
     config = MixerConfig(denoiser="oidn", build_cache=False, cache=str(tmp_path / "none"))
     with pytest.raises(DatasetError, match="no SURE cache.*sure-cache"):
-        pdcache.open_training_cache(dataset, config)
-    ok = pdcache.open_training_cache(dataset, MixerConfig(denoiser="oidn", build_cache=False))
+        cache_build.open_training_cache(dataset, config)
+    ok = cache_build.open_training_cache(dataset, MixerConfig(denoiser="oidn", build_cache=False))
     assert ok.directory == oidn_cache.directory
     with pytest.raises(DatasetError, match="num_probes"):
-        pdcache.open_training_cache(dataset, MixerConfig(build_cache=False, sure_probes=1))
+        cache_build.open_training_cache(dataset, MixerConfig(build_cache=False, sure_probes=1))
 
 
 # ------------------------------------------------------------------------ reading

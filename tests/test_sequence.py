@@ -135,7 +135,7 @@ def reprojection_errors(scene, prev_camera, prev, current, motion):
 @pytest.fixture(scope="module")
 def scene():
     _ensure_variant()
-    from jaxden.render.scenes import load_scene
+    from jaxden.render.load import load_scene
 
     return load_scene(f"procedural:{SCENE_SEED}", size=(WIDTH, HEIGHT))
 

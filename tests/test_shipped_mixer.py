@@ -17,7 +17,7 @@ import pytest
 from jaxden import cli
 from jaxden import progressive as P
 from jaxden.data.builder import synthetic_render
-from jaxden.denoisers import WEIGHTS_DIR
+from jaxden.denoise.registry import WEIGHTS_DIR
 from jaxden.errors import CheckpointError
 from jaxden.io.exr import read_image, write_frame
 
@@ -33,7 +33,7 @@ def test_shipped_mixer_files_and_model_card():
     from pathlib import Path
 
     from jaxden.config import config_to_dict, load_config
-    from jaxden.train import OptimConfig, load_train_config
+    from jaxden.train.config import OptimConfig, load_train_config
 
     config_file = meta.get("train_config_file", "experiments/configs/mixer-oidn.toml")
     committed = load_train_config(Path(__file__).parent.parent / config_file)

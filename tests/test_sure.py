@@ -16,7 +16,7 @@ import pytest
 
 from jaxden.errors import ConfigError, FrameError
 from jaxden.frame import Frame
-from jaxden.sure import SureResult, draw_probes, sure, sure_blackbox, sure_from_parts
+from jaxden.sure.stein import SureResult, draw_probes, sure, sure_blackbox, sure_from_parts
 
 DN = ("NHWC", "HWIO", "NHWC")
 
@@ -205,7 +205,7 @@ def test_probe_batch_bounds_jvp_memory(net_params):
     K = 4 (only compiled, never run): measured 75 MiB at probe_batch=4, 22 MiB at 1.
     (XLA's accounting depends on the net: for the 2-layer tanh net above chunking saves
     nothing; the bound is a property of ReLU-style nets, which the denoisers are.)"""
-    from jaxden.sure import _sure_core
+    from jaxden.sure.stein import _sure_core
 
     def deep_net(params, frame):
         w1, w2, w3 = params
@@ -281,9 +281,9 @@ def test_jvp_sure_of_wskp_is_finite_on_black_pixels_with_zero_variance(tonemap):
     input tone map t ** (1/2.2) has an infinite slope at 0; jvp then gave inf * 0 = NaN there
     (seen on the test set at 2-64 spp). With the floor the SURE map is finite everywhere and
     equals (y - x)^2 at pixels whose variance is 0 (no probe moves them)."""
-    from jaxden.denoisers import make_denoiser
-    from jaxden.nn.wskp import WSKPConfig
-    from jaxden.pdcache import denoise_with_sure
+    from jaxden.denoise.registry import make_denoiser
+    from jaxden.denoise.nn.wskp import WSKPConfig
+    from jaxden.sure.denoiser import denoise_with_sure
 
     rng = np.random.default_rng(0)
     h, w = 16, 16

@@ -12,7 +12,7 @@ import pytest
 
 from jaxden.errors import FrameError
 from jaxden.frame import Frame
-from jaxden.sure import combine_buffers, merge_buffer_pairs, sure_buffers, sure_buffers_jax
+from jaxden.sure.buffers import combine_buffers, merge_buffer_pairs, sure_buffers, sure_buffers_jax
 
 
 def firefly_samples(rng, mu, draws, n, p=0.01, a=50.0):

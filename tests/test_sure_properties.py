@@ -30,7 +30,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from jaxden.frame import Frame
-from jaxden.sure import draw_probes, sure, sure_blackbox
+from jaxden.sure.stein import draw_probes, sure, sure_blackbox
 
 SHAPE = (8, 8, 3)
 DRAWS = 512

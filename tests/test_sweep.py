@@ -13,9 +13,9 @@ from jaxden.data.builder import build_dataset, synthetic_render
 from jaxden.data.config import DatasetConfig
 from jaxden.errors import ConfigError
 from jaxden.sweep import load_sweep, plan_runs, run_sweep
-from jaxden.train import load_train_config
+from jaxden.train.config import load_train_config
 
-ROOT = Path(__file__).parent.parent
+ROOT = Path(__file__).resolve().parent.parent
 TINY_MIXER = ROOT / "experiments" / "configs" / "mixer-tiny.toml"
 
 
@@ -23,6 +23,36 @@ def write_sweep(folder: Path, body: str, base: Path = TINY_MIXER) -> Path:
     path = folder / "sweep.toml"
     path.write_text(f'base = "{base}"\n' + body)
     return path
+
+
+def pd_over_denoiser_rmse(run_dir, dataset, split, spp, seed=0, probes=4):
+    """The sweep summary's headline PD / denoiser RMSE, recomputed from the files: the mixer
+    saved in ``run_dir`` run by progressive_denoise on every (crop, spp) of ``split`` (SURE key
+    fold_in(PRNGKey(seed), i) for the i-th), RMSE of PD and of the denoiser against the
+    reference, crop means per spp, the ratio per spp, the mean of those ratios."""
+    import jax
+    import numpy as np
+
+    from jaxden.progressive.mixer import load_mixer
+    from jaxden.progressive.pipeline import progressive_denoise
+    from jaxden.progressive.report import iter_crops
+
+    params, config = load_mixer(run_dir)
+    errors: dict[int, list[tuple[float, float]]] = {}
+    index = 0
+    for _, reference, inputs in iter_crops(dataset, split, spp):
+        truth = np.asarray(reference.color, np.float64)
+        for level, frame in inputs:
+            key = jax.random.fold_in(jax.random.PRNGKey(seed), index)
+            z, _, extras = progressive_denoise(frame, config.denoiser, params, config, key,
+                                               num_probes=probes)
+            index += 1
+            rmse = [float(np.sqrt(np.mean((np.asarray(image, np.float64) - truth) ** 2)))
+                    for image in (z, extras["denoised"])]
+            errors.setdefault(level, []).append(tuple(rmse))
+    assert sorted(errors) == sorted(spp) and index >= 2
+    return float(np.mean([np.mean([e[0] for e in group]) / np.mean([e[1] for e in group])
+                          for group in errors.values()]))
 
 
 def test_grid_and_zip_plans(tmp_path):
@@ -93,7 +123,10 @@ def test_tiny_mixer_sweep_end_to_end_and_resume(tmp_path, capsys):
         assert (run_dir / "metrics.jsonl").is_file() and (run_dir / "result.json").is_file()
         assert result["config"]["seed"] == result["values"]["seed"]
         head = result["evaluations"][f"pd:{dataset}"]["headline"]
-        assert 0 < head["pd_over_denoiser"]["rmse"] < 10
+        # The headline ratio is what the run's saved mixer gives on the val crops, recomputed
+        # here from the run folder and the dataset files (float32 pipeline, float64 errors).
+        want = pd_over_denoiser_rmse(run_dir, dataset, "val", (8, 32))
+        assert head["pd_over_denoiser"]["rmse"] == pytest.approx(want, rel=1e-4)
     # Different seeds train different mixers.
     assert results[0]["train"]["val_loss"] != results[1]["train"]["val_loss"]
     summary = (workdir / "summary.md").read_text()
@@ -116,3 +149,29 @@ def test_tiny_mixer_sweep_end_to_end_and_resume(tmp_path, capsys):
     again = run_sweep(sweep, workdir, progress=False)
     assert [r["skipped"] for r in again] == [True, False]
     assert again[1]["evaluations"] == results[1]["evaluations"]
+
+
+SWEEP_FILES = sorted((ROOT / "experiments" / "sweeps").glob("*.toml"))
+
+
+def test_there_are_shipped_sweep_files():
+    assert SWEEP_FILES, ROOT / "experiments" / "sweeps"
+
+
+@pytest.mark.parametrize("path", SWEEP_FILES, ids=lambda p: p.name)
+def test_shipped_sweep_files_plan_valid_runs(path):
+    """Every experiments/sweeps/*.toml loads, plans at least one run, and each run's overrides
+    resolve into a valid training config (the axis values really land in it)."""
+    config, axes, base = load_sweep(path)
+    runs = plan_runs(config, axes)
+    assert len(runs) >= 1 and base.is_file()
+    assert len({run.name for run in runs}) == len(runs)
+    for run in runs:
+        resolved = load_train_config(base, list(run.overrides))
+        for key, value in run.values.items():
+            if key == "name":
+                continue
+            section, _, field = key.rpartition(".")
+            holder = getattr(resolved, section) if section else resolved
+            got = holder[field] if isinstance(holder, dict) else getattr(holder, field)
+            assert (list(got) if isinstance(got, tuple) else got) == value, (run.name, key)

@@ -7,7 +7,7 @@ import pytest
 
 from jaxden.errors import FrameError
 from jaxden.frame import Frame, stack
-from jaxden.temporal import TemporalConfig, accumulate, accumulate_sequence, start_history
+from jaxden.denoise.temporal import TemporalConfig, accumulate, accumulate_sequence, start_history
 
 
 def plane_frame(color, shift=(0, 0), motion=None):
@@ -93,7 +93,7 @@ def test_accumulation_on_a_rendered_camera_path_approaches_the_reference():
     reference than the last 1-spp frame alone (relMSE over all pixels)."""
     from jaxden.metrics import relmse
     from jaxden.render.camera import from_scene, orbit_path
-    from jaxden.render.scenes import load_scene
+    from jaxden.render.load import load_scene
     from jaxden.render.sequence import render_sequence
 
     size = (48, 48)

@@ -1,6 +1,6 @@
 """Benchmark ``decoder``: the WSKP kernel decoder, production (box) form vs reference (unfold).
 
-Problem: :func:`jaxden.kernels.decode` on a 1280 x 720 x 3 image with six kernels of sizes
+Problem: :func:`jaxden.denoise.kernels.decode` on a 1280 x 720 x 3 image with six kernels of sizes
 3, 5, ..., 13 (``quick``: 320 x 180), random colour, importance and fusion logits (seeded).
 
 Memory is XLA's *compiled* memory analysis of each jitted function
@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxden import kernels
+from jaxden.denoise import kernels
 
 try:
     from jaxden.bench import register
@@ -41,7 +41,8 @@ except ImportError:  # pragma: no cover - the registry is optional for importing
 
 KERNEL_SIZES = kernels.DEFAULT_KERNEL_SIZES
 FULL_SIZE = (720, 1280)
-QUICK_SIZE = (180, 320)
+QUICK_SIZE = (180, 320)  # (height, width) of ``quick``; the tests make it smaller still
+QUICK_REPEATS = 3
 
 
 def _inputs(height: int, width: int, seed: int = 0):
@@ -138,5 +139,6 @@ def measure(size: tuple[int, int] = FULL_SIZE, repeats: int = 5, unfold_repeats:
 def bench_decoder(quick: bool) -> dict:
     """Box vs unfold decoder at 1280 x 720 (quick: 320 x 180); see the module docstring."""
     if quick:
-        return measure(QUICK_SIZE, repeats=3, unfold_repeats=2, time_unfold_backward=True)
+        return measure(QUICK_SIZE, repeats=QUICK_REPEATS, unfold_repeats=2,
+                       time_unfold_backward=True)
     return measure(FULL_SIZE, repeats=5, unfold_repeats=2)

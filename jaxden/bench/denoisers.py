@@ -15,16 +15,18 @@ import numpy as np
 from jaxden.bench import bench_frame, median_times, register
 
 MODELS = {"wskp3": "wskp3", "wskp6": "wskp", "kp": "kp", "unet": "unet"}
+#: (width, height) and repeats of ``quick`` (the tests make it smaller still).
+QUICK_SIZE, QUICK_REPEATS = (320, 180), 3
 
 
 @register("denoisers")
 def bench_denoisers(quick: bool) -> dict:
     import jax
 
-    from jaxden.denoisers import make_denoiser
+    from jaxden.denoise.registry import make_denoiser
 
-    size = (320, 180) if quick else (1280, 720)
-    repeats = 3 if quick else 7
+    size = QUICK_SIZE if quick else (1280, 720)
+    repeats = QUICK_REPEATS if quick else 7
     frame = bench_frame(size)
     device_frame = jax.device_put(frame)
     runners = {}

@@ -22,25 +22,23 @@ from __future__ import annotations
 
 from jaxden.bench import bench_frame, median_times, register
 
+#: (width, height) and repeats of ``quick`` (the tests make it smaller still).
+QUICK_SIZE, QUICK_REPEATS = (320, 180), 2
+
 
 @register("progressive")
 def bench_progressive(quick: bool) -> dict:
     import jax
     import numpy as np
 
-    from jaxden.denoisers import load_denoiser
-    from jaxden.pdcache import denoise_with_sure
-    from jaxden.progressive import (
-        closed_form_alpha,
-        load_mixer,
-        mixer_alpha,
-        progressive_denoise,
-        shipped_mixer_path,
-        t_statistic_scaling,
-    )
+    from jaxden.denoise.registry import load_denoiser
+    from jaxden.sure.denoiser import denoise_with_sure
+    from jaxden.progressive.mixer import closed_form_alpha, load_mixer, mixer_alpha
+    from jaxden.progressive.pipeline import progressive_denoise, shipped_mixer_path
+    from jaxden.progressive.tstat import t_statistic_scaling
 
-    size = (320, 180) if quick else (1280, 720)
-    repeats = 2 if quick else 3
+    size = QUICK_SIZE if quick else (1280, 720)
+    repeats = QUICK_REPEATS if quick else 3
     frame = bench_frame(size)
     oidn = load_denoiser("oidn")
     params, config = load_mixer(str(shipped_mixer_path("oidn")))

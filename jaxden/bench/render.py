@@ -25,13 +25,15 @@ from jaxden.bench import register
 SCENE = "cornell-box"
 SIZE = (256, 256)
 SPP = 64
+#: (size, spp, repeats) of ``quick`` (the tests make it smaller still).
+QUICK = ((64, 64), 16, 3)
 
 
 def measure(scene_spec=SCENE, size=SIZE, spp=SPP, repeats: int = 5) -> dict:
     """Times (seconds) and ratio for one scene; see the module docstring."""
     import mitsuba as mi
 
-    from jaxden.render import core, scenes
+    from jaxden.render import core, load as scenes
     from jaxden.render.variant import ensure_variant
 
     variant = ensure_variant()
@@ -82,5 +84,6 @@ def measure(scene_spec=SCENE, size=SIZE, spp=SPP, repeats: int = 5) -> dict:
 @register("render")
 def render_bench(quick: bool) -> dict:
     if quick:
-        return measure(SCENE, (64, 64), 16, repeats=3)
+        size, spp, repeats = QUICK
+        return measure(SCENE, size, spp, repeats=repeats)
     return measure()

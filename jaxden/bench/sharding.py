@@ -22,12 +22,18 @@ import sys
 from jaxden.bench import register
 from jaxden.errors import JaxdenError
 
+#: (batch, size, repeats) of ``quick`` (the tests make it smaller still).
+QUICK = (4, 64, 3)
+
 CHILD = r"""
 import json, statistics, sys, time
 import jax, jax.numpy as jnp, numpy as np
 from jaxden.frame import Frame
-from jaxden.train import (OptimConfig, TrainConfig, TrainState, data_mesh, loss_function,
-                          make_optimizer, make_task, make_train_step, replicate, shard_batch)
+from jaxden.train.config import OptimConfig, TrainConfig
+from jaxden.train.loop import TrainState, make_train_step
+from jaxden.train.optim import loss_function, make_optimizer
+from jaxden.train.sharding import data_mesh, replicate, shard_batch
+from jaxden.train.tasks import make_task
 
 batch_size, size, repeats, model = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
 rng = np.random.default_rng(0)
@@ -70,7 +76,7 @@ print(json.dumps({"ratio": two / one, "step_1_device_s": one, "step_2_devices_s"
 
 @register("sharding")
 def bench_sharding(quick: bool) -> dict:
-    batch, size, repeats = (4, 64, 3) if quick else (8, 128, 9)
+    batch, size, repeats = QUICK if quick else (8, 128, 9)
     env = dict(os.environ)
     env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
     out: dict = {}

@@ -14,18 +14,24 @@ from __future__ import annotations
 
 from jaxden.bench import bench_frame, median_times, register
 
+#: (width, height) and repeats of ``quick`` (the tests make it smaller still).
+QUICK_SIZE, QUICK_REPEATS = (320, 180), 3
+#: The registered denoiser measured (the tests use the smaller "wskp3").
+MODEL = "wskp"
+DESCRIPTIONS = {"wskp": "wskp (6 layers, deploy form)", "wskp3": "wskp3 (3 layers, deploy form)"}
+
 
 @register("sure")
 def bench_sure(quick: bool) -> dict:
     import jax
 
-    from jaxden.denoisers import make_denoiser
-    from jaxden.sure import sure
+    from jaxden.denoise.registry import make_denoiser
+    from jaxden.sure.stein import sure
 
-    size = (320, 180) if quick else (1280, 720)
-    repeats = 3 if quick else 5
+    size = QUICK_SIZE if quick else (1280, 720)
+    repeats = QUICK_REPEATS if quick else 5
     frame = jax.device_put(bench_frame(size))
-    denoiser = make_denoiser("wskp", key=jax.random.PRNGKey(0)).deployed()
+    denoiser = make_denoiser(MODEL, key=jax.random.PRNGKey(0)).deployed()
     definition, config, params = denoiser.definition, denoiser.config, denoiser.params
 
     def apply(p, f):
@@ -49,7 +55,7 @@ def bench_sure(quick: bool) -> dict:
         "jvp_k1_over_forward": median["jvp_k1"] / median["forward"],
         "jvp_over_fd_k4": median["jvp_k4"] / median["fd_k4"],
         **{f"{name}_s": value for name, value in median.items()},
-        "denoiser": "wskp (6 layers, deploy form)",
+        "denoiser": DESCRIPTIONS.get(MODEL, f"{MODEL} (deploy form)"),
         "width": size[0],
         "height": size[1],
         "repeats": repeats,

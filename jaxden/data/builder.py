@@ -86,6 +86,7 @@ class CropTask:
     threads: int | None = None  # Dr.Jit worker threads for this process (None: all cores)
     aux: str = "first-hit"  # DatasetConfig.aux; passed to the renderer only when not default
     feature_spp: int = 16  # DatasetConfig.feature_spp; passed only when not the default 16
+    parameters: tuple[tuple[str, str], ...] = ()  # DatasetConfig.scene_parameters (XML scenes)
 
 
 # Per worker process: the most recently loaded Mitsuba scenes. render_frame reloads a scene
@@ -106,16 +107,18 @@ def render_cached(
     aux: str = "first-hit",
     feature_spp: int = 16,
     colour: Any = None,
+    parameters: dict[str, str] | None = None,
 ) -> Any:
     """``jaxden.render.core.render_frame`` with the loaded scene kept between calls (the
-    builder's default renderer)."""
+    builder's default renderer). ``parameters``: ``$name`` values of an XML scene."""
     from jaxden.render.core import render_frame
-    from jaxden.render.scenes import load_scene
+    from jaxden.render.load import load_scene
 
-    key = (scene, tuple(size) if size is not None else None)
+    key = (scene, tuple(size) if size is not None else None,
+           tuple(sorted((parameters or {}).items())))
     loaded = _SCENE_CACHE.get(key)
     if loaded is None:
-        loaded = load_scene(scene, size)
+        loaded = load_scene(scene, size, parameters or None)
         while len(_SCENE_CACHE) >= _SCENE_CACHE_SIZE:
             _SCENE_CACHE.pop(next(iter(_SCENE_CACHE)))
         _SCENE_CACHE[key] = loaded
@@ -185,6 +188,8 @@ def _render_one(task: CropTask, item: RenderTask, render: RenderFn) -> dict[str,
     top, left, height, width = task.window
     start = time.perf_counter()
     extra = _feature_options(task.aux, task.feature_spp)
+    if task.parameters:
+        extra["parameters"] = dict(task.parameters)
     frame = render(task.scene, item.spp, seed=item.seed, size=task.size, crop=task.window,
                    **extra)
     seconds = time.perf_counter() - start
@@ -285,8 +290,10 @@ def _check_render(frame: Any, task: CropTask, item: RenderTask) -> None:
 
 
 # ----------------------------------------------------------------------------- checks
-def check_scenes(scene_ids: list[str]) -> None:
-    """Raise SceneError for a scene the renderer cannot know (before any rendering starts)."""
+def check_scenes(scene_ids: list[str], parameters: dict[str, str] | None = None) -> None:
+    """Raise SceneError for a scene the renderer cannot know (before any rendering starts);
+    XML files are read with their includes and ``parameters`` (missing includes, cycles,
+    undefined ``$names`` fail here)."""
     from difflib import get_close_matches
 
     from jaxden.render.scenes import list_scenes
@@ -298,6 +305,9 @@ def check_scenes(scene_ids: list[str]) -> None:
         if scene.lower().endswith(".xml"):
             if not Path(scene).is_file():
                 raise SceneError(f"scene file {scene} does not exist (relative to {os.getcwd()})")
+            from jaxden.render.scene_xml import flatten_scene
+
+            flatten_scene(scene, parameters)
             continue
         if scene not in names:
             close = get_close_matches(scene, names, 1)
@@ -431,7 +441,7 @@ def build_dataset(
     planned.renderer = _renderer_name(render_fn)
     if render_fn is None:  # before the output folder exists: nothing left behind
         try:
-            check_scenes(config.scene_ids())
+            check_scenes(config.scene_ids(), config.scene_parameters)
         except SceneError as error:
             raise SceneError(f"dataset config 'scenes': {error}") from None
     directory.mkdir(parents=True, exist_ok=True)
@@ -493,6 +503,7 @@ def build_dataset(
                     threads=threads,
                     aux=config.aux,
                     feature_spp=config.feature_spp,
+                    parameters=tuple(sorted(config.scene_parameters.items())),
                 )
             )
         by_id = manifest.item_by_id()
@@ -529,77 +540,6 @@ def build_dataset(
                 bar.close()
             manifest.save(directory)
         return manifest
-
-
-# -------------------------------------------------------------------------- refeature
-#: The config keys `refeature` may change: they touch only the feature pass.
-FEATURE_KEYS: tuple[str, ...] = ("aux", "feature_spp", "name")
-
-
-class ColourFrom:
-    """A dataset renderer that keeps the colour and variance of another dataset's items and
-    renders only their features (``render_frame(colour=...)``). Items are found by their
-    render seed, which the builder derives from the config's seed, scene and crop, so a
-    refeatured item equals what a full build of the new config renders."""
-
-    def __init__(self, source: str | os.PathLike) -> None:
-        from jaxden.data.layout import load_manifest
-
-        self.source = str(source)
-        manifest = load_manifest(source)
-        self.items = {item.seed: (item.path, item.spp, item.id) for item in manifest.items}
-        if len(self.items) != len(manifest.items):
-            raise DatasetError(f"{source}: two items share a render seed; cannot refeature it")
-
-    def __call__(self, scene, spp, seed=0, size=None, *, crop=None, aux="first-hit",
-                 feature_spp=16):
-        from jaxden.io.exr import read_frame
-
-        if seed not in self.items:
-            raise DatasetError(f"{self.source}: no item was rendered with seed {seed}")
-        path, item_spp, item_id = self.items[seed]
-        if item_spp != spp:
-            raise DatasetError(f"{self.source}: item {item_id} has {item_spp} spp, not {spp}")
-        colour = read_frame(Path(self.source) / path, require=("color",))
-        return render_cached(scene, spp, seed=seed, size=size, crop=crop, aux=aux,
-                             feature_spp=feature_spp, colour=colour)
-
-
-def refeature_dataset(
-    source: str | os.PathLike,
-    out_dir: str | os.PathLike,
-    overrides=(),
-    *,
-    executor: str = "local",
-    workers: int | None = None,
-    progress: bool = True,
-) -> Manifest:
-    """A copy of a complete dataset with its features re-rendered under new feature settings
-    (``aux``, ``feature_spp``; ``key=value`` overrides of the source's config) and its colour
-    and variance kept. The colour pass does not depend on the feature settings, so the result
-    is what ``jaxden dataset build`` of the new config would render, at the cost of the
-    feature passes alone. Resumable like a build (rerun the same command)."""
-    from jaxden.config import config_diff, config_to_dict
-    from jaxden.data.layout import load_manifest
-
-    manifest = load_manifest(source)
-    if not manifest.complete:
-        raise DatasetError(f"{source}: the dataset is not complete; finish its build first")
-    if manifest.renderer != _renderer_name(None):
-        raise DatasetError(f"{source}: built by {manifest.renderer}; refeature needs a dataset "
-                           f"rendered by {_renderer_name(None)}")
-    base = _with_defaults(manifest.config)
-    config = load_dataset_config(base, overrides)
-    changed = [line.split(":", 1)[0] for line in config_diff(base, config_to_dict(config))]
-    other = [key for key in changed if key not in FEATURE_KEYS]
-    if other:
-        raise DatasetError(f"refeature can change only {', '.join(FEATURE_KEYS)}; "
-                           f"{', '.join(other)} would change the colour renders: build a new "
-                           f"dataset instead")
-    if Path(out_dir).resolve() == Path(source).resolve():
-        raise DatasetError(f"refeature writes a new dataset: --out must not be {source}")
-    return build_dataset(config, out_dir, executor=executor, workers=workers,
-                         render_fn=ColourFrom(source), progress=progress)
 
 
 def _threads_per_worker(executor: str, workers: int | None) -> int | None:

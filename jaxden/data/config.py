@@ -29,6 +29,7 @@ import dataclasses
 import math
 from typing import Literal
 
+from jaxden.config import bounded
 from jaxden.errors import ConfigError
 from jaxden.render.integrators import AUX_MODES
 
@@ -40,8 +41,8 @@ class ProceduralConfig:
     """Procedurally generated scenes: ``count`` scenes ``procedural:SEED`` with
     SEED = ``seed`` + i, i = 0..count-1."""
 
-    count: int = 0
-    seed: int = 0
+    count: int = bounded(0, low=0, high=100_000)
+    seed: int = bounded(0, low=0, high=4294967295)
 
     def __post_init__(self) -> None:
         if self.count < 0:
@@ -125,21 +126,24 @@ class DatasetConfig:
       ``min(spp, feature_spp)`` samples per pixel; 16 (default) is what every dataset before
       this option used. More samples give OIDN cleaner features (docs/results.md, "OIDN's
       auxiliary features"); set it >= the largest spp to average as many samples as the colour.
+    - ``scene_parameters``: ``$name`` values for the XML scenes, as Mitsuba's ``-D``
+      (``[scene_parameters]`` table, e.g. ``spp = "64"``); empty by default.
     - ``splits``: see :class:`SplitConfig`.
     """
 
     name: str = "dataset"
     scenes: tuple[str, ...] = ()
     procedural: ProceduralConfig = ProceduralConfig()
-    size: tuple[int, int] = (256, 256)
-    crop_size: int = 128
-    crops_per_scene: int = 4
-    spp: tuple[int, ...] = _powers_of_two(2, 4096)
-    reference_spp: int = 16384
-    seed: int = 0
+    size: tuple[int, int] = bounded((256, 256), low=1, high=16384, unit='pixels')
+    crop_size: int = bounded(128, low=1, high=16384, unit='pixels')
+    crops_per_scene: int = bounded(4, low=1, high=100_000)
+    spp: tuple[int, ...] = bounded(_powers_of_two(2, 4096), low=1, high=2**24)
+    reference_spp: int = bounded(16384, low=1, high=2**26)
+    seed: int = bounded(0, low=0, high=4294967295)
     half: bool = False
     aux: str = "first-hit"
-    feature_spp: int = 16
+    feature_spp: int = bounded(16, low=1, high=2**24)
+    scene_parameters: dict[str, str] = dataclasses.field(default_factory=dict)
     splits: SplitConfig = SplitConfig()
 
     def __post_init__(self) -> None:
@@ -194,6 +198,16 @@ class DatasetConfig:
             raise ConfigError(f"feature_spp must be > 0, got {self.feature_spp}")
         if self.aux not in AUX_MODES:
             raise ConfigError(f"aux must be one of {', '.join(AUX_MODES)}, got {self.aux!r}")
+        if self.scene_parameters:
+            if not all(isinstance(k, str) and isinstance(v, (str, int, float))
+                       and not isinstance(v, bool) for k, v in self.scene_parameters.items()):
+                raise ConfigError("scene_parameters: expected a table of name = value (strings "
+                                  "or numbers)")
+            object.__setattr__(self, "scene_parameters",
+                               {k: str(v) for k, v in self.scene_parameters.items()})
+            if not any(s.lower().endswith(".xml") for s in self.scenes):
+                raise ConfigError("scene_parameters: set, but the dataset has no XML scene file "
+                                  "(they are the values of $name in Mitsuba XML scenes)")
         for name in ("val_scenes", "test_scenes"):
             unknown = [s for s in getattr(self.splits, name) if s not in all_scenes]
             if unknown:

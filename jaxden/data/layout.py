@@ -191,7 +191,7 @@ class Manifest:
                 Crop(**{**c, "window": tuple(int(v) for v in c["window"])}) for c in data["crops"]
             ]
             items = [Item(**item) for item in data["items"]]
-            return cls(
+            manifest = cls(
                 config=data["config"],
                 scenes=data["scenes"],
                 crops=crops,
@@ -206,6 +206,12 @@ class Manifest:
             raise DatasetError(
                 f"{where}: malformed manifest ({type(error).__name__}: {error})"
             ) from None
+        for item in manifest.items:
+            if not isinstance(item.path, str) or not inside_folder(item.path):
+                raise DatasetError(
+                    f"{where}: item {item.id!r} has path {item.path!r}, which leaves the dataset "
+                    f"folder (item paths must be relative, without '..')")
+        return manifest
 
     def save(self, directory: str | os.PathLike) -> Path:
         """Write ``DIR/manifest.json`` atomically (temporary file + rename)."""
@@ -216,6 +222,14 @@ class Manifest:
 
         atomic_write_text(path, text)
         return path
+
+
+def inside_folder(relative: str) -> bool:
+    """Whether a path read from a file stays inside the folder it is relative to: not
+    absolute, no '..' part, not empty (names from files never point elsewhere)."""
+    path = Path(relative)
+    return bool(relative) and not path.is_absolute() and ".." not in path.parts \
+        and not str(relative).startswith("~")
 
 
 def manifest_path(directory: str | os.PathLike) -> Path:

@@ -67,6 +67,16 @@ class VerifyReport:
         return "\n".join(lines)
 
 
+def _same_number(found, expected) -> bool:
+    """Whether a header value is the number ``expected`` (False for text such as 'abc')."""
+    if isinstance(found, bool):
+        return False
+    try:
+        return float(found) == float(expected)
+    except (TypeError, ValueError):
+        return False
+
+
 def check_item_file(
     path: str | os.PathLike, item: Item, window: tuple[int, int, int, int], *, read: bool = True
 ) -> list[str]:
@@ -88,7 +98,9 @@ def check_item_file(
         found = header.get(key)
         if found is None:
             problems.append(f"header has no jaxden.{key} (expected {expected!r})")
-        elif (float(found) != float(expected)) if key == "spp" else (found != expected):
+        elif key == "spp" and not _same_number(found, expected):
+            problems.append(f"header jaxden.spp is {found!r}, expected {expected!r}")
+        elif key != "spp" and found != expected:
             problems.append(f"header jaxden.{key} is {found!r}, expected {expected!r}")
     if read and not problems:
         try:

@@ -1,6 +1,7 @@
-"""Registers the trainable kernel-prediction denoisers (imported lazily by the registry).
+"""Registers the trainable denoisers: the U-Net and the kernel-prediction family.
 
-``wskp`` (6 RepVGG layers), ``wskp3`` (3 layers), ``wskp_mr`` (multi-resolution, Eq. 7),
+``unet`` (OIDN's U-Net, the progressive-denoising paper's base; feature sets hdr, var, alb,
+nrm), ``wskp`` (6 RepVGG layers), ``wskp3`` (3 layers), ``wskp_mr`` (multi-resolution, Eq. 7),
 ``kp`` (direct 13x13 kernels, WSKP backbone), ``kp1`` (2 layers, k = 13), ``kp2``
 (5 layers, k = 7).
 """
@@ -9,8 +10,12 @@ from __future__ import annotations
 
 import dataclasses
 
-from jaxden.denoisers import DenoiserDef, register
-from jaxden.nn import wskp
+import jax
+
+from jaxden.config import bounded
+from jaxden.denoise.nn import wskp
+from jaxden.denoise.registry import DenoiserDef, register
+from jaxden.frame import Frame
 
 _FEATURES = lambda config: wskp.WSKP_FEATURES  # noqa: E731
 
@@ -19,7 +24,9 @@ def _variant(cls, **defaults):
     """A config class with other defaults (so `wskp3` is its own registered name)."""
     fields = [(f.name, f.type, dataclasses.field(default=defaults.get(f.name, f.default)))
               for f in dataclasses.fields(cls)]
-    return dataclasses.make_dataclass(cls.__name__, fields, frozen=True, namespace={"__doc__": cls.__doc__})
+    # __module__: the string annotations (Literal[...]) resolve in the original module
+    return dataclasses.make_dataclass(cls.__name__, fields, frozen=True, namespace={
+        "__doc__": cls.__doc__, "__module__": cls.__module__})
 
 
 for name, description, cls, init, apply in (
@@ -38,3 +45,51 @@ for name, description, cls, init, apply in (
 ):
     register(DenoiserDef(name=name, description=description, config_cls=cls, required=_FEATURES,
                          apply=apply, init=init))
+
+
+# ------------------------------------------------------------------------------------ U-Net
+@dataclasses.dataclass(frozen=True)
+class UNetConfig:
+    """The progressive-denoising paper's U-Net; ``features`` from hdr, var, alb, nrm."""
+
+    features: tuple[str, ...] = ("hdr", "alb", "nrm", "var")
+    encoder_widths: tuple[int, ...] = bounded((32, 48, 64, 80, 96), low=1, high=4096)
+    decoder_widths: tuple[int, ...] = bounded((112, 96, 64, 64, 32), low=1, high=4096)
+
+
+def _unet_module(config: UNetConfig):
+    from jaxden.denoise.nn.unet import UNet
+
+    return UNet(tuple(config.encoder_widths), tuple(config.decoder_widths))
+
+
+def _unet_init(key, config: UNetConfig):
+    from jaxden.denoise.nn.unet import check_features
+
+    features = check_features(config.features)
+    sample = jax.numpy.zeros((1, 16, 16, 3 * len(features)), jax.numpy.float32)
+    return _unet_module(config).init(key, sample)
+
+
+def _unet_apply(params, config: UNetConfig, frame: Frame):
+    from jaxden.denoise.nn.unet import unet_denoise
+
+    return unet_denoise(_unet_module(config), params, frame, config.features)
+
+
+def _unet_required(config: UNetConfig) -> tuple[str, ...]:
+    from jaxden.denoise.nn.unet import FEATURE_FIELDS, check_features
+
+    return tuple(FEATURE_FIELDS[f] for f in check_features(config.features))
+
+
+register(
+    DenoiserDef(
+        name="unet",
+        description="U-Net of OIDN / the progressive-denoising paper (trainable, JAX)",
+        config_cls=UNetConfig,
+        required=_unet_required,
+        apply=_unet_apply,
+        init=_unet_init,
+    )
+)

@@ -22,14 +22,15 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaxden.config import bounded
 from jaxden.frame import Frame
 
 
 @dataclasses.dataclass(frozen=True)
 class TemporalConfig:
-    position_tolerance: float = 0.02  # relative to depth
-    normal_cosine: float = 0.9  # minimum cosine between normals
-    min_alpha: float = 0.2
+    position_tolerance: float = bounded(0.02, low=0, high=10)  # relative to depth
+    normal_cosine: float = bounded(0.9, low=-1, high=1)  # minimum cosine between normals
+    min_alpha: float = bounded(0.2, low=0, low_open=True, high=1)
 
 
 class History(NamedTuple):

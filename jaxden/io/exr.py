@@ -25,6 +25,7 @@ import numpy as np
 
 from jaxden.errors import ExrError, FrameError
 from jaxden.fileio import atomic_write
+from jaxden.limits import check_exr_size
 from jaxden.frame import CHANNELS, IMAGE_FIELDS, Frame, NonFinitePolicy
 
 ATTRIBUTE_PREFIX = "jaxden."
@@ -51,12 +52,15 @@ def write_channels(
     *,
     half: bool | Iterable[str] = False,
     attributes: Mapping[str, Any] | None = None,
+    allow_nonfinite: bool = False,
 ) -> None:
     """Write named 2-D channels (all H x W) to ``path`` atomically, ZIP-compressed.
 
     ``half``: True stores every channel as float16, or give the channel names to store as half.
     ``attributes``: extra header attributes (str, int, float), written with the ``jaxden.``
-    prefix unless the name already contains a dot.
+    prefix unless the name already contains a dot. Non-finite values are refused (ExrError):
+    jaxden never writes a NaN or inf image (``allow_nonfinite``: write them anyway, e.g. to
+    make test files that imitate other renderers' output).
     """
     OpenEXR = _openexr()
     path = Path(path)
@@ -73,6 +77,13 @@ def write_channels(
             shape = array.shape
         elif array.shape != shape:
             raise ExrError(f"{path}: channel '{name}' has shape {array.shape}, others {shape}")
+        finite = np.isfinite(array)
+        if not allow_nonfinite and not finite.all():
+            bad = int(array.size - np.count_nonzero(finite))
+            raise ExrError(
+                f"{path}: refusing to write channel '{name}' with {bad} non-finite value(s) "
+                f"(NaN or inf) of {array.size}: the result is broken (check the inputs and the "
+                f"weights that made it)")
         dtype = np.float16 if name in half_names else np.float32
         # A copy: OpenEXR.File replaces the values of the dict it is given (PLATFORM-NOTES).
         with np.errstate(over="ignore"):
@@ -165,6 +176,8 @@ def _open(path: Path, header_only: bool = False):
         raise ExrError(f"{path}: no such file")
     if path.is_dir():
         raise ExrError(f"{path}: is a folder, not an EXR file")
+    if not path.is_file():  # a FIFO or a device would block or stream forever
+        raise ExrError(f"{path}: is not a regular file (a pipe, socket or device?)")
     with open(path, "rb") as handle:
         magic = handle.read(4)
     if magic != b"\x76\x2f\x31\x01":
@@ -210,6 +223,10 @@ def read_channels(
     """
     path = Path(path)
     native: dict[str, str] = {}
+    header = _open(path, header_only=True).header()
+    (x0, y0), (x1, y1) = header["dataWindow"]
+    check_exr_size(int(x1 - x0 + 1), int(y1 - y0 + 1), len(header["channels"]), str(path),
+                   ExrError)
     try:
         with _native_output_held(native):  # the pixels are decoded here, noise and all
             exr = _open(path)

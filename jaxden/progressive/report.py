@@ -21,45 +21,17 @@ from __future__ import annotations
 import math
 from collections import defaultdict
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
+from jaxden.data.crops import iter_crops
 from jaxden.errors import ConfigError, DatasetError
 
 PD_METHODS = ("mc", "denoiser", "mixed", "pd", "pd_pc", "oracle")
 ORACLE_BLOCK = 8
 PAPER_MIN_SPP = 32  # the paper averages its Table 3 over 32..8192 spp
 PD_METRICS = ("rmse", "rmse_nc", "relmse", "flip", "mse_nc")
-
-
-def iter_crops(dataset_dir, split: str = "test", spp: tuple[int, ...] | None = None
-               ) -> Iterator[tuple[Any, Any, list[tuple[int, Any]]]]:
-    """``(crop, reference_frame, [(spp, input_frame), ...])`` for every crop of ``split``
-    (``all``: every crop) of a complete dataset, inputs with a variance (spp >= 2) in spp order,
-    restricted to ``spp`` when given."""
-    from jaxden.data.layout import load_manifest
-    from jaxden.io.exr import read_frame
-
-    dataset_dir = Path(dataset_dir)
-    manifest = load_manifest(dataset_dir)
-    if not manifest.complete:
-        raise DatasetError(f"{dataset_dir}: the dataset is not complete; finish `jaxden dataset "
-                           f"build` first")
-    crops = manifest.crops_in(split)
-    if not crops:
-        raise DatasetError(f"{dataset_dir}: no crops in split {split!r} "
-                           f"(splits: {manifest.split_counts()})")
-    for crop in crops:
-        items = manifest.items_of(crop.id)
-        references = [item for item in items if item.kind == "reference"]
-        if len(references) != 1:
-            raise DatasetError(f"{dataset_dir}: crop {crop.id} has {len(references)} references")
-        inputs = sorted((item for item in items if item.kind == "input" and item.spp >= 2
-                         and (spp is None or item.spp in tuple(spp))), key=lambda item: item.spp)
-        reference = read_frame(dataset_dir / references[0].path)
-        yield crop, reference, [(item.spp, read_frame(dataset_dir / item.path))
-                                for item in inputs]
 
 
 def _errors(image, reference) -> dict[str, float]:
@@ -128,17 +100,19 @@ def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
     of y's SURE), ``alpha`` / ``alpha_prime`` (means) and ``swap_gap`` (mean |alpha(x, y) -
     (1 - alpha(y, x))|).
 
-    ``denoiser``: a spec or :class:`jaxden.denoisers.Denoiser`; ``mixer``: a spec for
+    ``denoiser``: a spec or :class:`jaxden.denoise.Denoiser`; ``mixer``: a spec for
     :func:`jaxden.progressive.load_mixer` or a ``(params, config)`` pair. SURE probes of item
     ``i`` come from ``fold_in(PRNGKey(seed), i)``.
     """
-    import jax
-
-    from jaxden.denoisers import load_denoiser
     import dataclasses
 
-    from jaxden.progressive import (load_mixer, mix, progressive_denoise, swap_symmetry,
-                                    t_statistic_scaling)
+    import jax
+
+    from jaxden.denoise.registry import load_denoiser
+    from jaxden.progressive.heads import mix
+    from jaxden.progressive.mixer import load_mixer, swap_symmetry
+    from jaxden.progressive.pipeline import progressive_denoise
+    from jaxden.progressive.tstat import t_statistic_scaling
 
     model = load_denoiser(denoiser) if isinstance(denoiser, str) else denoiser
     params, config = load_mixer(mixer) if isinstance(mixer, (str, Path)) else mixer
@@ -180,8 +154,8 @@ def sure_accuracy(dataset_dir, denoiser, *, split: str = "test", seed: int = 0,
     import jax
 
     from jaxden import metrics
-    from jaxden.denoisers import load_denoiser
-    from jaxden.pdcache import denoise_with_sure
+    from jaxden.denoise.registry import load_denoiser
+    from jaxden.sure.denoiser import denoise_with_sure
 
     model = load_denoiser(denoiser) if isinstance(denoiser, str) else denoiser
     base = jax.random.PRNGKey(seed)
@@ -220,7 +194,7 @@ def sure_accuracy_buffers(dataset_dir, denoisers, *, buffers: int = 16, renders:
     sub-buffers at spp / buffers with render seeds ``BUFFER_SEED_BASE + 1000 * level_index +
     buffers * r + k`` (refused if one collides with the dataset's seeds for that crop), combines them (:func:`jaxden.sure.combine_buffers`: the same image
     as one render of all the samples) and computes, for each denoiser, ``sure`` (probes:
-    :func:`jaxden.pdcache.denoise_with_sure`, key ``fold_in(PRNGKey(seed), index)``),
+    :func:`jaxden.sure.denoise_with_sure`, key ``fold_in(PRNGKey(seed), index)``),
     ``sure_buffers`` (:func:`jaxden.sure.sure_buffers`) and the noise-corrected true MSE of
     the output against the dataset's reference. ``render_fn(scene, spp, seed, size, crop)``
     defaults to the dataset builder's renderer.
@@ -234,9 +208,9 @@ def sure_accuracy_buffers(dataset_dir, denoisers, *, buffers: int = 16, renders:
 
     from jaxden import metrics
     from jaxden.data.layout import load_manifest
-    from jaxden.denoisers import load_denoiser
-    from jaxden.pdcache import denoise_with_sure
-    from jaxden.sure import combine_buffers, merge_buffer_pairs, sure_buffers
+    from jaxden.denoise.registry import load_denoiser
+    from jaxden.sure.buffers import combine_buffers, merge_buffer_pairs, sure_buffers
+    from jaxden.sure.denoiser import denoise_with_sure
 
     if render_fn is None:
         from jaxden.data.builder import render_cached

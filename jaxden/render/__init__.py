@@ -15,7 +15,8 @@ Importing this package does not import Mitsuba; the first call does.
 """
 
 from jaxden.render.core import render_frame
-from jaxden.render.scenes import list_scenes, load_scene, prepare_scene
+from jaxden.render.load import load_scene, prepare_scene
+from jaxden.render.scenes import list_scenes
 from jaxden.render.variant import choose_variant
 
 __all__ = ["choose_variant", "list_scenes", "load_scene", "prepare_scene", "render_frame"]

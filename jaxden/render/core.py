@@ -46,7 +46,7 @@ import numpy as np
 
 from jaxden.errors import SceneError
 from jaxden.frame import Frame
-from jaxden.render import integrators, scenes
+from jaxden.render import integrators, load, scenes
 from jaxden.render.variant import ensure_variant
 
 AOV_SPP = 16  # the feature samples of every jaxden dataset built before feature_spp existed
@@ -113,7 +113,7 @@ SPEC_MEMORY = 4
 _spec_scenes: collections.OrderedDict = collections.OrderedDict()
 
 
-def _load_cached(spec, size):
+def _load_cached(spec, size, parameters=None):
     """load_scene for render_frame, reusing the scene of a recent identical spec.
 
     Dr.Jit compiles kernels per scene *object* (and film size and spp), so loading the same
@@ -124,10 +124,11 @@ def _load_cached(spec, size):
     """
     key = None
     if isinstance(spec, (str, os.PathLike)):
-        if scenes._is_path_like(spec):
+        if load._is_path_like(spec):
             try:
                 path = os.path.realpath(os.fspath(spec))
-                key = ("xml", path, os.stat(path).st_mtime_ns, size)
+                key = ("xml", path, os.stat(path).st_mtime_ns, size,
+                       tuple(sorted((parameters or {}).items())))
             except OSError:
                 key = None  # load_scene reports the missing file
         else:
@@ -135,7 +136,7 @@ def _load_cached(spec, size):
     if key is not None and key in _spec_scenes:
         _spec_scenes.move_to_end(key)
         return _spec_scenes[key]
-    scene = scenes.load_scene(spec, size)
+    scene = load.load_scene(spec, size, parameters)
     if key is not None:
         _spec_scenes[key] = scene
         while len(_spec_scenes) > SPEC_MEMORY:
@@ -143,15 +144,15 @@ def _load_cached(spec, size):
     return scene
 
 
-def _scene_and_sensor(scene, size, crop, sensor):
+def _scene_and_sensor(scene, size, crop, sensor, parameters=None):
     """(mi.Scene, mi.Sensor, (height, width) of the output) for render_frame's arguments."""
     import mitsuba as mi
 
     if size is not None:
         size = scenes.check_size(size, "render_frame: size")
     if not isinstance(scene, mi.Scene):
-        scene = _load_cached(scene, size)
-    source = scenes.sensor_source(scene)
+        scene = _load_cached(scene, size, parameters)
+    source = load.sensor_source(scene)
     if sensor is not None:
         if not isinstance(sensor, dict):
             raise SceneError(
@@ -164,8 +165,8 @@ def _scene_and_sensor(scene, size, crop, sensor):
             size = source.size if source is not None else tuple(
                 int(v) for v in scene.sensors()[0].film().size())
         crop = None if crop is None else _check_crop(crop, size)
-        scenes.patch_sensor_dict(sensor, size, "render_frame: sensor")  # errors before loading
-        built = scenes.SensorSource(name="render_frame: sensor", size=size,
+        load.patch_sensor_dict(sensor, size, "render_frame: sensor")  # errors before loading
+        built = load.SensorSource(name="render_frame: sensor", size=size,
                                     sensor_dict=sensor).build(size, crop)
     elif source is not None:
         size = size or source.size
@@ -301,6 +302,7 @@ def render_frame(
     aux: str = DEFAULT_AUX,
     feature_spp: int = DEFAULT_FEATURE_SPP,
     colour: Frame | None = None,
+    parameters: dict[str, str] | None = None,
 ) -> Frame:
     """Render a Frame: colour, variance of the mean, albedo, normal, depth, position.
 
@@ -333,6 +335,7 @@ def render_frame(
         feature pass runs): a render of the same scene, crop and spp, e.g. a dataset item
         whose features are re-rendered (``jaxden dataset refeature``). With the seed it was
         rendered with, the result equals a full render_frame call.
+      parameters: ``{name: value}`` for ``$name`` in an XML scene (Mitsuba's ``-D``).
 
     Returns:
       A Frame of float32 NumPy arrays without batch dimension: color (H, W, 3) (linear
@@ -357,7 +360,8 @@ def render_frame(
     feature_spp = _check_int(feature_spp, "feature_spp", 1, MAX_SPP)
     budget = MAX_SAMPLES_PER_PASS if max_samples_per_pass is None else _check_int(
         max_samples_per_pass, "max_samples_per_pass", 1, 1 << 31)
-    mi_scene, mi_sensor, (height, width) = _scene_and_sensor(scene, size, crop, sensor)
+    mi_scene, mi_sensor, (height, width) = _scene_and_sensor(scene, size, crop, sensor,
+                                                             parameters)
     if colour is None:
         color, variance = _render_colour(mi_scene, mi_sensor, max_depth, seed, spp,
                                          (height, width), budget)

@@ -160,7 +160,7 @@ def _generate(scene, cameras, spp, seed, size, reference_spp, max_depth):
     _ensure_variant()  # mi.Scene exists only once a variant is set
 
     from jaxden.render.core import render_frame
-    from jaxden.render.scenes import load_scene
+    from jaxden.render.load import load_scene
 
     # Load (and for procedural scenes, generate) the scene once for the whole sequence.
     mi_scene = scene if isinstance(scene, mi.Scene) else load_scene(scene, size)

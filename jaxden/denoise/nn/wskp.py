@@ -33,10 +33,11 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from jaxden import kernels
+from jaxden.config import bounded
+from jaxden.denoise import kernels
+from jaxden.denoise.nn.layers import RepVGGBlock, RepVGGDeployBlock
 from jaxden.errors import ConfigError, FrameError
 from jaxden.frame import Frame
-from jaxden.nn.layers import RepVGGBlock, RepVGGDeployBlock
 
 WSKP_FEATURES = ("color", "albedo", "normal", "depth")
 
@@ -84,7 +85,7 @@ def safe_albedo(albedo: jax.Array, floor: float) -> jax.Array:
 class RepVGGStack(nn.Module):
     """``num_layers`` RepVGG blocks of ``width`` channels; the last outputs ``out_channels``
     without activation (it produces logits). ``deploy``: single 5x5 convs (parameters from
-    :func:`jaxden.nn.layers.reparameterize` of the training form; same outputs, faster)."""
+    :func:`jaxden.denoise.nn.layers.reparameterize` of the training form; same outputs, faster)."""
 
     num_layers: int
     width: int
@@ -113,11 +114,11 @@ def _check_config_kernels(field: str, sizes) -> None:
 class WSKPConfig:
     """ImportanceNet + weight-sharing kernel decoder (paper Sec. 4)."""
 
-    num_layers: int = 6  # 6 (quality) or 3 (speed) in the paper
-    width: int = 14
-    kernel_sizes: tuple[int, ...] = (3, 5, 7, 9, 11, 13)
+    num_layers: int = bounded(6, low=1, high=64)  # 6 (quality) or 3 (speed) in the paper
+    width: int = bounded(14, low=1, high=1024)
+    kernel_sizes: tuple[int, ...] = bounded((3, 5, 7, 9, 11, 13), low=1, high=63)
     tonemap: Literal["gamma", "reinhard_gamma"] = "reinhard_gamma"
-    albedo_floor: float = 0.05
+    albedo_floor: float = bounded(0.05, low=0, low_open=True, high=1)
     decoder: Literal["box", "unfold"] = "box"
     deploy: bool = False  # re-parameterised single-conv blocks (inference)
 
@@ -152,11 +153,11 @@ class KPConfig:
     KP-2 (5 layers, k = 7).
     """
 
-    num_layers: int = 6
-    width: int = 14
-    kernel_size: int = 13
+    num_layers: int = bounded(6, low=1, high=64)
+    width: int = bounded(14, low=1, high=1024)
+    kernel_size: int = bounded(13, low=1, high=63)
     tonemap: Literal["gamma", "reinhard_gamma"] = "reinhard_gamma"
-    albedo_floor: float = 0.05
+    albedo_floor: float = bounded(0.05, low=0, low_open=True, high=1)
     deploy: bool = False
 
     def __post_init__(self):
@@ -209,12 +210,12 @@ class WSKPMRConfig:
     across levels. Frames of any size are edge-padded to a multiple of 2^(levels-1).
     """
 
-    levels: int = 3
-    num_layers: int = 4
-    width: int = 16
-    kernel_sizes: tuple[int, ...] = (3, 5)
+    levels: int = bounded(3, low=1, high=8)
+    num_layers: int = bounded(4, low=1, high=64)
+    width: int = bounded(16, low=1, high=1024)
+    kernel_sizes: tuple[int, ...] = bounded((3, 5), low=1, high=63)
     tonemap: Literal["gamma", "reinhard_gamma"] = "reinhard_gamma"
-    albedo_floor: float = 0.05
+    albedo_floor: float = bounded(0.05, low=0, low_open=True, high=1)
     deploy: bool = False
 
     def __post_init__(self):

@@ -1,0 +1,59 @@
+"""The ``jaxden`` command: a thin layer over the library functions.
+
+User errors (:class:`jaxden.errors.JaxdenError`) print one line ``jaxden: error: ...`` and exit
+with status 2; anything else is a bug and keeps its traceback.
+
+One module per command group (:mod:`jaxden.cli.render`, ``dataset``, ``train``, ``denoise``,
+``bench``, ``demo``), each with ``cmd_*`` functions and ``add_commands(subparsers)``; shared
+option types live in :mod:`jaxden.cli.options`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from jaxden.cli import bench, dataset, demo, denoise, render, report, train
+from jaxden.errors import JaxdenError
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="jaxden", description="Monte Carlo denoising research in JAX (see README.md)."
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for group in (demo, render, dataset, denoise, train, bench, report):
+        group.add_commands(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    # argparse gives a trailing ``overrides`` positional nothing once an option comes between
+    # it and the config (``CONFIG --out DIR key=value``); take key=value words left over.
+    if extra and hasattr(args, "overrides") and all("=" in w and not w.startswith("-")
+                                                    for w in extra):
+        args.overrides = [*args.overrides, *extra]
+    elif extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    from jaxden.compile_cache import enable_compilation_cache
+
+    enable_compilation_cache()
+    try:
+        return int(args.func(args) or 0)
+    except JaxdenError as error:
+        print(f"jaxden: error: {error}", file=sys.stderr)
+        return 2
+    except OSError as error:  # e.g. an output folder that cannot be made: name the path
+        where = f"{error.filename}: " if error.filename else ""
+        print(f"jaxden: error: {where}{error.strerror or error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("jaxden: interrupted (finished work is kept; run the same command to resume)",
+              file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,5 @@
+import sys
+
+from jaxden.cli import main
+
+sys.exit(main())

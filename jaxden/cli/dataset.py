@@ -1,0 +1,116 @@
+"""`jaxden dataset build | refeature | verify | sure-cache`: datasets and their SURE caches."""
+
+from __future__ import annotations
+
+import argparse
+
+from jaxden.cli.options import positive_float, positive_int
+
+
+def cmd_dataset_build(args: argparse.Namespace) -> int:
+    from jaxden.config import load_config
+    from jaxden.data.builder import build_dataset
+    from jaxden.data.config import DatasetConfig
+
+    config = load_config(args.config, DatasetConfig, args.overrides)
+    manifest = build_dataset(config, args.out, executor=args.executor, workers=args.workers)
+    print(f"dataset complete: {args.out} ({len(manifest.items)} items)")
+    return 0
+
+
+def cmd_dataset_refeature(args: argparse.Namespace) -> int:
+    from jaxden.data.refeature import refeature_dataset
+
+    manifest = refeature_dataset(args.source, args.out, args.overrides, executor=args.executor,
+                                 workers=args.workers)
+    config = manifest.config
+    print(f"dataset complete: {args.out} ({len(manifest.items)} items; colour from "
+          f"{args.source}, features: aux={config['aux']}, feature_spp={config['feature_spp']})")
+    return 0
+
+
+def cmd_dataset_verify(args: argparse.Namespace) -> int:
+    from jaxden.data.verify import verify_dataset
+
+    report = verify_dataset(args.dir)
+    for problem in report.problems:
+        print(f"PROBLEM {problem}")
+    for warning in report.warnings:
+        print(f"warning {warning}")
+    print(report.summary())
+    return 0 if report.ok else 1
+
+
+def cmd_dataset_sequences(args: argparse.Namespace) -> int:
+    from jaxden.data.sequences import build_sequences, load_sequence_config
+
+    config = load_sequence_config(args.config, args.overrides)
+    manifest = build_sequences(config, args.out, progress=not args.quiet)
+    frames = sum(len(s["frames"]) for s in manifest["sequences"].values())
+    print(f"sequences complete: {args.out} ({len(manifest['sequences'])} sequences, {frames} "
+          f"frames with references)")
+    return 0
+
+
+def cmd_sure_cache(args: argparse.Namespace) -> int:
+    """``jaxden dataset sure-cache DIR --denoiser SPEC``."""
+    from jaxden.progressive.cache_build import build_sure_cache
+
+    cache = build_sure_cache(
+        args.dir, args.denoiser, args.out, num_probes=args.probes, method=args.method,
+        eps=args.eps, seed=args.seed, fd_scheme=args.fd_scheme, probe_batch=args.probe_batch,
+        half=args.half, progress=not args.quiet,
+    )
+    settings = cache.identity.get("settings", {})
+    print(f"SURE cache complete: {cache.directory} ({len(cache.records)} items; "
+          f"{settings.get('num_probes')} probes, {settings.get('method')}, "
+          f"eps {settings.get('eps')}, seed {settings.get('seed')})")
+    return 0
+
+
+def add_commands(sub) -> None:
+    p = sub.add_parser("dataset", help="build or verify a dataset")
+    dsub = p.add_subparsers(dest="dataset_command", required=True, metavar="ACTION")
+    b = dsub.add_parser("build", help="render a dataset from a TOML config (resumable)")
+    b.add_argument("config", help="dataset config .toml")
+    b.add_argument("overrides", nargs="*", help="key=value overrides")
+    b.add_argument("--out", required=True, help="dataset folder")
+    b.add_argument("--executor", choices=("local", "ray"), default="local")
+    b.add_argument("--workers", type=positive_int, default=None)
+    b.set_defaults(func=cmd_dataset_build)
+    r = dsub.add_parser("refeature", help="copy a dataset, re-rendering only its features "
+                                          "(aux=..., feature_spp=...; resumable)")
+    r.add_argument("source", help="a complete dataset folder")
+    r.add_argument("overrides", nargs="*",
+                   help="feature settings, e.g. aux=specular-chain feature_spp=4096")
+    r.add_argument("--out", required=True, help="the new dataset folder")
+    r.add_argument("--executor", choices=("local", "ray"), default="local")
+    r.add_argument("--workers", type=positive_int, default=None)
+    r.set_defaults(func=cmd_dataset_refeature)
+    v = dsub.add_parser("verify", help="check every file against the manifest")
+    v.add_argument("dir")
+    v.set_defaults(func=cmd_dataset_verify)
+
+    q = dsub.add_parser("sequences", help="render camera-path sequences with motion vectors and "
+                                          "per-frame references from a TOML config (resumable)")
+    q.add_argument("config", help="sequence config .toml (jaxden.data.sequences)")
+    q.add_argument("overrides", nargs="*", help="key=value overrides")
+    q.add_argument("--out", required=True, help="sequence folder")
+    q.add_argument("--quiet", action="store_true", help="no progress bar")
+    q.set_defaults(func=cmd_dataset_sequences)
+
+    c = dsub.add_parser(
+        "sure-cache", help="denoise every dataset input once and cache it with its SURE map "
+                           "(resumable; what mixer training reads)")
+    c.add_argument("dir", help="dataset folder")
+    c.add_argument("--denoiser", required=True, help="oidn, a checkpoint folder or .msgpack")
+    c.add_argument("--out", default=None, help="cache folder (default: DIR/derived/<denoiser>)")
+    c.add_argument("--probes", type=positive_int, default=4)
+    c.add_argument("--method", choices=("auto", "jvp", "fd"), default="auto")
+    c.add_argument("--eps", type=positive_float, default=None)
+    c.add_argument("--fd-scheme", choices=("forward", "central"), default="forward")
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--probe-batch", type=positive_int, default=None)
+    c.add_argument("--half", action="store_true", help="store float16 channels")
+    c.add_argument("--quiet", action="store_true", help="no progress bar")
+    c.set_defaults(func=cmd_sure_cache)

@@ -1,0 +1,248 @@
+"""`jaxden denoise`, `jaxden sure` and `jaxden progressive`: one EXR in, one (or two) out.
+
+Input EXRs: jaxden's own channels (``R,G,B``, ``variance.R/G/B``, optional ``albedo.*`` and
+``normal.*``). Files from other renderers work when they have colour and the variance of the
+pixel mean; name their channels with ``--channels FIELD=NAME,...`` (repeatable, any field of
+:data:`jaxden.frame.CHANNELS`; ``--variance-channels`` is the older spelling for the variance),
+and pass ``--sample-variance`` (with ``--spp`` if the header has no ``jaxden.spp``) when the
+file stores the per-sample variance. OIDN uses albedo and normal only when the file has them,
+and says so on stderr when it has not (see :func:`feature_notice`).
+
+Output of ``jaxden sure``: one EXR with ``R,G,B`` = the denoised image (so any viewer shows
+it), ``sure.R/G/B`` = the per-pixel SURE of it (an estimate of its squared error, radiance^2,
+can be negative) and ``divergence.R/G/B`` = var * dy/dx (the same format as the SURE cache,
+:mod:`jaxden.progressive.cache`).
+
+Output of ``jaxden progressive``: ``R,G,B`` = z' = x + alpha' (y - x); with ``--alpha A.exr``
+also ``R,G,B`` = alpha' (after the t-statistic scaling) and ``unscaled.R/G/B`` = alpha (before).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from jaxden.cli.options import (
+    add_channels_option,
+    add_overwrite_input_option,
+    channel_map,
+    check_finite_result,
+    exr_outputs,
+    feature_notice,
+    read_input_frame,
+    stderr,
+    sure_input_options,
+)
+from jaxden.errors import CheckpointError, ConfigError, FrameError
+
+
+def cmd_denoise(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from jaxden.cli.options import exr_outputs, feature_notice
+    from jaxden.denoise.registry import load_denoiser
+    from jaxden.io.exr import read_frame, write_image
+
+    (out,) = exr_outputs(("--out", args.out), inputs=(args.input,),
+                         overwrite_input=args.overwrite_input)
+    denoiser = load_denoiser(args.model)
+    required = denoiser.definition.required(denoiser.config)
+    mapping = channel_map(args) or {}
+    frame = read_frame(args.input, require=(*required, *(f for f in mapping if f not in required)),
+                       nonfinite=args.nonfinite, channel_map=mapping or None)
+    feature_notice(frame, denoiser, args.input)
+    image = np.asarray(denoiser(frame))
+    check_finite_result(image, "the denoised image",
+                        f"{args.input} denoised by {denoiser.name} ({args.model})")
+    write_image(out, image, attributes={"denoiser": denoiser.name, "source": str(args.input)})
+    print(f"wrote {args.out} (denoised by {denoiser.name})")
+    return 0
+
+
+def cmd_sure(args: argparse.Namespace) -> int:
+    """``jaxden sure IN.exr --denoiser NAME|CKPT --out SURE.exr``."""
+    import jax
+    import numpy as np
+
+    from jaxden.denoise.registry import load_denoiser
+    from jaxden.progressive.cache import write_sure_exr
+    from jaxden.sure.denoiser import default_eps, denoise_with_sure, resolve_method
+
+    (out,) = exr_outputs(("--out", args.out), inputs=(args.input, *(args.buffers or ())),
+                         overwrite_input=args.overwrite_input)
+    frame = read_input_frame(args, "jaxden sure")
+    denoiser = load_denoiser(args.denoiser)
+    feature_notice(frame, denoiser, args.input)
+    if args.buffers:
+        return _sure_from_buffers(args, frame, denoiser, out)
+    if args.extrapolate:
+        raise ConfigError("--extrapolate needs --buffers")
+    method = resolve_method(args.method, denoiser)
+    eps = args.eps if args.eps is not None else default_eps(method, denoiser.differentiable)
+    result, _ = denoise_with_sure(
+        denoiser, frame, jax.random.PRNGKey(args.seed), num_probes=args.probes, method=method,
+        eps=eps, probe_batch=args.probe_batch, nonfinite=args.nonfinite, where=str(args.input),
+    )
+    for name in ("denoised", "sure"):
+        check_finite_result(getattr(result, name), f"the {name} image",
+                            f"{args.input} and denoiser {args.denoiser}")
+    write_sure_exr(out, result, attributes={
+        "source": str(args.input), "denoiser": denoiser.name, "probes": args.probes,
+        "method": method, "eps": -1.0 if eps is None else float(eps), "seed": args.seed,
+    })
+    mse = float(np.mean(np.asarray(result.sure)))
+    print(f"wrote {out}: R,G,B = denoised by {denoiser.name}, sure.* = per-pixel SURE "
+          f"({args.probes} probes, {method}); image SURE (MSE estimate) = {mse:.6g}")
+    return 0
+
+
+def _sure_from_buffers(args: argparse.Namespace, frame, denoiser, out: Path) -> int:
+    """``jaxden sure IN.exr --buffers B1.exr ... BK.exr``: sub-buffer SURE (no probes)."""
+    import numpy as np
+
+    from jaxden.io.exr import read_frame
+    from jaxden.progressive.cache import write_sure_exr
+    from jaxden.sure.buffers import sure_buffers
+
+    if len(args.buffers) < 2:
+        raise ConfigError(f"--buffers needs at least 2 files, got {len(args.buffers)}")
+    colours, counts = [], {}
+    for path in args.buffers:
+        buffer = read_frame(path, require=("color",), nonfinite=args.nonfinite)
+        if np.shape(buffer.color) != np.shape(frame.color):
+            raise FrameError(f"{path}: shape {np.shape(buffer.color)[:-1]}, but {args.input} "
+                             f"is {np.shape(frame.color)[:-1]}")
+        if buffer.spp is not None:
+            counts.setdefault(float(buffer.spp), path)
+        colours.append(np.asarray(buffer.color))
+    if len(counts) > 1:
+        raise FrameError(f"--buffers: the sub-buffers must have equal spp, but their headers "
+                         f"say {', '.join(f'{c:g} ({p})' for c, p in sorted(counts.items()))}")
+    try:
+        result = sure_buffers(denoiser, frame, np.stack(colours), extrapolate=args.extrapolate,
+                              nonfinite=args.nonfinite)
+    except FrameError as error:
+        raise FrameError(f"{args.input} with --buffers {' '.join(map(str, args.buffers))}: "
+                         f"{error}") from None
+    for name in ("denoised", "sure"):
+        check_finite_result(getattr(result, name), f"the {name} image",
+                            f"{args.input}, its sub-buffers and denoiser {args.denoiser}")
+    write_sure_exr(out, result, attributes={
+        "source": str(args.input), "denoiser": denoiser.name,
+        "method": "buffers-extrapolated" if args.extrapolate else "buffers",
+        "buffers": len(colours)})
+    mse = float(np.mean(result.sure))
+    print(f"wrote {out}: R,G,B = denoised by {denoiser.name}, sure.* = per-pixel SURE "
+          f"(sub-buffer covariance from {len(colours)} buffers); image SURE (MSE estimate) = "
+          f"{mse:.6g}")
+    return 0
+
+
+def cmd_progressive(args: argparse.Namespace) -> int:
+    """``jaxden progressive IN.exr --denoiser NAME|CKPT --mixer CKPT --out OUT.exr``."""
+    import jax
+    import numpy as np
+
+    from jaxden.denoise.registry import load_denoiser
+    from jaxden.fileio import all_or_nothing
+    from jaxden.io.exr import write_channels, write_image
+    from jaxden.progressive.mixer import load_mixer
+    from jaxden.progressive.pipeline import progressive_denoise
+
+    out, alpha_out = exr_outputs(("--out", args.out), ("--alpha", args.alpha),
+                                 inputs=(args.input,), overwrite_input=args.overwrite_input)
+    if args.mixer is None:
+        from jaxden.progressive.pipeline import SHIPPED_MIXERS, shipped_mixer_path
+
+        if shipped_mixer_path(args.denoiser) is None:
+            raise CheckpointError(
+                f"jaxden progressive: no mixer ships for denoiser {args.denoiser!r} (shipped: "
+                f"{', '.join(f'{m} for {d}' for d, m in SHIPPED_MIXERS.items())}); pass "
+                f"--mixer CKPT, or --mixer closed-form (no training, any denoiser)"
+            )
+        args.mixer = SHIPPED_MIXERS[args.denoiser]
+    params, config = load_mixer(args.mixer)
+    frame = read_input_frame(args, "jaxden progressive")
+    denoiser = load_denoiser(args.denoiser)
+    feature_notice(frame, denoiser, args.input)
+    if (config.kind == "network" and config.denoiser != denoiser.name
+            and Path(config.denoiser).name != Path(args.denoiser).name):
+        stderr(f"jaxden: note: the mixer was trained on the output of denoiser "
+                f"{config.denoiser!r}; mixing {denoiser.name!r} instead")
+    z, alpha_prime, extras = progressive_denoise(
+        frame, denoiser, params, config, jax.random.PRNGKey(args.seed), num_probes=args.probes,
+        method=args.method, eps=args.eps, probe_batch=args.probe_batch,
+        tstat=None if args.no_tstat else config.tstat, nonfinite=args.nonfinite,
+        swap_average=args.swap_average,
+    )
+    swap_average = config.swap_average if args.swap_average is None else args.swap_average
+    attributes = {"source": str(args.input), "denoiser": denoiser.name, "mixer": str(args.mixer),
+                  "probes": args.probes, "seed": args.seed, "tstat": int(not args.no_tstat),
+                  "swap_average": int(swap_average)}
+    message = f"wrote {out} (progressive denoising: {denoiser.name} + mixer {args.mixer})"
+    check_finite_result(z, "the progressive-denoising result",
+                        f"{args.input}, denoiser {args.denoiser} and mixer {args.mixer}")
+    with all_or_nothing():  # --out and --alpha: both or neither
+        write_image(out, np.asarray(z), attributes=attributes)
+        if alpha_out is not None:
+            alpha_prime = np.asarray(alpha_prime)
+            alpha = np.asarray(extras["alpha"])
+            channels = {name: alpha_prime[..., i] for i, name in enumerate(("R", "G", "B"))}
+            channels |= {f"unscaled.{c}": alpha[..., i] for i, c in enumerate("RGB")}
+            write_channels(alpha_out, channels, attributes=attributes)
+            message += (f"; alpha in {alpha_out} (mean alpha {alpha.mean():.4f}, after the "
+                        f"t-test {alpha_prime.mean():.4f})")
+    print(message)
+    return 0
+
+
+def add_commands(sub) -> None:
+    p = sub.add_parser(
+        "sure", help="denoise an EXR and write the per-pixel SURE of the result",
+        description="Writes one EXR: R,G,B = the denoised image, sure.R/G/B = its per-pixel SURE "
+                    "(squared-error estimate), divergence.R/G/B = var * dy/dx.",
+    )
+    sure_input_options(p)
+    p.add_argument("--out", required=True, help="output .exr (denoised + sure + divergence)")
+    p.add_argument("--buffers", nargs="+", default=None, metavar="BUFFER.exr",
+                   help="K >= 2 independent sub-buffer renders (equal spp) whose mean is IN: "
+                        "the covariance term comes from leave-one-buffer-out denoising instead "
+                        "of Stein's identity (no Gaussian assumption, K + 1 denoiser calls; "
+                        "see jaxden.sure.sure_buffers); divergence.* then holds that term")
+    p.add_argument("--extrapolate", action="store_true",
+                   help="with --buffers (even K >= 4): cancel the O(1/K) bias of nonlinear "
+                        "denoisers by Richardson extrapolation from K and K/2 merged buffers")
+    add_overwrite_input_option(p)
+    p.set_defaults(func=cmd_sure)
+
+    p = sub.add_parser(
+        "progressive", help="progressive denoising: denoise, SURE, mixer, t-statistic scaling",
+        description="Writes z' = x + alpha' (y - x) as R,G,B; --alpha writes alpha' (R,G,B) and "
+                    "alpha before the t-statistic scaling (unscaled.R/G/B).",
+    )
+    sure_input_options(p)
+    p.add_argument("--mixer", default=None,
+                   help="trained mixer: a shipped name (oidn-pd), a checkpoint folder of "
+                        "`jaxden train` or a .msgpack file; or closed-form[:sigma=S] (the "
+                        "paper's Eq. 9 with local means: no weights, any denoiser); default: "
+                        "the mixer shipped for --denoiser (oidn-pd for oidn)")
+    p.add_argument("--out", required=True, help="output .exr")
+    p.add_argument("--alpha", default=None, help="also write the mixing weights to this .exr")
+    p.add_argument("--no-tstat", action="store_true",
+                   help="skip the t-statistic scaling (the paper's 'w/o t-test' ablation)")
+    p.add_argument("--swap-average", action=argparse.BooleanOptionalAction, default=None,
+                   help="average alpha with 1 - alpha of the swapped inputs (a second mixer "
+                        "call); default: the mixer's config (on for oidn-pd)")
+    add_overwrite_input_option(p)
+    p.set_defaults(func=cmd_progressive)
+
+    p = sub.add_parser("denoise", help="denoise an EXR with a registered or trained denoiser")
+    p.add_argument("input", help="input EXR (colour and the features the model needs)")
+    p.add_argument("--model", required=True, help="oidn, a shipped model name, or a checkpoint folder")
+    p.add_argument("--out", required=True, help="output .exr")
+    p.add_argument("--nonfinite", choices=("error", "zero"), default="error",
+                   help="NaN/inf in the input: refuse (default) or replace by 0")
+    add_channels_option(p)
+    add_overwrite_input_option(p)
+    p.set_defaults(func=cmd_denoise)
+

@@ -1,0 +1,228 @@
+"""Option types and helpers shared by the command groups: sizes, counts, channel maps, the
+checked .exr outputs, the SURE input options, and reading an input frame for SURE."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from jaxden.errors import ConfigError, FrameError
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """'WxH' -> (W, H), both positive."""
+    parts = text.lower().split("x")
+    try:
+        width, height = (int(p) for p in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must look like 256x256 (WxH), got {text!r}") from None
+    if width <= 0 or height <= 0:
+        raise argparse.ArgumentTypeError(f"size must be positive, got {text!r}")
+    return width, height
+
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {value}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {value}")
+    return value
+
+
+def _channel_names(text: str) -> tuple[str, str, str]:
+    names = tuple(part.strip() for part in text.split(","))
+    if len(names) != 3 or not all(names):
+        raise argparse.ArgumentTypeError(f"give three channel names like A.R,A.G,A.B, got {text!r}")
+    return names  # type: ignore[return-value]
+
+
+def _channel_spec(text: str) -> tuple[str, tuple[str, ...]]:
+    """``FIELD=NAME,NAME,...`` of ``--channels``: a Frame field and its channel names."""
+    from jaxden.frame import CHANNELS
+
+    field, sep, names = text.partition("=")
+    field = field.strip()
+    if not sep or field not in CHANNELS:
+        raise argparse.ArgumentTypeError(
+            f"expected FIELD=NAME,... with FIELD one of {', '.join(CHANNELS)}, got {text!r}")
+    parts = tuple(part.strip() for part in names.split(","))
+    want = len(CHANNELS[field])
+    if len(parts) != want or not all(parts):
+        raise argparse.ArgumentTypeError(
+            f"{field} takes {want} channel name(s) (default {','.join(CHANNELS[field])}), "
+            f"got {names!r}")
+    return field, parts
+
+
+def add_channels_option(parser: argparse.ArgumentParser) -> None:
+    """``--channels FIELD=NAME,...``: the input file's channel names for a Frame field."""
+    parser.add_argument(
+        "--channels", type=_channel_spec, action="append", default=None, metavar="FIELD=NAMES",
+        help="the input's channel names for a field, if not jaxden's, e.g. "
+             "albedo=Albedo.R,Albedo.G,Albedo.B or normal=Ns.X,Ns.Y,Ns.Z (repeatable; fields: "
+             "color, variance, albedo, normal, depth, position, motion)")
+
+
+def channel_map(args: argparse.Namespace) -> dict[str, tuple[str, ...]] | None:
+    """The ``channel_map`` of :func:`jaxden.io.exr.read_frame` from ``--channels`` (and
+    ``--variance-channels``); None when neither is given."""
+    mapping: dict[str, tuple[str, ...]] = {}
+    given = list(getattr(args, "channels", None) or ())
+    if getattr(args, "variance_channels", None):
+        given.append(("variance", tuple(args.variance_channels)))
+    for field, names in given:
+        if mapping.get(field, names) != names:
+            raise ConfigError(f"the channels of {field} are given twice, differently: "
+                              f"{','.join(mapping[field])} and {','.join(names)}")
+        mapping[field] = names
+    return mapping or None
+
+
+def feature_notice(frame, denoiser, path) -> None:
+    """On stderr: OIDN is about to run without albedo or normal. On jaxden's test crops that
+    raises its error by 4 % (RMSE) and 13 % (relMSE) on average over 2..1024 spp, up to 10 % and
+    25 % at 16-64 spp (experiments/results/oidn-no-features.md), and a mixer trained on OIDN
+    with features then sees inputs unlike its training data."""
+    if denoiser.name != "oidn":
+        return
+    lacking = [field for field in ("albedo", "normal") if getattr(frame, field) is None]
+    if lacking:
+        from jaxden.frame import CHANNELS
+
+        expected = "; ".join(f"{f}: {','.join(CHANNELS[f])}" for f in lacking)
+        stderr(f"jaxden: note: {path} has no {' or '.join(lacking)} channels ({expected}); "
+                f"OIDN runs on colour alone, which is usually worse. Name your renderer's "
+                f"channels with --channels FIELD=NAME,... if it has them")
+
+
+def exr_outputs(*outputs: tuple[str, str | None], inputs=(),
+                overwrite_input: bool = False) -> list[Path | None]:
+    """Check the output .exr files of a command, given as ``(option, path or None)`` pairs,
+    before any work: .exr names, distinct, not folders, in existing writable folders
+    (:func:`jaxden.fileio.check_outputs`), and none of them one of the command's ``inputs``
+    (the same file, also through a link or another spelling of the path) unless
+    ``overwrite_input``: writing a denoised image over the render would lose its variance
+    and features. Returns the paths (None where not given)."""
+    from jaxden.fileio import check_outputs
+
+    given = [(option, path) for option, path in outputs if path is not None]
+    for option, path in given:
+        if Path(path).suffix.lower() != ".exr":
+            raise ConfigError(f"{option} must name an .exr file, got {path}")
+    if not overwrite_input:
+        for option, path in given:
+            for source in inputs:
+                if source is not None and same_file(path, source):
+                    raise ConfigError(
+                        f"{option} {path} is the input file {source}: writing there would "
+                        f"replace the render (its variance and features would be lost); choose "
+                        f"another output path, or pass --overwrite-input")
+    checked = iter(check_outputs(*given))
+    return [None if path is None else next(checked) for _, path in outputs]
+
+
+def same_file(a, b) -> bool:
+    """Whether two paths name one file: the same resolved path (links followed), or the same
+    inode where both exist (hard links)."""
+    a, b = Path(a), Path(b)
+    if a.resolve() == b.resolve():
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def add_overwrite_input_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--overwrite-input", action="store_true",
+                        help="allow an output path that is one of the input files (the input is "
+                             "then replaced)")
+
+
+def read_input_frame(args: argparse.Namespace, who: str):
+    """Read ``args.input`` for SURE: colour and variance required (clear errors otherwise)."""
+    from jaxden.io.exr import read_frame, read_header
+
+    mapping = channel_map(args)
+    frame = read_frame(
+        args.input,
+        require=("color", *(mapping or {})),  # channels named on the command line must exist
+        nonfinite=args.nonfinite,
+        channel_map=mapping,
+        variance_is_sample_variance=args.sample_variance,
+        spp=args.spp,
+    )
+    if frame.variance is None:
+        names = ", ".join((mapping or {}).get("variance", ("variance.R", "variance.G",
+                                                              "variance.B")))
+        header = read_header(args.input)
+        found = ", ".join(header["channels"])
+        if header["parts"] > 1:
+            found += f" in the first of its {header['parts']} parts, the one jaxden reads"
+        raise FrameError(
+            f"{args.input}: {who} needs SURE, and SURE needs the variance of the pixel mean "
+            f"(channels {names}), which the file lacks (it has {found}); name your renderer's "
+            f"variance channels with --channels variance=R,G,B (and --sample-variance if they "
+            f"hold the per-sample variance)"
+        )
+    return frame
+
+
+def stderr(message: str) -> None:
+    print(message, file=sys.stderr)
+
+
+def sure_input_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("input", help="input EXR: colour and the variance of the pixel mean")
+    parser.add_argument("--denoiser", required=True,
+                        help="oidn, a shipped model name, a checkpoint folder or a .msgpack file")
+    parser.add_argument("--probes", type=positive_int, default=4,
+                        help="SURE probes K (default 4)")
+    parser.add_argument("--method", choices=("auto", "jvp", "fd"), default="auto",
+                        help="SURE divergence: jvp (JAX denoisers), fd (finite differences; the "
+                             "only choice for OIDN), auto (default)")
+    parser.add_argument("--eps", type=positive_float, default=None,
+                        help="finite-difference step (default: 1e-2 for OIDN, 1e-3 for JAX fd)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the SURE probes")
+    parser.add_argument("--probe-batch", type=positive_int, default=None,
+                        help="probes per jvp pass (1 bounds the memory for big images)")
+    add_channels_option(parser)
+    parser.add_argument("--variance-channels", type=_channel_names, default=None,
+                        metavar="R,G,B",
+                        help="names of the variance channels if not variance.R/G/B (the same "
+                             "as --channels variance=R,G,B)")
+    parser.add_argument("--sample-variance", action="store_true",
+                        help="the file stores the per-sample variance: divide it by spp")
+    parser.add_argument("--spp", type=positive_float, default=None,
+                        help="samples per pixel, when the header has no jaxden.spp")
+    parser.add_argument("--nonfinite", choices=("error", "zero"), default="error",
+                        help="NaN/inf or negative variance: refuse (default) or repair (NaN -> 0, "
+                             "variance clipped at 0; the authors' policy)")
+
+
+def check_finite_result(array, what: str, cause: str) -> None:
+    """Refuse a non-finite command result before anything is written: a FrameError naming
+    what was computed and what it came from (the input file, the denoiser and its weights)."""
+    import numpy as np
+
+    values = np.asarray(array)
+    finite = np.isfinite(values)
+    if not finite.all():
+        bad = int(values.size - np.count_nonzero(finite))
+        raise FrameError(f"{what} has {bad} non-finite value(s) (NaN or inf) of {values.size}, "
+                         f"so nothing was written; it came from {cause}: look for huge or "
+                         f"broken values there")

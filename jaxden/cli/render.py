@@ -1,0 +1,106 @@
+"""`jaxden scenes` and `jaxden render`: the built-in scenes, one frame (or K sub-buffers) to EXR."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from jaxden.cli.options import exr_outputs, parse_size, positive_int
+from jaxden.errors import JaxdenError
+from jaxden.render.scene_xml import parse_parameters
+
+
+def cmd_scenes(args: argparse.Namespace) -> int:
+    from jaxden.render.scenes import list_scenes
+
+    scenes = list_scenes()
+    width = max(len(name) for name in scenes)
+    for name, description in scenes.items():
+        print(f"{name:<{width}}  {description}")
+    print(f"{'procedural:SEED':<{width}}  a random scene from the seeded procedural generator")
+    print(f"{'path/to/scene.xml':<{width}}  your own Mitsuba 3 scene (box filter, independent sampler enforced)")
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from jaxden.io.exr import write_frame
+    from jaxden.render.core import render_frame
+
+    if args.buffers is not None:
+        return _render_buffers(args, Path(args.out))
+    (out,) = exr_outputs(("--out", args.out))
+    parameters = parse_parameters(args.define)
+    frame = render_frame(args.scene, spp=args.spp, seed=args.seed, size=args.size, aux=args.aux,
+                         feature_spp=args.feature_spp, parameters=parameters or None)
+    write_frame(out, frame, half=args.half, attributes={
+        "seed": args.seed, "scene": args.scene, "aux": args.aux,
+        "feature_spp": min(args.spp, args.feature_spp)})
+    print(f"wrote {out} ({frame.width}x{frame.height}, {args.spp} spp, channels: "
+          f"{', '.join(frame.features())})")
+    return 0
+
+
+def _render_buffers(args: argparse.Namespace, out: Path) -> int:
+    """``jaxden render ... --buffers K``: K independent sub-buffers at spp / K (render seeds
+    seed * K + k) written as OUT.b<k>.exr, and their combination (one render of all samples)
+    as OUT; for ``jaxden sure OUT --buffers OUT.b*.exr``."""
+    import numpy as np
+
+    from jaxden.data.builder import render_cached
+    from jaxden.fileio import all_or_nothing
+    from jaxden.io.exr import write_frame
+    from jaxden.sure.buffers import combine_buffers
+
+    k = args.buffers
+    if k < 2 or args.spp % k or args.spp // k < 2:
+        raise JaxdenError(f"--buffers {k}: needs K >= 2 dividing --spp {args.spp} into >= 2 "
+                          f"samples per buffer")
+    paths = [out.with_name(f"{out.stem}.b{i}.exr") for i in range(k)]
+    out, *paths = exr_outputs(("--out", out), *((f"sub-buffer {i}", p)
+                                                 for i, p in enumerate(paths)))
+    seeds = [args.seed * k + i for i in range(k)]
+    parameters = parse_parameters(args.define)
+    parts = [render_cached(args.scene, args.spp // k, seed=s, size=args.size, aux=args.aux,
+                           feature_spp=args.feature_spp, parameters=parameters or None).numpy()
+             for s in seeds]
+    full = combine_buffers(parts)
+    full = full.replace(**{name: np.asarray(getattr(full, name), np.float32)
+                           for name in full.features()}, spp=np.float32(args.spp))
+    with all_or_nothing():  # the sub-buffers and their combination: all or none
+        for i, (path, part) in enumerate(zip(paths, parts)):
+            write_frame(path, part, half=args.half, attributes={
+                "seed": seeds[i], "scene": args.scene, "buffer": i, "buffers": k,
+                "aux": args.aux})
+        write_frame(out, full, half=args.half, attributes={
+            "seed": args.seed, "scene": args.scene, "buffers": k, "aux": args.aux})
+    print(f"wrote {out} ({full.width}x{full.height}, {args.spp} spp = {k} sub-buffers of "
+          f"{args.spp // k}) and {paths[0].name} .. {paths[-1].name}; sub-buffer SURE: jaxden "
+          f"sure {out} --buffers {' '.join(str(p) for p in paths)} --denoiser oidn --out "
+          f"{out.with_name(out.stem + '.sure.exr')}")
+    return 0
+
+
+def add_commands(sub) -> None:
+    p = sub.add_parser("scenes", help="list the built-in scenes")
+    p.set_defaults(func=cmd_scenes)
+
+    p = sub.add_parser("render", help="render one frame (colour, variance, features) to EXR")
+    p.add_argument("scene", help="built-in name, procedural:SEED, or a Mitsuba XML path")
+    p.add_argument("--spp", type=positive_int, required=True, help="samples per pixel")
+    p.add_argument("--size", type=parse_size, default=None, help="WxH (default: the scene's)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--half", action="store_true", help="store channels as float16")
+    p.add_argument("--aux", choices=("specular-chain", "first-hit"), default="specular-chain",
+                   help="albedo and normal of the first non-delta surface behind mirrors and "
+                        "smooth glass (default, as OIDN recommends), or of the first hit")
+    p.add_argument("--feature-spp", type=positive_int, default=1024, metavar="N",
+                   help="the features average min(spp, N) samples (default 1024)")
+    p.add_argument("--buffers", type=positive_int, default=None, metavar="K",
+                   help="also keep K independent sub-buffers of spp / K samples each "
+                        "(OUT.b0.exr ..; OUT is their combination), for `jaxden sure --buffers`")
+    p.add_argument("-D", dest="define", action="append", default=[], metavar="NAME=VALUE",
+                   help="set $NAME in an XML scene, as Mitsuba's -D (repeatable; wins over the "
+                        "scene's <default>)")
+    p.add_argument("--out", required=True, help="output .exr")
+    p.set_defaults(func=cmd_render)
+

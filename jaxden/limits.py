@@ -1,0 +1,80 @@
+"""One size guard for every image from any source: the memory a request implies is computed
+first and refused with a clear error above a limit derived from the machine's memory, before
+anything is allocated.
+
+Sources: ``--size`` and ``render_frame(size=)``, a scene file's film (its XML width and
+height, after ``$parameters``), an EXR's data window (read from the header before any pixel is
+decoded), the closed-form mixer's Gaussian window. Each call names what it guards, so the
+error says where the size came from.
+
+The limit is half the machine's physical memory (``JAXDEN_MEMORY_LIMIT`` in bytes, or with a
+K/M/G suffix, overrides it). Per-pixel costs are estimates of the peak working set (stated
+next to each constant); they err on the large side.
+"""
+
+from __future__ import annotations
+
+import os
+
+from jaxden.errors import JaxdenError
+
+#: Rendering: the moment integrator's AOVs and film (~20 float32 channels), Mitsuba's sample
+#: buffers and the Frame (16 channels) written from them.
+RENDER_BYTES_PER_PIXEL = 256
+#: Reading an EXR: the decoded channels plus the Frame stacked from them (float32 each).
+EXR_BYTES_PER_CHANNEL_PIXEL = 8
+ENV_LIMIT = "JAXDEN_MEMORY_LIMIT"
+
+
+def physical_memory() -> int:
+    """Bytes of physical memory (0 when unknown)."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 0
+
+
+def memory_limit() -> int:
+    """The byte budget of one image request (see the module docstring)."""
+    text = os.environ.get(ENV_LIMIT, "").strip()
+    if text:
+        scale = {"k": 1 << 10, "m": 1 << 20, "g": 1 << 30}.get(text[-1].lower(), 1)
+        digits = text[:-1] if scale > 1 else text
+        try:
+            value = int(float(digits) * scale)
+        except ValueError:
+            raise JaxdenError(f"{ENV_LIMIT}={text!r}: expected a byte count such as 8G") from None
+        if value > 0:
+            return value
+    memory = physical_memory()
+    return memory // 2 if memory else 8 << 30
+
+
+def _bytes(count: float) -> str:
+    for unit, size in (("GiB", 1 << 30), ("MiB", 1 << 20), ("KiB", 1 << 10)):
+        if count >= size:
+            return f"{count / size:.1f} {unit}"
+    return f"{count:.0f} bytes"
+
+
+def check_budget(needed: float, what: str, error=JaxdenError) -> None:
+    """Raise ``error`` when ``needed`` bytes exceed :func:`memory_limit`; ``what`` names the
+    request and where its size came from."""
+    limit = memory_limit()
+    if needed > limit:
+        source = (f"set by {ENV_LIMIT}" if os.environ.get(ENV_LIMIT, "").strip()
+                  else f"half its memory; set {ENV_LIMIT} to change it")
+        raise error(f"{what} would need about {_bytes(needed)}, more than this machine allows "
+                    f"for one image ({_bytes(limit)}: {source})")
+
+
+def check_render_size(width: int, height: int, what: str, error=JaxdenError) -> None:
+    """Guard a render of ``width`` x ``height`` pixels (:data:`RENDER_BYTES_PER_PIXEL`)."""
+    check_budget(float(width) * float(height) * RENDER_BYTES_PER_PIXEL,
+                 f"{what}: a {width}x{height} render", error)
+
+
+def check_exr_size(width: int, height: int, channels: int, what: str, error=JaxdenError) -> None:
+    """Guard decoding an EXR data window of ``channels`` channels."""
+    check_budget(float(width) * float(height) * max(channels, 1) * EXR_BYTES_PER_CHANNEL_PIXEL,
+                 f"{what}: its {width}x{height} data window of {channels} channel(s)", error)

@@ -1,0 +1,362 @@
+"""SURE cache: the denoised image and its SURE map for every input item of a dataset.
+
+The progressive-denoising mixer is trained on (noisy x, variance, denoised y, SURE of y). The
+denoiser is fixed while the mixer trains, so y and SURE are computed once per dataset item by
+:func:`build_sure_cache` and read back by :class:`SureCache` (the authors' pipeline does the
+same: an inference pass writes the denoised image and its SURE, then PDNet trains on them).
+
+Layout (default folder ``DATASET/derived/<denoiser>``, see :func:`default_cache_dir`)::
+
+    CACHE/sure-cache.json                        identity, settings, per-item checksums
+    CACHE/s000-cornell-box/c000/spp00002.exr     one EXR per input item, same relative path
+
+Each item EXR holds, float32 (or half with ``half=True``), all (H, W) of the dataset crop:
+
+    R, G, B                    y, the denoised image (linear radiance; what a viewer shows)
+    sure.R, sure.G, sure.B     per-pixel SURE of y (radiance^2; may be negative)
+    divergence.R/G/B           var * dy/dx, the probe estimate of the divergence term
+
+(``(y - x)^2`` is not stored: it follows from y and the dataset's x; SURE = (y - x)^2 - var +
+2 divergence up to float32 rounding of the stored parts.) Header attributes: ``jaxden.item``,
+``jaxden.cache_key``, ``jaxden.source_sha256`` (the dataset file it was computed from),
+``jaxden.denoiser``, ``jaxden.probes``, ``jaxden.method``, ``jaxden.eps``, ``jaxden.seed`` (the
+item's probe seed).
+
+Identity: a cache is for one dataset, one denoiser (name, config and a SHA-256 of its
+parameters) and one setting (probes, method, eps, finite-difference scheme, seed); a rerun
+with anything else into the same folder is a DatasetError that names the differences. Items
+with spp = 1 have no variance and are skipped (SURE needs it; the mixer loader refuses them).
+
+Resuming: every EXR is written atomically and the manifest is saved every few seconds and at
+the end. On rerun an item counts as finished when its file matches the recorded checksum and
+the dataset file it came from is unchanged, or (finished after the last manifest save) when its
+header carries this cache's key, the item id and the source checksum and it reads back whole.
+Everything else is computed again.
+
+Probes: item ``i`` uses ``key_i = PRNGKey(item_seed(seed, i))`` and the probes
+``draw_probes(key_i, var, K)``, for JAX denoisers (through :func:`jaxden.sure.sure`) and for
+black boxes (the same probes handed to :func:`jaxden.sure.sure_blackbox`), so a cached map
+equals a direct call with that key.
+
+Finite-difference step (``eps=None`` picks :func:`default_eps`): the authors use 1e-4, which
+in float32 is dominated by round-off. Measured on OIDN (pyoidn 2.5, 'high', Cornell box 64 x 64,
+4 common probes, relative L2 error of the divergence term against the mean of central
+differences at 3e-3 and 1e-2): forward eps = 1e-4: 5 % (4 spp), 12 % (64 spp), 30 % (1024 spp);
+1e-3: 2 %, 2 %, 5 %; 1e-2: 1.9 %, 0.9 %, 1.1 %; 3e-2: 4 %, 2 %, 1 %. So black boxes get
+1e-2 (the error floor is OIDN's own float32 output). JAX denoisers use jvp (exact) unless
+``method='fd'``, for which 1e-3 (the float32 optimum measured in tests/test_sure_properties.py).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from jaxden.errors import DatasetError, ExrError, FrameError
+from jaxden.fileio import atomic_write_text
+from jaxden.sure.denoiser import resolve_denoiser
+
+CACHE_MANIFEST = "sure-cache.json"
+CACHE_FORMAT = "jaxden-sure-cache"
+CACHE_VERSION = 1
+LOCK_NAME = ".sure-cache.lock"
+SAVE_INTERVAL_S = 5.0
+DERIVED_DIR = "derived"
+SURE_CHANNELS = ("sure.R", "sure.G", "sure.B")
+DIVERGENCE_CHANNELS = ("divergence.R", "divergence.G", "divergence.B")
+DENOISED_CHANNELS = ("R", "G", "B")
+MEMORY_LIMIT_BYTES = 2 << 30
+
+
+def params_sha256(params: Any) -> str | None:
+    """SHA-256 over the parameter pytree (paths, dtypes, shapes, bytes); None for no params."""
+    if params is None:
+        return None
+    digest = hashlib.sha256()
+    leaves = jax.tree_util.tree_leaves_with_path(params)
+    for path, leaf in sorted(leaves, key=lambda pair: jax.tree_util.keystr(pair[0])):
+        array = np.ascontiguousarray(np.asarray(leaf))
+        digest.update(jax.tree_util.keystr(path).encode())
+        digest.update(f"{array.dtype.str}{array.shape}".encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()
+
+
+def _plain(value: Any) -> Any:
+    from jaxden.config import config_to_dict
+
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return config_to_dict(value)
+    return repr(value)
+
+
+def denoiser_identity(denoiser) -> dict[str, Any]:
+    """What makes two denoisers the same for the cache: name, config and parameters."""
+    return {
+        "name": denoiser.name,
+        "config": _plain(denoiser.config),
+        "params_sha256": params_sha256(denoiser.params),
+    }
+
+
+def denoiser_slug(denoiser) -> str:
+    """Folder name for a denoiser: its name, plus a parameter hash for trained weights."""
+    digest = params_sha256(denoiser.params)
+    return denoiser.name if digest is None else f"{denoiser.name}-{digest[:10]}"
+
+
+# ------------------------------------------------------------------------------- files
+def write_sure_exr(path, result, *, half: bool = False, attributes: dict | None = None) -> None:
+    """Write a SureResult of one image (H, W, 3) as an EXR (atomic): R,G,B = denoised,
+    sure.R/G/B, divergence.R/G/B (see the module docstring)."""
+    from jaxden.io.exr import write_channels
+
+    channels = {}
+    for names, array in (
+        (DENOISED_CHANNELS, result.denoised),
+        (SURE_CHANNELS, result.sure),
+        (DIVERGENCE_CHANNELS, result.divergence_term),
+    ):
+        array = np.asarray(array, np.float32)
+        if array.ndim != 3 or array.shape[-1] != 3:
+            raise FrameError(f"{path}: SURE images must be (H, W, 3), got {array.shape}")
+        for index, name in enumerate(names):
+            channels[name] = array[..., index]
+    from jaxden import __version__
+
+    write_channels(path, channels, half=half,
+                   attributes={"version": __version__, **(attributes or {})})
+
+
+def read_sure_exr(path) -> dict[str, np.ndarray]:
+    """``{"denoised", "sure", "divergence"}`` (H, W, 3) float32 from a SURE EXR."""
+    from jaxden.io.exr import read_channels
+
+    data, _ = read_channels(path, DENOISED_CHANNELS + SURE_CHANNELS + DIVERGENCE_CHANNELS)
+    return {
+        "denoised": np.stack([data[c] for c in DENOISED_CHANNELS], -1),
+        "sure": np.stack([data[c] for c in SURE_CHANNELS], -1),
+        "divergence": np.stack([data[c] for c in DIVERGENCE_CHANNELS], -1),
+    }
+
+
+def item_seed(seed: int, item_id: str) -> int:
+    """The probe seed of one dataset item (independent of build order and of other items)."""
+    from jaxden.data.layout import derive_seed
+
+    return derive_seed(int(seed), "sure", item_id)
+
+
+def default_cache_dir(dataset_dir, denoiser) -> Path:
+    """``DATASET/derived/<name>`` (black boxes) or ``DATASET/derived/<name>-<params hash>``."""
+    return Path(dataset_dir) / DERIVED_DIR / denoiser_slug(resolve_denoiser(denoiser))
+
+
+def _dataset_identity(manifest) -> dict[str, Any]:
+    text = json.dumps(manifest.config, sort_keys=True)
+    return {"name": manifest.config.get("name"),
+            "config_sha256": hashlib.sha256(text.encode()).hexdigest()}
+
+
+def _cache_key(identity: dict[str, Any]) -> str:
+    return hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:20]
+
+
+def _save_json(path: Path, data: dict) -> None:
+    atomic_write_text(path, json.dumps(data, indent=1))
+
+
+def _load_cache_manifest(directory: Path) -> dict[str, Any] | None:
+    path = directory / CACHE_MANIFEST
+    if not path.exists():
+        return None
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise DatasetError(f"{path}: cannot be read as JSON: {error}") from None
+    if not isinstance(data, dict) or data.get("format") != CACHE_FORMAT:
+        raise DatasetError(f"{path}: not a jaxden SURE cache manifest (no format '{CACHE_FORMAT}')")
+    if data.get("format_version") != CACHE_VERSION:
+        raise DatasetError(
+            f"{path}: SURE cache format version {data.get('format_version')} is not supported "
+            f"(this jaxden reads version {CACHE_VERSION}); rebuild into another folder"
+        )
+    return data
+
+
+def _eligible_items(manifest) -> list:
+    """Input items that have a variance (spp >= 2)."""
+    return [item for item in manifest.items if item.kind == "input" and item.spp >= 2]
+
+
+# ------------------------------------------------------------------------------- reading
+def inverse_dihedral(image: np.ndarray, index: int) -> np.ndarray:
+    """Undo :func:`jaxden.data.loader.dihedral` (flip back, then turn back)."""
+    out = np.asarray(image)
+    if index >= 4:
+        out = np.flip(out, axis=-2)
+    return np.rot90(out, k=-(index % 4), axes=(-3, -2))
+
+
+def locate_crop(full: np.ndarray, crop: np.ndarray, where: str = "crop") -> tuple[int, int, int]:
+    """Find ``(top, left, symmetry)`` with ``dihedral(full[top:top+h, left:left+w], symmetry)
+    == crop`` exactly; ``full`` (H, W, C), ``crop`` (h, w, C).
+
+    Candidates are screened on a 5 x 5 grid of pixels, then checked in full. Symmetries are
+    tried in order 0..7 and positions in row-major order; the first exact match wins. Only a
+    crop whose window is repeated exactly elsewhere in the item (a constant, noise-free region,
+    all C channels equal) can match more than one window; those windows then hold identical
+    inputs. Raises DatasetError when nothing matches (the data changed under the cache).
+    """
+    full = np.asarray(full)
+    crop = np.asarray(crop)
+    height, width = full.shape[:2]
+    for symmetry in range(8):
+        window = inverse_dihedral(crop, symmetry)
+        h, w = window.shape[:2]
+        if h > height or w > width:
+            continue
+        rows, cols = height - h + 1, width - w + 1
+        ok = np.ones((rows, cols), bool)
+        for dy in np.unique(np.linspace(0, h - 1, 5).astype(int)):
+            for dx in np.unique(np.linspace(0, w - 1, 5).astype(int)):
+                ok &= np.all(full[dy : dy + rows, dx : dx + cols] == window[dy, dx], axis=-1)
+            if not ok.any():
+                break
+        for top, left in np.argwhere(ok):
+            if np.array_equal(full[top : top + h, left : left + w], window):
+                return int(top), int(left), symmetry
+    raise DatasetError(
+        f"{where}: the batch crop is not a window of the dataset item (did the dataset change "
+        f"since the loader read it?)"
+    )
+
+
+class SureCache:
+    """A built SURE cache, opened for reading (see the module docstring for the layout).
+
+    ``SureCache(dataset_dir, cache_dir)`` checks that the cache was computed from this dataset.
+    ``missing`` lists the input items (spp >= 2) without a valid cached file; ``identity`` is
+    the recorded denoiser and settings. Decoded items are kept in memory up to
+    ``memory_limit`` bytes.
+    """
+
+    def __init__(self, dataset_dir, cache_dir, *, memory_limit: int = MEMORY_LIMIT_BYTES):
+        from jaxden.data.layout import load_manifest
+
+        self.dataset_dir = Path(dataset_dir)
+        self.directory = Path(cache_dir)
+        self.dataset = load_manifest(self.dataset_dir)
+        data = _load_cache_manifest(self.directory)
+        if data is None:
+            raise DatasetError(
+                f"{self.directory} holds no SURE cache ({CACHE_MANIFEST} missing): build it with "
+                f"`jaxden dataset sure-cache {self.dataset_dir} --denoiser NAME`"
+            )
+        self.identity = data.get("identity", {})
+        self.cache_key = data.get("cache_key")
+        dataset_identity = _dataset_identity(self.dataset)
+        if self.identity.get("dataset") != dataset_identity:
+            raise DatasetError(
+                f"{self.directory}: the SURE cache was computed from another dataset "
+                f"({self.identity.get('dataset')}), not {self.dataset_dir} ({dataset_identity})"
+            )
+        self.records: dict[str, dict] = data.get("items", {})
+        self._items = {item.id: item for item in self.dataset.items}
+        crops = self.dataset.crop_by_id()
+        self._split = {item.id: crops[item.crop].split for item in self.dataset.items}
+        self.memory_limit = memory_limit
+        self._memory: dict[str, dict[str, np.ndarray]] = {}
+        self._bytes = 0
+
+    @property
+    def missing(self) -> list[str]:
+        """Eligible items whose record is absent or was computed from another dataset file."""
+        return [
+            item.id for item in _eligible_items(self.dataset)
+            if self.records.get(item.id, {}).get("source_sha256") != item.sha256
+        ]
+
+    @property
+    def complete(self) -> bool:
+        return not self.missing
+
+    def in_split(self, item_id: str, split: str) -> bool:
+        """Whether a dataset item belongs to ``split`` ('all' matches every item)."""
+        return split == "all" or self._split.get(item_id) == split
+
+    def read(self, item_id: str) -> dict[str, np.ndarray]:
+        """``{"denoised", "sure", "divergence"}`` (H, W, 3) of one item, float32."""
+        record = self.records.get(item_id)
+        if record is None:
+            raise DatasetError(
+                f"{self.directory}: item {item_id} is not in the SURE cache (spp 1, or not built: "
+                f"run `jaxden dataset sure-cache` again)"
+            )
+        try:
+            return read_sure_exr(self.directory / record["path"])
+        except ExrError as error:
+            raise DatasetError(f"{error} (rebuild the SURE cache to repair it)") from None
+
+    def _full(self, item_id: str) -> dict[str, np.ndarray]:
+        """The whole item: ``key`` (colour and variance from the dataset, (H, W, 6)), the cached
+        ``denoised`` and ``sure``."""
+        found = self._memory.get(item_id)
+        if found is not None:
+            return found
+        from jaxden.io.exr import read_frame
+
+        item = self._items.get(item_id)
+        if item is None:
+            raise DatasetError(f"{self.dataset_dir}: no item {item_id!r} in the dataset")
+        frame = read_frame(self.dataset_dir / item.path, require=("color", "variance"))
+        cached = self.read(item_id)
+        entry = {
+            "key": np.concatenate([frame.color, frame.variance], axis=-1),
+            "denoised": cached["denoised"],
+            "sure": cached["sure"],
+        }
+        size = sum(a.nbytes for a in entry.values())
+        if self._bytes + size <= self.memory_limit:
+            self._memory[item_id] = entry
+            self._bytes += size
+        return entry
+
+    def crops_for(self, batch) -> tuple[np.ndarray, np.ndarray, list[tuple[int, int, int]]]:
+        """The cached denoised image and SURE cut like the loader cut ``batch``.
+
+        ``batch``: a :class:`jaxden.data.loader.Batch` with input colour and variance
+        (B, h, w, 3). The loader does not report its crop windows, so each sample's window and
+        symmetry are recovered by exact matching of its colour and variance against the item
+        (:func:`locate_crop`); the result is a pure function of the batch.
+
+        Returns ``(denoised, sure, windows)``: (B, h, w, 3) float32 arrays and
+        ``(top, left, symmetry)`` per sample.
+        """
+        from jaxden.data.loader import dihedral
+
+        color = np.asarray(batch.input.color)
+        variance = batch.input.variance
+        if variance is None:
+            raise FrameError("crops_for: the batch has no input variance")
+        variance = np.asarray(variance)
+        denoised, sure_maps, windows = [], [], []
+        for index, item_id in enumerate(batch.items):
+            entry = self._full(item_id)
+            crop = np.concatenate([color[index], variance[index]], axis=-1)
+            top, left, symmetry = locate_crop(entry["key"], crop, where=f"item {item_id}")
+            h, w = crop.shape[:2] if symmetry % 2 == 0 else crop.shape[1::-1]
+            for out, name in ((denoised, "denoised"), (sure_maps, "sure")):
+                out.append(dihedral(entry[name][top : top + h, left : left + w], symmetry))
+            windows.append((top, left, symmetry))
+        return (
+            np.ascontiguousarray(np.stack(denoised), np.float32),
+            np.ascontiguousarray(np.stack(sure_maps), np.float32),
+            windows,
+        )

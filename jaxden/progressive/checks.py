@@ -1,0 +1,48 @@
+"""Argument checks shared by the progressive-denoising functions: shapes, matching sizes, variance
+values.
+"""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+
+from jaxden.errors import FrameError
+
+
+def _check_image(name: str, array, where: str, channels: tuple[int, ...] = (3,)) -> tuple:
+    shape = np.shape(array)
+    if len(shape) < 3 or shape[-1] not in channels:
+        raise FrameError(
+            f"{where}: '{name}' must have shape (..., H, W, {' or '.join(map(str, channels))}), "
+            f"got {shape}"
+        )
+    return shape
+
+
+def _check_same(where: str, **arrays) -> tuple:
+    """All arrays (..., H, W, 3) with the same shape; returns it."""
+    shapes = {name: _check_image(name, a, where) for name, a in arrays.items()}
+    first_name, first = next(iter(shapes.items()))
+    for name, shape in shapes.items():
+        if shape != first:
+            raise FrameError(f"{where}: '{name}' has shape {shape} but '{first_name}' has {first}")
+    return first
+
+
+def _is_concrete(*arrays) -> bool:
+    return not any(isinstance(a, jax.core.Tracer) for a in arrays)
+
+
+def _check_variance_values(var, where: str) -> None:
+    """Variance must be finite and >= 0 (only checked on concrete arrays)."""
+    if not _is_concrete(var):
+        return
+    values = np.asarray(var)
+    bad = ~np.isfinite(values) | (values < 0)
+    if bad.any():
+        index = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise FrameError(
+            f"{where}: variance must be finite and >= 0 but {int(bad.sum())} value(s) are not "
+            f"(first at index {index}: {values[index]})"
+        )

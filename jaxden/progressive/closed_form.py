@@ -1,0 +1,117 @@
+"""The closed-form mixer: Eq. 9's per-pixel optimal alpha with the expectations replaced by local
+Gaussian means, optionally restricted to neighbours of similar brightness (range strata).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def _gaussian_taps(sigma: float) -> np.ndarray:
+    radius = max(1, math.ceil(3.0 * sigma))
+    offsets = np.arange(-radius, radius + 1, dtype=np.float64)
+    return np.exp(-np.square(offsets) / (2.0 * sigma * sigma)).astype(np.float32)
+
+
+def _blur_shifted(image, taps, axis: int):
+    """Zero-padded correlation of (H, W, C) along ``axis`` with odd-length ``taps`` as a loop of
+    shifted, weighted adds: for the closed form's 73 taps (sigma 12) on 1280 x 720, 85x faster
+    than the depthwise convolution of :func:`_blur_1d` on XLA:CPU (22 ms against 1.9 s for
+    both axes, measured on the project machine), same result to float32 rounding."""
+    radius = taps.shape[0] // 2
+    size = image.shape[axis]
+    padding = [(0, 0)] * image.ndim
+    padding[axis] = (radius, radius)
+    padded = jnp.pad(image, padding)
+
+    def add(k, total):
+        return total + taps[k] * jax.lax.dynamic_slice_in_dim(padded, k, size, axis=axis)
+
+    return jax.lax.fori_loop(0, taps.shape[0], add, jnp.zeros_like(image))
+
+
+#: Range-aware closed form (``closed_form_stops``): the proxy of a pixel's brightness is the
+#: channel mean of (x + y) / 2 under a Gaussian blur of this width (pixels), so that one
+#: noisy sample does not move a pixel to another stratum; (x + y) / 2 keeps the closed form
+#: swap-symmetric.
+CLOSED_FORM_PROXY_SIGMA = 2.0
+#: Proxy values are clamped to [FLOOR, CEIL] (radiance) before their log2: everything darker
+#: than FLOOR shares the lowest stratum, everything brighter than CEIL the highest.
+CLOSED_FORM_RANGE_FLOOR = 1e-3
+CLOSED_FORM_RANGE_CEIL = 1e4
+
+
+def _blur_2d(image, taps):
+    return _blur_shifted(_blur_shifted(image, taps, 0), taps, 1)
+
+
+def _range_strata(level, lo: int, hi: int):
+    """Tent memberships of ``level`` (in bin units) in the integer bins lo..hi: they sum to 1
+    wherever lo <= level <= hi, and each is nonzero only within one bin of its centre."""
+    for b in range(lo, hi + 1):
+        yield jnp.clip(1.0 - jnp.abs(level - b), 0.0, 1.0)
+
+
+def _range_local_means(terms, x, y, taps, stops: float):
+    """Gaussian local sums of ``terms`` (H, W, C) restricted to pixels of similar brightness.
+
+    A bilateral grid along log2 brightness with tent bins ``stops`` wide: for each bin b the
+    terms of its member pixels (weight s_b) are blurred, and a pixel collects sum_b s_b(p)
+    blur(s_b terms)(p). Neighbours more than two bins apart in brightness do not contribute,
+    so a bright emitter does not set the alpha of the dim wall beside it. Empty bins are
+    skipped at run time.
+    """
+    proxy = jnp.mean((x + y) * 0.5, axis=-1, keepdims=True)
+    proxy = _blur_2d(proxy, jnp.asarray(_gaussian_taps(CLOSED_FORM_PROXY_SIGMA), x.dtype))
+    proxy = jnp.clip(proxy, CLOSED_FORM_RANGE_FLOOR, CLOSED_FORM_RANGE_CEIL)
+    level = jnp.log2(proxy) / stops
+    lo = math.floor(math.log2(CLOSED_FORM_RANGE_FLOOR) / stops)
+    hi = math.ceil(math.log2(CLOSED_FORM_RANGE_CEIL) / stops)
+    total = jnp.zeros_like(terms)
+    for weight in _range_strata(level, lo, hi):
+        total = jax.lax.cond(
+            jnp.any(weight > 0),
+            lambda t, w=weight: t + w * _blur_2d(terms * w, taps),
+            lambda t: t,
+            total,
+        )
+    return total
+
+
+def _closed_form_single(x, y, var, sure, taps, per_channel: bool, stops: float | None = None):
+    residual = jnp.square(y - x)
+    # E[(y - x)^2 + var - SURE] = 2 (var - var E f'(x)): Eq. 9's numerator, twice.
+    numerator = residual + var - sure
+    denominator = 2.0 * residual
+    if not per_channel:
+        numerator = jnp.sum(numerator, axis=-1, keepdims=True)
+        denominator = jnp.sum(denominator, axis=-1, keepdims=True)
+    # Zero-padded sums with the same weights in both: the ratio of local weighted means over
+    # the in-image pixels of the window.
+    both = jnp.concatenate([numerator, denominator], axis=-1)
+    if stops is None:
+        sums = _blur_2d(both, taps)
+    else:
+        sums = _range_local_means(both, x, y, taps, stops)
+    numerator, denominator = jnp.split(sums, 2, axis=-1)
+    positive = denominator > 0
+    # y == x on the whole window: every alpha gives the same z; take y.
+    alpha = jnp.where(positive, numerator / jnp.where(positive, denominator, 1.0), 1.0)
+    return jnp.broadcast_to(jnp.clip(alpha, 0.0, 1.0), x.shape)
+
+
+@functools.partial(jax.jit, static_argnames=("sigma", "per_channel", "stops"))
+def _closed_form_alpha(x, y, var, sure, sigma: float, per_channel: bool,
+                       stops: float | None = None):
+    taps = jnp.asarray(_gaussian_taps(sigma), x.dtype)
+    lead = x.shape[:-3]
+    flat = [a.reshape((-1,) + a.shape[-3:]) for a in (x, y, var, sure)]
+    single = lambda args: _closed_form_single(*args, taps, per_channel, stops)
+    # With strata, lax.map (not vmap) keeps the skipping of empty bins a real branch.
+    alpha = jax.vmap(single)(flat) if stops is None else jax.lax.map(single, flat)
+    return alpha.reshape(lead + alpha.shape[1:])

@@ -1,0 +1,140 @@
+"""progressive_denoise: denoise a frame, take SURE, mix and scale by the t-statistic; the shipped
+mixers.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxden.errors import ConfigError
+from jaxden.progressive.heads import _mix
+from jaxden.progressive.mixer import MixerConfig, _inference_alpha, load_mixer
+from jaxden.progressive.tstat import TStatConfig, _scale_alpha, _t_statistic
+
+# ------------------------------------------------------------------------------ inference
+
+_FROM_CONFIG = object()
+
+
+def progressive_denoise(
+    frame,
+    denoiser,
+    mixer_params,
+    mixer_config: MixerConfig,
+    key,
+    *,
+    num_probes: int = 4,
+    tstat=_FROM_CONFIG,
+    method: str = "auto",
+    eps: float | None = None,
+    probe_batch: int | None = None,
+    nonfinite: str = "error",
+    swap_average: bool | None = None,
+):
+    """The whole progressive-denoising pipeline on one frame (paper Fig. 6).
+
+    y = D(x); SURE of y (jvp for JAX denoisers, finite differences for black boxes such as
+    OIDN; :func:`jaxden.sure.denoise_with_sure`); alpha = mixer; alpha' = t-statistic
+    scaling; z' = x + alpha' (y - x).
+
+    Args:
+      frame: :class:`jaxden.frame.Frame` (H, W, 3) (leading batch dims if the denoiser takes
+        them) with colour and ``variance`` (the variance of the pixel mean; required) plus
+        the features the denoiser uses.
+      denoiser: a :class:`jaxden.denoise.Denoiser` or a spec for
+        :func:`jaxden.denoise.load_denoiser` (``"oidn"``, a checkpoint folder, ...).
+      mixer_params, mixer_config: from :func:`load_mixer` (or :func:`mixer_init`).
+      key: PRNG key of the SURE probes.
+      num_probes, method (``auto``/``jvp``/``fd``), eps (None: measured default),
+        probe_batch: SURE options (:func:`jaxden.sure.sure`).
+      tstat: :class:`TStatConfig`; default the mixer config's; None skips the scaling
+        (the paper's "w/o t-test" ablation).
+      nonfinite: ``"error"`` or ``"zero"`` (the authors' repair of NaN / negative variance).
+      swap_average: average alpha with 1 - alpha of the swapped inputs (see
+        :class:`MixerConfig`); None: the mixer config's ``swap_average``.
+
+    Returns:
+      ``(z_prime, alpha_prime, extras)``: output colour and the scaled alpha, (..., H, W, 3)
+      float32 JAX arrays, and a dict with ``denoised``, ``sure``, ``divergence`` (var dy/dx),
+      ``alpha`` (before scaling) and ``mixed`` (x + alpha (y - x), before scaling).
+
+    Raises:
+      FrameError: no variance (SURE needs it), negative or non-finite values, missing
+        denoiser features. ConfigError: bad options.
+    """
+    from jaxden.sure.denoiser import denoise_with_sure
+
+    if tstat is _FROM_CONFIG:
+        tstat = mixer_config.tstat
+    if tstat is not None and not isinstance(tstat, TStatConfig):
+        raise ConfigError(
+            f"progressive_denoise: tstat must be a TStatConfig or None, got {tstat!r}"
+        )
+    result, frame = denoise_with_sure(
+        denoiser, frame, key, num_probes=num_probes, method=method, eps=eps,
+        probe_batch=probe_batch, nonfinite=nonfinite, where="progressive_denoise",
+    )
+    x = jnp.asarray(frame.color, jnp.float32)
+    var = jnp.asarray(frame.variance, jnp.float32)
+    y = jnp.asarray(result.denoised, jnp.float32)
+    sure_map = jnp.asarray(result.sure, jnp.float32)
+    if swap_average is None:
+        swap_average = mixer_config.swap_average
+    alpha = _inference_alpha(mixer_params, x, y, var, sure_map, mixer_config, bool(swap_average))
+    mixed = _mix(x, y, alpha)
+    if tstat is None:
+        z_prime, alpha_prime = mixed, alpha
+    else:
+        t = _t_statistic(x, mixed, var, tstat)
+        alpha_prime = _scale_alpha(alpha, t, tstat)
+        z_prime = _mix(x, y, alpha_prime)
+    extras = {
+        "denoised": y,
+        "sure": sure_map,
+        "divergence": jnp.asarray(result.divergence_term, jnp.float32),
+        "alpha": alpha,
+        "mixed": mixed,
+    }
+    return z_prime, alpha_prime, extras
+
+
+#: Mixers shipped in ``jaxden/weights/`` per denoiser name: ``{denoiser: weights name}``.
+SHIPPED_MIXERS: dict[str, str] = {"oidn": "oidn-pd"}
+
+
+def shipped_mixer_path(denoiser: str = "oidn"):
+    """Path of the shipped mixer's .msgpack for ``denoiser``, or None if none ships."""
+    from jaxden.denoise.registry import WEIGHTS_DIR
+
+    name = SHIPPED_MIXERS.get(denoiser)
+    if name is None:
+        return None
+    path = WEIGHTS_DIR / f"{name}.msgpack"
+    return path if path.is_file() and path.with_suffix(".json").is_file() else None
+
+
+def shipped_progressive_denoiser(denoiser: str = "oidn", *, seed: int = 0, num_probes: int = 4):
+    """PD(denoiser) with the mixer shipped in the package, or None when none ships.
+
+    Returns a function ``frame -> (z_prime, alpha_prime)`` (NumPy float32, (H, W, 3) each):
+    :func:`progressive_denoise` with the shipped mixer (``jaxden/weights/oidn-pd.msgpack`` for
+    OIDN; see its model card ``oidn-pd.md``), its t-statistic config, ``num_probes`` SURE
+    probes drawn from ``PRNGKey(seed)``.
+    """
+    path = shipped_mixer_path(denoiser)
+    if path is None:
+        return None
+    from jaxden.denoise.registry import load_denoiser
+
+    params, config = load_mixer(str(path))
+    model = load_denoiser(denoiser)
+    key = jax.random.PRNGKey(seed)
+
+    def run(frame):
+        z, alpha, _ = progressive_denoise(frame, model, params, config, key,
+                                          num_probes=num_probes)
+        return np.asarray(z), np.asarray(alpha)
+
+    return run

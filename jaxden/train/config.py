@@ -1,0 +1,101 @@
+"""TrainConfig: what a training run trains, on which data, with which optimiser (validated from TOML)."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from typing import Any, Literal
+
+from jaxden.config import bounded
+from jaxden.errors import ConfigError
+
+
+# ------------------------------------------------------------------------------------ config
+@dataclasses.dataclass(frozen=True)
+class DataConfig:
+    """Which dataset and how batches are drawn from it."""
+
+    dataset: str = ""  # a dataset folder built by `jaxden dataset build`
+    split: str = "train"
+    val_split: str = "val"
+    crop_size: int = bounded(64, low=1, high=4096, unit='pixels')
+    batch_size: int = bounded(8, low=1, high=65536)
+    spp: tuple[int, ...] | None = bounded(None, low=1, high=2**24)  # None: every input spp level of the dataset
+    augment: bool = True
+
+    def __post_init__(self):
+        from jaxden.paths import expand_path
+
+        # "$JAXDEN_HOME/data/rt" and "~/..." work in configs and overrides
+        object.__setattr__(self, "dataset", expand_path(self.dataset))
+
+
+@dataclasses.dataclass(frozen=True)
+class OptimConfig:
+    steps: int = bounded(1000, low=1, high=10**9)
+    learning_rate: float = bounded(1e-3, low=0, low_open=True, high=10)  # the peak of the one-cycle schedule
+    schedule: Literal["onecycle", "constant"] = "onecycle"
+    warmup_fraction: float = bounded(0.05, low=0, high=0.99)
+    loss: Literal["smape", "relmse", "relmse_sg", "l1", "l2"] = "smape"
+    # How the per-image losses of a batch become one number: "mean" (the plain mean over
+    # every pixel) or "log_ratio" (the mean of log(loss_i / loss_i(baseline)), the baseline
+    # being the task's image to beat: every image weighs the same, whatever its noise level;
+    # jaxden.train.losses.log_ratio_loss).
+    loss_reduction: Literal["mean", "log_ratio"] = "mean"
+    grad_clip_norm: float | None = bounded(None, low=0, low_open=True, high=1e9)
+
+    def __post_init__(self):
+        if self.steps < 1:
+            raise ConfigError(f"optim.steps must be >= 1, got {self.steps}")
+        if not self.learning_rate > 0:
+            raise ConfigError(f"optim.learning_rate must be > 0, got {self.learning_rate}")
+        if not 0 <= self.warmup_fraction < 1:
+            raise ConfigError(f"optim.warmup_fraction must be in [0, 1), got {self.warmup_fraction}")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """A training run. ``model`` names a registered denoiser (or 'mixer'); ``model_config``
+    holds that model's own options (validated against its config class)."""
+
+    model: str = "wskp"
+    model_config: dict[str, Any] = dataclasses.field(default_factory=dict)
+    data: DataConfig = DataConfig()
+    optim: OptimConfig = OptimConfig()
+    seed: int = bounded(0, low=0, high=4294967295)
+    log_every: int = bounded(10, low=1, high=10**9)
+    eval_every: int = bounded(200, low=1, high=10**9)
+    eval_batches: int = bounded(8, low=1, high=10**6)
+    checkpoint_every: int = bounded(200, low=1, high=10**9)
+    keep_checkpoints: int = bounded(2, low=1, high=1000)
+
+    def __post_init__(self):
+        for name in ("log_every", "eval_every", "eval_batches", "checkpoint_every", "keep_checkpoints"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
+
+
+def load_train_config(source, overrides=()) -> TrainConfig:
+    """Load a training config and check its ``model`` and ``[model_config]`` now, so that a
+    typo there is reported with the file's name before any work starts."""
+    from jaxden.config import load_config
+
+    config = load_config(source, TrainConfig, overrides)
+    where = f"{source}: " if isinstance(source, (str, os.PathLike)) else ""
+    if config.model == "mixer":
+        from jaxden.progressive.mixer import MixerConfig
+
+        config_cls = MixerConfig
+    else:
+        from jaxden.denoise.registry import get_definition
+
+        try:
+            config_cls = get_definition(config.model).config_cls
+        except ConfigError as error:
+            raise ConfigError(f"{where}model = {config.model!r}: {error} (or 'mixer')") from None
+    if config_cls is not None:
+        try:
+            load_config(dict(config.model_config), config_cls)
+        except ConfigError as error:
+            raise ConfigError(f"{where}[model_config] of model '{config.model}': {error}") from None
+    return config
