@@ -17,8 +17,18 @@ from jaxden.cli import bench, dataset, demo, denoise, render, report, train
 from jaxden.errors import JaxdenError
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with jaxden's one-line errors: ``jaxden: error: COMMAND: message``, exit 2
+    (argparse prints the usage block first; ``--help`` still shows it)."""
+
+    def error(self, message: str):
+        command = self.prog.removeprefix("jaxden").strip()
+        where = f"{command}: " if command else ""
+        self.exit(2, f"jaxden: error: {where}{message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="jaxden", description="Monte Carlo denoising research in JAX (see README.md)."
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
