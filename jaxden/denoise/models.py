@@ -56,6 +56,15 @@ class UNetConfig:
     encoder_widths: tuple[int, ...] = bounded((32, 48, 64, 80, 96), low=1, high=4096)
     decoder_widths: tuple[int, ...] = bounded((112, 96, 64, 64, 32), low=1, high=4096)
 
+    def __post_init__(self):
+        from jaxden.errors import ConfigError
+
+        if len(self.encoder_widths) != 5 or len(self.decoder_widths) != 5:
+            raise ConfigError(
+                f"UNetConfig: encoder_widths and decoder_widths need 5 values each (the "
+                f"network has 5 levels), got {len(self.encoder_widths)} and "
+                f"{len(self.decoder_widths)}")
+
 
 def _unet_module(config: UNetConfig):
     from jaxden.denoise.nn.unet import UNet
