@@ -38,13 +38,8 @@ Probes: item ``i`` uses ``key_i = PRNGKey(item_seed(seed, i))`` and the probes
 black boxes (the same probes handed to :func:`jaxden.sure.sure_blackbox`), so a cached map
 equals a direct call with that key.
 
-Finite-difference step (``eps=None`` picks :func:`default_eps`): the authors use 1e-4, which
-in float32 is dominated by round-off. Measured on OIDN (pyoidn 2.5, 'high', Cornell box 64 x 64,
-4 common probes, relative L2 error of the divergence term against the mean of central
-differences at 3e-3 and 1e-2): forward eps = 1e-4: 5 % (4 spp), 12 % (64 spp), 30 % (1024 spp);
-1e-3: 2 %, 2 %, 5 %; 1e-2: 1.9 %, 0.9 %, 1.1 %; 3e-2: 4 %, 2 %, 1 %. So black boxes get
-1e-2 (the error floor is OIDN's own float32 output). JAX denoisers use jvp (exact) unless
-``method='fd'``, for which 1e-3 (the float32 optimum measured in tests/test_sure_properties.py).
+Finite-difference step (``eps=None``): :func:`jaxden.sure.denoiser.default_eps`, where the
+choice is measured.
 """
 
 from __future__ import annotations
