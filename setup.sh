@@ -15,7 +15,7 @@ else
 fi
 [ -x .venv/bin/python ] || python3 -m venv .venv
 pip=(.venv/bin/python -m pip install -q --disable-pip-version-check)
-if ! { "${pip[@]}" --upgrade pip && "${pip[@]}" -e '.[test]'; } >"$log" 2>&1; then
+if ! { "${pip[@]}" --upgrade pip && "${pip[@]}" -e '.[test,ray]'; } >"$log" 2>&1; then
   grep -v '^WARNING: Location' "$log" | tail -20; echo "setup: pip install failed"; exit 1
 fi
 .venv/bin/python - <<'PY' || { echo "setup: install failed (see above)"; exit 1; }

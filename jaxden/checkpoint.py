@@ -68,10 +68,18 @@ class Checkpointer:
         self.directory = _checkpoint_root(directory).absolute()
         if not create and not self.directory.is_dir():
             raise CheckpointError(f"{directory}: no checkpoint folder found")
+        options = {"max_to_keep": max_to_keep, "create": create}
+        if jax.process_count() > 1:
+            # In a multi-process job (jaxden.train.loop) process 0 alone saves and every
+            # process restores by itself: no checkpointer waits for the others.
+            me = jax.process_index()
+            options["multiprocessing_options"] = ocp.options.MultiprocessingOptions(
+                primary_host=me, active_processes={me})
+            if create:  # orbax cannot create the folder for a subset of processes
+                self.directory.mkdir(parents=True, exist_ok=True)
+                options["create"] = False
         self._manager = ocp.CheckpointManager(
-            self.directory,
-            options=ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=create),
-        )
+            self.directory, options=ocp.CheckpointManagerOptions(**options))
 
     def latest_step(self) -> int | None:
         return self._manager.latest_step()
@@ -116,7 +124,7 @@ class Checkpointer:
         # Restore onto this process's first device whatever device layout the run was saved
         # with (orbax refuses another topology unless it is given target shardings); callers
         # replicate or shard the result as they need.
-        device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+        device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
         try:
             if target is None:
                 reader = ocp.StandardCheckpointer()

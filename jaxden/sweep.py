@@ -30,6 +30,14 @@ seeds when ``seed`` is an axis. A rerun skips every run whose ``result.json`` re
 resolved config, and an interrupted run resumes from its last checkpoint, so a sweep is
 resumable as a whole. Runs go through :mod:`jaxden.executor` (``serial`` by default: each
 training run already uses every core of a small machine; ``local`` / ``ray`` to spread them).
+
+Data that several runs read (a mixer's SURE cache over the dataset) is built or confirmed once,
+in the calling process, before any run is dispatched; the runs then only read it, so runs on
+several workers never race to build it (:func:`jaxden.train.loop.prepare_shared_data`). Paths
+reach the runs absolute (a relative ``data.dataset`` means the caller's folder, also on a Ray
+node). A run name that would leave ``--workdir`` (``..``, ``.``, empty, or a summary's name) is
+refused before anything runs, and so is a sweep of more than :data:`MAX_RUNS` runs unless
+``allow_large`` (``--allow-large``).
 """
 
 from __future__ import annotations
@@ -51,6 +59,10 @@ __all__ = ["EvaluateConfig", "Run", "SweepConfig", "load_sweep", "plan_runs", "r
            "summarize"]
 
 RESULT_NAME = "result.json"
+#: A sweep of more runs is refused unless ``allow_large`` (a typo in [axes] can mean thousands).
+MAX_RUNS = 200
+#: Names a run folder may not take: they would be the workdir itself, its parent, or a summary.
+_RESERVED_NAMES = ("", ".", "..", "summary.json", "summary.md")
 #: An axis that only names runs (no override): with mode = "zip" it is the whole folder name.
 NAME_AXIS = "name"
 
@@ -157,6 +169,10 @@ def plan_runs(config: SweepConfig, axes: dict[str, list[Any]]) -> list[Run]:
             *(f"{k.split('.')[-1]}={_label(v)}" for k, v in named.items()
               if NAME_AXIS not in values or config.mode == "grid")]))
         name = re.sub(r"[^A-Za-z0-9_.+=-]", "-", name)[:200]
+        if name in _RESERVED_NAMES:
+            raise ConfigError(f"a run of the sweep ({values}) would get the folder name {name!r}, "
+                              f"which is not a folder inside --workdir; choose another name or "
+                              f"axis value")
         if name in seen:
             raise ConfigError(f"two runs of the sweep get the same folder name {name!r}: make "
                               f"the axis values distinct")
@@ -168,6 +184,7 @@ def plan_runs(config: SweepConfig, axes: dict[str, list[Any]]) -> list[Run]:
 
 def _run_one(task: tuple[str, str, tuple[str, ...], dict, dict[str, Any], bool]) -> dict:
     """Train, evaluate and record one run (module level: the local executor pickles it)."""
+    _worker_setup()
     from jaxden.fileio import atomic_write_text
     from jaxden.train.config import load_train_config
     from jaxden.train.loop import train_and_evaluate
@@ -224,44 +241,94 @@ def _run_one(task: tuple[str, str, tuple[str, ...], dict, dict[str, Any], bool])
     return {**result, "skipped": False}
 
 
+def _worker_setup() -> None:
+    """In the process that runs a sweep's run (maybe a fresh local or Ray worker): one JAX
+    device per core (before JAX starts its backend), and the persistent compilation cache
+    unless this process chose one already."""
+    from jaxden.distributed import use_all_cores
+
+    use_all_cores()
+    import jax
+
+    if not jax.config.jax_compilation_cache_dir:
+        from jaxden.compile_cache import enable_compilation_cache
+
+        enable_compilation_cache()
+
+
+def _absolute_overrides(train_config, overrides: tuple[str, ...]) -> tuple[str, ...]:
+    """``overrides`` plus ``data.dataset=<absolute>`` when the run's dataset is relative: a
+    worker in another folder (a Ray node) must read the caller's dataset."""
+    dataset = train_config.data.dataset
+    if dataset and not Path(dataset).is_absolute():
+        return (*overrides, f"data.dataset={_toml_value(str(Path(dataset).absolute()))}")
+    return overrides
+
+
 def run_sweep(path: str | Path, workdir: str | Path, overrides=(), *, executor: str = "serial",
-              workers: int | None = None, progress: bool = True) -> list[dict]:
+              workers: int | None = None, progress: bool = True, allow_large: bool = False,
+              ray_address: str | None = None) -> list[dict]:
     """Run (or finish) the sweep in ``path`` under ``workdir``; returns the runs' results in
-    plan order and writes ``summary.json`` / ``summary.md`` there."""
+    plan order and writes ``summary.json`` / ``summary.md`` there.
+
+    ``executor`` / ``workers`` / ``ray_address``: see :func:`jaxden.executor.make_executor`.
+    ``allow_large``: run more than :data:`MAX_RUNS` runs. With ``progress`` the run count is
+    printed first. Shared data (SURE caches) is prepared here, before any run starts."""
     from jaxden.executor import make_executor
     from jaxden.fileio import atomic_write_text
+    from jaxden.train.loop import prepare_shared_data, shared_data_key
 
     config, axes, base = load_sweep(path, tuple(overrides))
     runs = plan_runs(config, axes)
-    workdir = Path(workdir)
+    if len(runs) > MAX_RUNS and not allow_large:
+        raise ConfigError(f"{path}: the sweep has {len(runs)} runs, more than {MAX_RUNS}; check "
+                          f"its [axes], or pass --allow-large to run them all")
+    given_workdir, workdir = workdir, Path(workdir).absolute()
     if workdir.exists() and not workdir.is_dir():
         raise ConfigError(f"--workdir {workdir} is a file, not a folder")
     # Every run's config must load before any training starts.
     from jaxden.train.config import load_train_config
 
-    for run in runs:
+    configs = []
+    for index, run in enumerate(runs):
         try:
-            load_train_config(base, list(run.overrides))
+            train_config = load_train_config(base, list(run.overrides))
+            absolute = _absolute_overrides(train_config, run.overrides)
+            if absolute != run.overrides:
+                runs[index] = run = dataclasses.replace(run, overrides=absolute)
+                train_config = load_train_config(base, list(run.overrides))
         except ConfigError as error:
             raise ConfigError(f"{path}: run {run.name}: {error}") from None
-    workdir.mkdir(parents=True, exist_ok=True)
+        configs.append(train_config)
+    if progress:
+        print(f"sweep {path}: {len(runs)} run(s) of {base} ({config.mode} over "
+              f"{', '.join(axes)}) in {workdir}", flush=True)
     evaluate = config_to_dict(config.evaluate)
     for name in ("pd", "denoise", "sequences"):
-        evaluate[name] = [str(Path(p)) for p in getattr(config.evaluate, name)]
+        evaluate[name] = [str(Path(p).absolute()) for p in getattr(config.evaluate, name)]
     tasks = [(str(workdir / run.name), str(base), run.overrides, evaluate, run.values, progress)
              for run in runs]
     by_name = {}
-    with make_executor(executor, workers) as pool:
+    # The executor first (a Ray cluster that cannot be reached fails before any work), then
+    # what several runs read, built once, here, before any of them starts.
+    with make_executor(executor, workers, ray_address=ray_address) as pool:
+        prepared = set()
+        for train_config in configs:
+            key = shared_data_key(train_config)
+            if key is not None and key not in prepared:
+                prepare_shared_data(train_config, progress=progress)
+                prepared.add(key)
+        workdir.mkdir(parents=True, exist_ok=True)
         for result in pool.map_unordered(_run_one, tasks):
             by_name[result["run"]] = result
     results = [by_name[run.name] for run in runs]
     summary = summarize(results, list(axes))
     atomic_write_text(workdir / "summary.json", json.dumps(
-        {"provenance": _provenance(path, workdir, overrides),
+        {"provenance": _provenance(path, given_workdir, overrides),
          "sweep": str(path), "base": str(base), "mode": config.mode,
          "axes": axes, "runs": [{k: v for k, v in r.items() if k != "config"} for r in results],
          "groups": summary["groups"]}, indent=1, sort_keys=True, default=str))
-    prov = _provenance(path, workdir, overrides)
+    prov = _provenance(path, given_workdir, overrides)
     atomic_write_text(workdir / "summary.md", f"<!-- generated by: {prov['command']} (commit "
                       f"{prov['commit']}, {prov['date']}) -->\n" + summary["markdown"] + "\n")
     return results

@@ -9,14 +9,20 @@ from __future__ import annotations
 import os
 
 # Two host "devices" so data-parallel code is exercised on the CPU (must precede importing jax).
-os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+# XLA's backend (LLVM) at optimisation level 0: compiles, not runs, dominate the suite (tiny
+# arrays, hundreds of distinct programs; e.g. initialising the default U-Net compiles in ~6 s
+# instead of ~55 s on the 2-core machine, tests/test_models.py takes 30 s instead of 70 s).
+# Results differ from -O3 only in the last float32 bits (measured: 2e-5 on O(1) outputs of a
+# KP model), below every tolerance the tests state. Set XLA_FLAGS yourself to test -O3.
+os.environ.setdefault(
+    "XLA_FLAGS", "--xla_force_host_platform_device_count=2 --xla_backend_optimization_level=0")
 # Full float32 matrix products and convolutions. On the CPU this is XLA's default anyway; on an
 # NVIDIA GPU the default is TF32 (~1e-3 relative), under which the NumPy-reference, deploy-form
 # and finite-difference tests fail by 1e-3..1e-2 (measured on an H100) although the code is
 # right. Training on a GPU may keep TF32.
 os.environ.setdefault("JAX_DEFAULT_MATMUL_PRECISION", "float32")
 
-import pytest  # noqa: E402
+import pytest
 
 
 def pytest_sessionstart(session: pytest.Session) -> None:
@@ -26,7 +32,18 @@ def pytest_sessionstart(session: pytest.Session) -> None:
 
     from jaxden.compile_cache import enable_compilation_cache
 
-    enable_compilation_cache(os.environ.get("JAXDEN_TEST_XLA_CACHE") or tempfile.mkdtemp(prefix="jaxden-xla-"))
+    path = os.environ.get("JAXDEN_TEST_XLA_CACHE")
+    if not path:  # a session's own cache, removed when it ends
+        path = session.config._jaxden_xla_cache = tempfile.mkdtemp(prefix="jaxden-xla-")
+    enable_compilation_cache(path)
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    import shutil
+
+    path = getattr(session.config, "_jaxden_xla_cache", None)
+    if path:
+        shutil.rmtree(path, ignore_errors=True)
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:

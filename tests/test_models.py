@@ -5,10 +5,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxden.denoise.nn import wskp
 from jaxden.denoise.registry import make_denoiser
 from jaxden.errors import FrameError
 from jaxden.frame import Frame
-from jaxden.denoise.nn import wskp
 
 
 def random_frame(h=12, w=10, seed=0, batch=()):

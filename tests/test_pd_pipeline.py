@@ -22,7 +22,6 @@ import pytest
 
 from jaxden import cli, metrics
 from jaxden import progressive as P
-from jaxden.train.tasks import mixer_task
 from jaxden.checkpoint import save_weights
 from jaxden.config import load_config
 from jaxden.data.builder import build_dataset, synthetic_render
@@ -36,6 +35,7 @@ from jaxden.sure.denoiser import denoise_with_sure
 from jaxden.sure.stein import draw_probes, sure_blackbox
 from jaxden.train.config import load_train_config
 from jaxden.train.loop import _loaders
+from jaxden.train.tasks import mixer_task
 
 ROOT = Path(__file__).resolve().parent.parent  # the checkout: tests run from any folder
 TINY_DATA = str(ROOT / "experiments" / "configs" / "dataset-tiny.toml")
@@ -530,25 +530,26 @@ def test_pd_report_script_tstat_override(trained, tmp_path, capsys):
     sys.path.insert(0, str(ROOT / "experiments"))
     import pd_report
 
-    from jaxden.progressive import report as pdreport
     from jaxden.config import load_config
+    from jaxden.progressive import report as pdreport
 
     dataset, workdir = trained
-    spp = next(pdreport.iter_crops(dataset, "all"))[2][-1][0]  # the highest input spp
+    spp = next(pdreport.iter_crops(dataset, "val"))[2][-1][0]  # the highest input spp
     out = tmp_path / "rep"
-    pd_report.main(["pd", "--data", str(dataset), "--split", "all", "--denoiser", "oidn",
+    pd_report.main(["pd", "--data", str(dataset), "--split", "val", "--denoiser", "oidn",
                     "--mixer", str(workdir), "--spp", str(spp), "--tstat", "c=1.0",
                     "--out", str(out)])
     result = json.loads(out.with_suffix(".json").read_text())
+    assert len(result["rows"]) == 2  # the two val crops (the test's cost is per crop)
     assert result["provenance"]["tstat"]["c"] == 1.0
     params, config = P.load_mixer(workdir)
     changed = dataclasses.replace(config, tstat=load_config(config.tstat, P.TStatConfig,
                                                             overrides=["c=1.0"]))
-    rows = pdreport.evaluate_progressive(dataset, "oidn", (params, changed), split="all",
+    rows = pdreport.evaluate_progressive(dataset, "oidn", (params, changed), split="val",
                                          spp=(spp,))
     assert [r["pd_rmse"] for r in result["rows"]] == pytest.approx([r["pd_rmse"] for r in rows],
                                                                    rel=1e-6)
-    default = pdreport.evaluate_progressive(dataset, "oidn", (params, config), split="all",
+    default = pdreport.evaluate_progressive(dataset, "oidn", (params, config), split="val",
                                             spp=(spp,))
     assert [r["pd_rmse"] for r in default] != pytest.approx([r["pd_rmse"] for r in rows],
                                                             rel=1e-6)  # c matters here
@@ -569,7 +570,7 @@ def test_pd_report_script_tstat_override(trained, tmp_path, capsys):
     # --mixer-set: the closed form with strata set on the command line is the spec with them.
     for name, argv in (("set", ["--mixer", "closed-form", "--mixer-set", "closed_form_stops=1"]),
                        ("spec", ["--mixer", "closed-form:stops=1"])):
-        assert pd_report.main(["pd", "--data", str(dataset), "--split", "all", "--denoiser",
+        assert pd_report.main(["pd", "--data", str(dataset), "--split", "val", "--denoiser",
                                "oidn", "--spp", str(spp), *argv,
                                "--out", str(tmp_path / name)]) == 0
     by_set, by_spec = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("set", "spec"))
@@ -581,8 +582,8 @@ def test_pd_report_rows_match_direct_computation(trained):
     """jaxden.progressive.report on the tiny dataset: one row per (crop, spp); each row's numbers equal
     progressive_denoise / metrics computed directly with the same key; the summary's ratios
     are the stated means."""
-    from jaxden.progressive import report as pdreport
     from jaxden.data.layout import load_manifest
+    from jaxden.progressive import report as pdreport
 
     dataset, workdir = trained
     params, config = P.load_mixer(workdir)
@@ -644,9 +645,9 @@ def test_pd_report_rows_match_direct_computation(trained):
 def test_sure_accuracy_rows_and_summary(trained):
     """sure_accuracy's SURE equals denoise_with_sure's with the same key; SURE / MSE is the
     ratio of the crop means; an incomplete dataset is refused by name."""
-    from jaxden.progressive import report as pdreport
     from jaxden.data.layout import load_manifest
     from jaxden.errors import DatasetError
+    from jaxden.progressive import report as pdreport
 
     dataset, _ = trained
     rows = pdreport.sure_accuracy(dataset, "oidn", split="all", seed=1, spp=(8, 32))
@@ -715,10 +716,10 @@ def test_sure_accuracy_buffers_rows(trained, monkeypatch):
     """sure_accuracy_buffers with a stand-in renderer: the seeds it asks for, the combined
     frame, the sub-buffer SURE equal to sure_buffers computed directly; seeds that collide
     with the dataset's are refused."""
-    from jaxden.progressive import report as pdreport
     from jaxden.data.layout import load_manifest
     from jaxden.denoise.registry import load_denoiser
     from jaxden.errors import DatasetError
+    from jaxden.progressive import report as pdreport
     from jaxden.sure.buffers import combine_buffers, sure_buffers
 
     dataset, _ = trained

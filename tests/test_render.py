@@ -24,11 +24,10 @@ from jaxden.render import (
     core,
     integrators,
     list_scenes,
+    load,
     load_scene,
     prepare_scene,
     render_frame,
-    load,
-    scenes,
     variant,
 )
 
@@ -325,13 +324,14 @@ def test_feature_spp_sets_the_feature_samples(cornell, cornell_frame):
     same = render_frame(cornell, spp=8, seed=5, feature_spp=1024)
     for name in ("albedo", "normal", "depth", "position"):
         np.testing.assert_array_equal(getattr(same, name), getattr(cornell_frame, name))
-    # More feature samples: less feature noise. Albedo error against a 1024-sample feature
-    # render, on the finely textured texture-bump scene (seeds fixed; expected ratio ~2 for
-    # 4x the samples, asserted < 0.75).
-    scene = load_scene("texture-bump", size=(48, 48))
-    truth = render_frame(scene, spp=1024, seed=9, feature_spp=1024).albedo
-    errors = [np.sqrt(np.mean((render_frame(scene, spp=256, seed=s, feature_spp=n).albedo
-                               - truth) ** 2)) for s, n in ((1, 16), (2, 64))]
+    # More feature samples: less feature noise. Albedo RMSE against a 256-sample feature
+    # render, on the finely textured texture-bump scene, of 16-spp renders with 4 and 16
+    # feature samples (seeds fixed). Expected ratio 1/2 for 4x the samples (measured 0.48-0.53
+    # over 5 seed pairs; the reference's own noise adds ~6 % to the variance), asserted < 0.75.
+    scene = load_scene("texture-bump", size=(32, 32))
+    truth = render_frame(scene, spp=256, seed=9, feature_spp=256).albedo
+    errors = [np.sqrt(np.mean((render_frame(scene, spp=16, seed=s, feature_spp=n).albedo
+                               - truth) ** 2)) for s, n in ((1, 4), (2, 16))]
     assert errors[1] < 0.75 * errors[0], errors
 
 

@@ -57,7 +57,10 @@ def small_config(dataset, model="wskp", steps=200, **model_config):
     )
 
 
-@pytest.mark.parametrize("model", ["wskp", "kp"])
+# The KP variant (200 more steps, ~15-25 s) is slow: the property (200 steps on the tiny
+# dataset beat the noisy input and the untrained network) is asserted for WSKP by default, and
+# KP's train step runs in test_two_devices_give_the_same_loss_and_gradients_as_one.
+@pytest.mark.parametrize("model", ["wskp", pytest.param("kp", marks=pytest.mark.slow)])
 def test_training_lowers_validation_loss_well_below_noisy_input(tiny_dataset, tmp_path, model):
     config = small_config(tiny_dataset, model)
     result = train_and_evaluate(config, tmp_path / model, progress=False)
@@ -237,13 +240,12 @@ def test_onecycle_schedule_values(steps, warmup):
     assert float(schedule(10 * steps)) == pytest.approx(peak / 25 / 1e4, rel=1e-4)
     # Every step against the written-out formula (optax evaluates it in float32: near the end
     # the value is a difference of numbers ~peak, hence the absolute floor of 1e-6 peak).
-    for step in range(0, steps + 2):
-        assert float(schedule(step)) == pytest.approx(
-            onecycle_reference(step, steps, peak, warmup), rel=1e-5, abs=1e-6 * peak), step
+    values = np.asarray(jax.jit(jax.vmap(schedule))(np.arange(steps + 2)), np.float64)
+    want = [onecycle_reference(step, steps, peak, warmup) for step in range(steps + 2)]
+    np.testing.assert_allclose(values, want, rtol=1e-5, atol=1e-6 * peak)
     if warm >= 2:  # rising through the warm-up, falling after it
-        values = [float(schedule(t)) for t in range(steps + 1)]
-        assert all(a < b for a, b in zip(values[:warm], values[1:warm + 1]))
-        assert all(a > b for a, b in zip(values[warm:steps], values[warm + 1:]))
+        assert np.all(np.diff(values[:warm + 1]) > 0)
+        assert np.all(np.diff(values[warm:steps + 1]) < 0)
 
 
 def test_constant_schedule_is_the_learning_rate():

@@ -47,22 +47,34 @@ def main(argv: list[str] | None = None) -> int:
         args.overrides = [*args.overrides, *extra]
     elif extra:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
-    from jaxden.compile_cache import enable_compilation_cache
+    from jaxden import distributed
 
-    enable_compilation_cache()
+    code = None
     try:
-        return int(args.func(args) or 0)
+        if args.command in ("train", "sweep", "bench"):
+            # One JAX device per core on a CPU (1.5-1.9x faster data-parallel steps on 2
+            # cores), before JAX creates its backend; XLA_FLAGS or JAXDEN_CPU_DEVICES override.
+            distributed.use_all_cores()
+        from jaxden.compile_cache import enable_compilation_cache
+
+        enable_compilation_cache()
+        code = int(args.func(args) or 0)
     except JaxdenError as error:
         print(f"jaxden: error: {error}", file=sys.stderr)
-        return 2
+        code = 2
     except OSError as error:  # e.g. an output folder that cannot be made: name the path
         where = f"{error.filename}: " if error.filename else ""
         print(f"jaxden: error: {where}{error.strerror or error}", file=sys.stderr)
-        return 2
+        code = 2
     except KeyboardInterrupt:
         print("jaxden: interrupted (finished work is kept; run the same command to resume)",
               file=sys.stderr)
-        return 130
+        code = 130
+    if code and distributed.is_initialized():
+        # A failed multi-process job: JAX's exit handler would wait for processes that may be
+        # gone, then abort with pages of logs. The one line above is the message.
+        distributed.exit_now(code)
+    return code
 
 
 if __name__ == "__main__":

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from jaxden.cli.options import positive_float, positive_int
+from jaxden.cli.train import add_ray_address_option, check_ray_address
 
 
 def cmd_dataset_build(args: argparse.Namespace) -> int:
@@ -12,15 +13,22 @@ def cmd_dataset_build(args: argparse.Namespace) -> int:
     from jaxden.data.builder import build_dataset
     from jaxden.data.config import DatasetConfig
 
+    check_ray_address(args)
     config = load_config(args.config, DatasetConfig, args.overrides)
-    manifest = build_dataset(config, args.out, executor=args.executor, workers=args.workers)
+    manifest = build_dataset(config, args.out, executor=args.executor, workers=args.workers,
+                             ray_address=args.ray_address)
     print(f"dataset complete: {args.out} ({len(manifest.items)} items)")
     return 0
 
 
 def cmd_dataset_refeature(args: argparse.Namespace) -> int:
+    import os
+
     from jaxden.data.refeature import refeature_dataset
 
+    check_ray_address(args)
+    if args.ray_address:  # refeature_dataset passes no address: the executor reads RAY_ADDRESS
+        os.environ["RAY_ADDRESS"] = args.ray_address
     manifest = refeature_dataset(args.source, args.out, args.overrides, executor=args.executor,
                                  workers=args.workers)
     config = manifest.config
@@ -75,8 +83,11 @@ def add_commands(sub) -> None:
     b.add_argument("config", help="dataset config .toml")
     b.add_argument("overrides", nargs="*", help="key=value overrides")
     b.add_argument("--out", required=True, help="dataset folder")
-    b.add_argument("--executor", choices=("local", "ray"), default="local")
-    b.add_argument("--workers", type=positive_int, default=None)
+    b.add_argument("--executor", choices=("local", "ray"), default="local",
+                   help="local processes (default) or a Ray cluster (docs/scaling.md)")
+    b.add_argument("--workers", type=positive_int, default=None,
+                   help="renders at once (default: 1 per 8 cores locally, the cluster's CPUs on Ray)")
+    add_ray_address_option(b)
     b.set_defaults(func=cmd_dataset_build)
     r = dsub.add_parser("refeature", help="copy a dataset, re-rendering only its features "
                                           "(aux=..., feature_spp=...; resumable)")
@@ -86,6 +97,7 @@ def add_commands(sub) -> None:
     r.add_argument("--out", required=True, help="the new dataset folder")
     r.add_argument("--executor", choices=("local", "ray"), default="local")
     r.add_argument("--workers", type=positive_int, default=None)
+    add_ray_address_option(r)
     r.set_defaults(func=cmd_dataset_refeature)
     v = dsub.add_parser("verify", help="check every file against the manifest")
     v.add_argument("dir")

@@ -8,12 +8,46 @@ from pathlib import Path
 from jaxden.cli.options import positive_int
 
 
+def non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
+def check_ray_address(args: argparse.Namespace) -> None:
+    """``--ray-address`` only means something with ``--executor ray``: say so, never ignore it."""
+    if getattr(args, "ray_address", None) and args.executor != "ray":
+        from jaxden.errors import ConfigError
+
+        raise ConfigError(f"--ray-address is for --executor ray (given: --executor "
+                          f"{args.executor})")
+
+
+def add_ray_address_option(parser: argparse.ArgumentParser) -> None:
+    """``--ray-address`` of the commands that take ``--executor ray``."""
+    parser.add_argument(
+        "--ray-address", default=None, metavar="ADDRESS",
+        help="with --executor ray: the cluster to join, HOST:PORT of its head node (default: "
+             "$RAY_ADDRESS), 'auto' (the cluster started on this machine) or 'local' (a private "
+             "Ray on this machine only)")
+
+
 def cmd_train(args: argparse.Namespace) -> int:
+    from jaxden.distributed import initialize, is_primary
+
+    # Before anything starts JAX's backend: a multi-process job must be joined first.
+    initialize(args.coordinator, args.num_processes, args.process_id)
     from jaxden.train.config import load_train_config
     from jaxden.train.loop import train_and_evaluate
 
     config = load_train_config(args.config, args.overrides)
     result = train_and_evaluate(config, args.workdir)
+    if not is_primary():
+        return 0
     print("finished: " + ", ".join(f"{k}={v:.5g}" if isinstance(v, float) else f"{k}={v}"
                                    for k, v in result.items()))
     return 0
@@ -29,8 +63,10 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         for run in runs:
             print(f"  {run.name}: {' '.join(run.overrides)}")
         return 0
+    check_ray_address(args)
     results = run_sweep(args.config, args.workdir, args.overrides, executor=args.executor,
-                        workers=args.workers)
+                        workers=args.workers, allow_large=args.allow_large,
+                        ray_address=args.ray_address)
     done = sum(not r["skipped"] for r in results)
     print(f"sweep complete: {len(results)} run(s) ({done} run now, {len(results) - done} "
           f"already finished); {Path(args.workdir) / 'summary.md'}:")
@@ -39,10 +75,22 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 
 def add_commands(sub) -> None:
+    from jaxden.sweep import MAX_RUNS
+
     p = sub.add_parser("train", help="train a denoiser or the mixer from a TOML config (resumable)")
     p.add_argument("config", help="training config .toml")
     p.add_argument("overrides", nargs="*", help="key=value overrides, e.g. optim.steps=500")
     p.add_argument("--workdir", required=True, help="run folder: config, metrics.jsonl, checkpoints")
+    g = p.add_argument_group(
+        "several processes (hosts), one model: start the same command in every process "
+        "(docs/scaling.md)")
+    g.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                   help="process 0's address and a free port (default: $JAX_COORDINATOR_ADDRESS; "
+                        "none: a single process)")
+    g.add_argument("--num-processes", type=positive_int, default=None, metavar="N",
+                   help="processes in the job (default: $JAX_NUM_PROCESSES, or Slurm / Open MPI)")
+    g.add_argument("--process-id", type=non_negative_int, default=None, metavar="I",
+                   help="this process, 0 .. N-1 (default: $JAX_PROCESS_ID, or Slurm / Open MPI)")
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("sweep", help="train (and evaluate) every run of a sweep file (resumable)")
@@ -54,6 +102,9 @@ def add_commands(sub) -> None:
                    help="serial (default: one run at a time in this process), local processes "
                         "or a Ray cluster")
     p.add_argument("--workers", type=positive_int, default=None, help="runs at once (local / ray)")
+    add_ray_address_option(p)
+    p.add_argument("--allow-large", action="store_true",
+                   help=f"run a sweep of more than {MAX_RUNS} runs (refused without it)")
     p.add_argument("--dry-run", action="store_true", help="list the runs and their overrides")
     p.set_defaults(func=cmd_sweep)
 

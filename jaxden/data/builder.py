@@ -87,6 +87,7 @@ class CropTask:
     aux: str = "first-hit"  # DatasetConfig.aux; passed to the renderer only when not default
     feature_spp: int = 16  # DatasetConfig.feature_spp; passed only when not the default 16
     parameters: tuple[tuple[str, str], ...] = ()  # DatasetConfig.scene_parameters (XML scenes)
+    scene_file: str = ""  # an XML scene's absolute path (workers may run in another folder)
 
 
 # Per worker process: the most recently loaded Mitsuba scenes. render_frame reloads a scene
@@ -190,8 +191,8 @@ def _render_one(task: CropTask, item: RenderTask, render: RenderFn) -> dict[str,
     extra = _feature_options(task.aux, task.feature_spp)
     if task.parameters:
         extra["parameters"] = dict(task.parameters)
-    frame = render(task.scene, item.spp, seed=item.seed, size=task.size, crop=task.window,
-                   **extra)
+    frame = render(task.scene_file or task.scene, item.spp, seed=item.seed, size=task.size,
+                   crop=task.window, **extra)
     seconds = time.perf_counter() - start
     _check_render(frame, task, item)
     if frame.spp is None:
@@ -408,6 +409,7 @@ def build_dataset(
     workers: int | None = None,
     render_fn: RenderFn | None = None,
     progress: bool = True,
+    ray_address: str | None = None,
 ) -> Manifest:
     """Render every item of the dataset into ``out_dir`` and return the complete manifest.
 
@@ -417,6 +419,8 @@ def build_dataset(
     ``render_fn(scene, spp, seed=, size=(w, h), crop=(top, left, h, w)) -> Frame``; default
     ``jaxden.render.core.render_frame``. With a process pool it must be picklable (a
     module-level function). ``progress``: show a tqdm bar (in samples rendered).
+    ``ray_address``: the Ray cluster of ``executor='ray'`` (None: ``RAY_ADDRESS``; see
+    :class:`jaxden.executor.RayExecutor`). Paths reach the workers absolute.
 
     Safe to interrupt and rerun (see the module docstring). Raises DatasetError when the folder
     holds another dataset or something else, SceneError for an unknown scene (checked before
@@ -444,6 +448,20 @@ def build_dataset(
             check_scenes(config.scene_ids(), config.scene_parameters)
         except SceneError as error:
             raise SceneError(f"dataset config 'scenes': {error}") from None
+    # Join the executor (a Ray cluster) before anything is written: a cluster that cannot
+    # be reached leaves no folder behind.
+    pool = make_executor(executor, workers, ray_address=ray_address)
+    try:
+        return _build(config, directory, planned, pool, executor=executor, workers=workers,
+                      render_fn=render_fn, progress=progress)
+    finally:
+        pool.close()
+
+
+def _build(config: DatasetConfig, directory: Path, planned: Manifest, pool: Any, *,
+           executor: str, workers: int | None, render_fn: RenderFn | None,
+           progress: bool) -> Manifest:
+    """The body of :func:`build_dataset` once the executor is there."""
     directory.mkdir(parents=True, exist_ok=True)
 
     with _build_lock(directory):
@@ -492,7 +510,7 @@ def build_dataset(
             crop_items = sorted((i for i in pending if i.crop == crop_id), key=lambda i: -i.spp)
             tasks.append(
                 CropTask(
-                    directory=str(directory),
+                    directory=str(directory.absolute()),
                     scene=crops[crop_id].scene,
                     size=tuple(config.size),
                     window=windows[crop_id],
@@ -504,6 +522,7 @@ def build_dataset(
                     aux=config.aux,
                     feature_spp=config.feature_spp,
                     parameters=tuple(sorted(config.scene_parameters.items())),
+                    scene_file=_scene_file(crops[crop_id].scene),
                 )
             )
         by_id = manifest.item_by_id()
@@ -520,21 +539,20 @@ def build_dataset(
                     bar.update(item.spp * pixels)
 
         try:
-            with make_executor(executor, workers) as pool:
-                try:
-                    results = pool.map_unordered(render_crop, tasks)
-                    for records in results:
-                        record(records)
-                        if bar is not None:
-                            bar.set_postfix_str(
-                                f"{sum(i.done for i in manifest.items)}/{len(manifest.items)} files"
-                            )
-                        if time.monotonic() - last_save > SAVE_INTERVAL_S:
-                            manifest.save(directory)
-                            last_save = time.monotonic()
-                except Exception as error:
-                    record(getattr(error, "jaxden_finished", []))
-                    raise
+            try:
+                results = pool.map_unordered(render_crop, tasks)
+                for records in results:
+                    record(records)
+                    if bar is not None:
+                        bar.set_postfix_str(
+                            f"{sum(i.done for i in manifest.items)}/{len(manifest.items)} files"
+                        )
+                    if time.monotonic() - last_save > SAVE_INTERVAL_S:
+                        manifest.save(directory)
+                        last_save = time.monotonic()
+            except Exception as error:
+                record(getattr(error, "jaxden_finished", []))
+                raise
         finally:
             if bar is not None:
                 bar.close()
@@ -542,9 +560,15 @@ def build_dataset(
         return manifest
 
 
+def _scene_file(scene: str) -> str:
+    return str(Path(scene).absolute()) if scene.lower().endswith(".xml") else ""
+
+
 def _threads_per_worker(executor: str, workers: int | None) -> int | None:
     """Share the cores between local worker processes (each Mitsuba render would otherwise
-    start a thread per core in every process)."""
+    start a thread per core in every process); a Ray task renders on the one CPU Ray gave it."""
+    if executor == "ray":
+        return 1
     if executor != "local":
         return None
     from jaxden.executor import default_workers

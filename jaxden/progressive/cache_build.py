@@ -144,6 +144,9 @@ def build_sure_cache(
     if directory.exists() and not directory.is_dir():
         raise DatasetError(f"{directory} exists and is not a folder")
     directory.mkdir(parents=True, exist_ok=True)
+    if _finished(directory, manifest, identity, cache_key):
+        # Only read: no lock, so runs sharing a finished cache (a sweep) never block each other.
+        return SureCache(dataset_dir, directory)
 
     with _lock(directory):
         stored = _load_cache_manifest(directory)
@@ -240,6 +243,21 @@ def build_sure_cache(
                 bar.close()
             save()
     return SureCache(dataset_dir, directory)
+
+
+def _finished(directory: Path, manifest, identity: dict, cache_key: str) -> bool:
+    """Whether ``directory`` holds this exact cache, complete, every file matching its
+    checksum (read only; a writer replaces files atomically, so this never sees half a file)."""
+    from jaxden.config import config_diff
+
+    stored = _load_cache_manifest(directory)
+    if stored is None or not stored.get("complete") or config_diff(
+            stored.get("identity", {}), identity):
+        return False
+    records = stored.get("items", {})
+    return all(
+        _item_state(directory / item.path, records.get(item.id), item, cache_key)[0] == "done"
+        for item in _eligible_items(manifest))
 
 
 def _runtime_info(denoiser, spec) -> dict[str, Any]:

@@ -96,7 +96,8 @@ class _Flattener:
         self.search_path: list[Path] = []
         self.files: list[Path] = []
 
-    def substitute(self, element: ET.Element, path: Path) -> None:
+    def substitute(self, element: ET.Element, path: Path, lenient: bool = False) -> None:
+        """``lenient``: inside a <sampler>, which jaxden replaces, an undefined name stays."""
         for key, value in element.attrib.items():
             if "$" not in value:
                 continue
@@ -108,6 +109,8 @@ class _Flattener:
                     if name[:length] in self.parameters:
                         self.used.add(name[:length])
                         return self.parameters[name[:length]] + name[length:]
+                if lenient:
+                    return match.group(0)
                 raise SceneError(
                     f"{_where(path, element)}: {key}={value!r} uses ${name}, which is not "
                     f"defined (no <default name={name!r}> and no -D {name}=...)"
@@ -115,13 +118,15 @@ class _Flattener:
 
             element.set(key, _NAME.sub(replace, value))
 
-    def children(self, parent: ET.Element, path: Path, stack: list[Path]) -> list[ET.Element]:
+    def children(self, parent: ET.Element, path: Path, stack: list[Path],
+                 lenient: bool = False) -> list[ET.Element]:
         """The flattened children of ``parent`` (of file ``path``), in order."""
         out: list[ET.Element] = []
         for child in list(parent):
             if not isinstance(child.tag, str):  # comments, processing instructions
                 continue
-            self.substitute(child, path)
+            inner = lenient or child.tag == "sampler"
+            self.substitute(child, path, inner)
             if child.tag == "default":
                 name, value = child.get("name"), child.get("value")
                 if not name or value is None:
@@ -136,7 +141,7 @@ class _Flattener:
             else:
                 kept = ET.Element(child.tag, dict(child.attrib))
                 kept.text, kept.tail = child.text, child.tail
-                kept.extend(self.children(child, path, stack))
+                kept.extend(self.children(child, path, stack, inner))
                 out.append(kept)
         return out
 

@@ -9,6 +9,15 @@ steps, a JSONL metrics log and a progress bar.
 Resuming: batches are a pure function of (seed, step) (the loader's epoch plan), and the state
 is restored from the newest checkpoint, so a killed run restarted with the same command
 continues from the last checkpoint and reaches the same parameters as an uninterrupted run.
+A workdir is locked while a run trains in it; a diverged state (NaN / inf) is never saved;
+Ctrl-C lets a checkpoint being written finish.
+
+Several processes (hosts): after :func:`jaxden.distributed.initialize` the same call in every
+process trains one model over the devices of all of them. The global batch (``data.batch_size``)
+is split over every device; each process reads only its rows of each batch; process 0 alone
+writes the workdir (which every process must see: a shared filesystem). The result equals one
+process with the same devices and global batch (tests/test_distributed.py). Data that runs
+share is prepared first (:func:`prepare_shared_data`; sweeps call it before dispatching runs).
 
 What is trained is a :class:`Task`: how to initialise parameters from a sample batch, how to
 predict an image from (params, batch), and which image is the target. Denoisers from the
@@ -22,6 +31,10 @@ import dataclasses
 import json
 import math
 import os
+import shutil
+import signal
+import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -35,9 +48,12 @@ import optax
 from jaxden.errors import ConfigError, JaxdenError
 from jaxden.train.config import TrainConfig
 from jaxden.train.optim import loss_function, make_optimizer, make_schedule
-from jaxden.train.sharding import data_mesh, replicate, shard_batch
+from jaxden.train.sharding import data_mesh, host_value, process_rows, replicate, shard_batch
 from jaxden.train.task import Task
 from jaxden.train.tasks import make_task
+
+#: The lock file of a training workdir (two runs writing one workdir would mix checkpoints).
+TRAIN_LOCK = ".train.lock"
 
 
 @jax.tree_util.register_dataclass
@@ -83,12 +99,12 @@ def _loaders(config: TrainConfig, task: Task):
     data = config.data
     if not data.dataset:
         raise ConfigError("data.dataset must name a dataset folder (built by `jaxden dataset build`)")
-    common = dict(
-        crop_size=data.crop_size,
-        spp=data.spp,
-        features=tuple(dict.fromkeys(("color",) + task.features)),
-        reference_features=("color",),
-    )
+    common = {
+        "crop_size": data.crop_size,
+        "spp": data.spp,
+        "features": tuple(dict.fromkeys(("color",) + task.features)),
+        "reference_features": ("color",),
+    }
     train = DatasetLoader(
         data.dataset, data.split, data.batch_size, seed=config.seed, augment=data.augment, **common
     )
@@ -99,15 +115,54 @@ def _loaders(config: TrainConfig, task: Task):
     return train, val
 
 
-def batches_from(loader, start_step: int) -> Iterator[Any]:
-    """Batches for steps start_step, start_step + 1, ... (epochs are pure functions of the seed)."""
+def batches_from(loader, start_step: int, mesh=None) -> Iterator[Any]:
+    """Batches for steps start_step, start_step + 1, ... (epochs are pure functions of the seed).
+
+    With ``mesh`` in a multi-process job: this process's rows of each batch only."""
     per_epoch = len(loader)
     epoch, skip = divmod(start_step, per_epoch)
     while True:
-        for index, batch in enumerate(loader.epoch(epoch)):
+        for index, (batch, _) in enumerate(epoch_batches(loader, epoch, mesh)):
             if index >= skip:
                 yield batch
         epoch, skip = epoch + 1, 0
+
+
+def epoch_batches(loader, epoch: int, mesh=None) -> Iterator[tuple[Any, int]]:
+    """``(batch, global size)`` for every batch of ``loader.epoch(epoch)``.
+
+    One process: the loader's batches. Several (``mesh`` spans them): only the rows this
+    process's devices take (:func:`jaxden.train.sharding.process_rows`), read alone, so each
+    process loads its share; ``None`` for a batch that does not split over the mesh (every
+    process skips it)."""
+    if mesh is None or jax.process_count() == 1:
+        for batch in loader.epoch(epoch):
+            yield batch, len(batch.items)
+        return
+    draws = loader.plan_epoch(epoch)
+    for start in range(0, len(draws), loader.batch_size):
+        chunk = draws[start : start + loader.batch_size]
+        if len(chunk) < loader.batch_size and loader.drop_last:
+            return
+        rows = process_rows(len(chunk), mesh)
+        yield (None if rows is None else _read_draws(loader, chunk[rows])), len(chunk)
+
+
+def _read_draws(loader, draws) -> Any:
+    """The batch of ``draws`` (sample, top, left, symmetry), as ``DatasetLoader.epoch`` reads
+    it (same crops, symmetries and order)."""
+    from jaxden.data.loader import Batch, _stack, dihedral_frame
+
+    inputs, references, ids = [], [], []
+    size = loader.crop_size
+    for index, top, left, symmetry in draws:
+        item, reference = loader.samples[index]
+        for frames, source, features in ((inputs, item, loader.features),
+                                         (references, reference, loader.reference_features)):
+            frame = loader._read(source, features).crop(top, left, size, size)
+            frames.append(dihedral_frame(frame, symmetry))
+        ids.append(item.id)
+    return Batch(_stack(inputs), _stack(references), tuple(ids))
 
 
 class MetricsLog:
@@ -130,19 +185,154 @@ class MetricsLog:
 def evaluate(eval_step, params, loader, mesh, max_batches: int, prepare) -> dict[str, float]:
     totals: dict[str, float] = {}
     count = 0
-    for index, batch in enumerate(loader.epoch(0)):
+    for index, (batch, size) in enumerate(epoch_batches(loader, 0, mesh)):
         if index >= max_batches:
             break
-        prepared = prepare(batch)
-        if np.shape(jax.tree_util.tree_leaves(prepared)[0])[0] % mesh.devices.size:
+        if batch is None or size % mesh.devices.size:
             continue  # a last partial batch that does not split over the devices
-        metrics = eval_step(params, shard_batch(prepared, mesh))
+        metrics = eval_step(params, shard_batch(prepare(batch), mesh, size))
         for key, value in metrics.items():
-            totals[key] = totals.get(key, 0.0) + float(value)
+            totals[key] = totals.get(key, 0.0) + float(host_value(value))
         count += 1
     if not count:
         raise JaxdenError("the validation split produced no batch that fits the device count")
     return {f"val_{key}": value / count for key, value in totals.items()}
+
+
+# ------------------------------------------------------------------------- shared data
+def _mixer_config(config: TrainConfig):
+    """The MixerConfig of a mixer network run over a dataset (None for anything else)."""
+    if config.model != "mixer" or not config.data.dataset:
+        return None
+    from jaxden.config import load_config
+    from jaxden.progressive.mixer import MixerConfig
+
+    try:
+        mixer = load_config(dict(config.model_config), MixerConfig)
+    except ConfigError as error:
+        raise ConfigError(f"[model_config] of model 'mixer': {error}") from None
+    return mixer if mixer.kind == "network" else None
+
+
+def shared_data_key(config: TrainConfig) -> str | None:
+    """What identifies the data a run reads that other runs may share (a mixer's SURE cache:
+    dataset, denoiser and SURE settings); None when the run needs none."""
+    mixer = _mixer_config(config)
+    if mixer is None:
+        return None
+    fields = ("denoiser", "cache", "sure_probes", "sure_method", "sure_eps", "sure_seed",
+              "build_cache")
+    return json.dumps([str(Path(config.data.dataset).absolute()),
+                       *(getattr(mixer, name) for name in fields)], default=str)
+
+
+def prepare_shared_data(config: TrainConfig, *, progress: bool = True) -> None:
+    """Build (or finish, or just confirm) the data that several runs share, before they start:
+    a mixer's SURE cache (:func:`jaxden.progressive.cache_build.open_training_cache`). Runs
+    started afterwards find it complete and only read it. Raises what opening it raises (an
+    incomplete cache with ``build_cache = false``, another dataset's cache, ...)."""
+    mixer = _mixer_config(config)
+    if mixer is None:
+        return
+    from jaxden.progressive.cache_build import open_training_cache
+
+    open_training_cache(config.data.dataset, mixer)
+
+
+# ------------------------------------------------------------------------- reliability
+@jax.jit
+def _all_finite(tree) -> jax.Array:
+    leaves = [jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree_util.tree_leaves(tree)
+              if jnp.issubdtype(leaf.dtype, jnp.inexact)]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
+
+
+def check_finite_state(state: TrainState, step: int, last_saved: int | None) -> None:
+    """Raise (one line, naming the step and the first bad array) unless every value of the
+    parameters and of the optimiser state is finite: a checkpoint is never written from a
+    diverged state."""
+    tree = {"params": state.params, "opt_state": state.opt_state}
+    if bool(host_value(_all_finite(tree))):
+        return
+    where = "the state"
+    for name in ("params", "opt_state"):  # the parameters first: they go bad first
+        bad = [jax.tree_util.keystr(path)
+               for path, leaf in jax.tree_util.tree_leaves_with_path(tree[name])
+               if np.issubdtype(host_value(leaf).dtype, np.inexact)
+               and not np.isfinite(host_value(leaf)).all()]
+        if bad:
+            where = name + bad[0]
+            break
+    kept = f"the last checkpoint (step {last_saved}) is kept" if last_saved else \
+        "no checkpoint was saved"
+    raise JaxdenError(
+        f"training diverged by step {step}: {where} holds NaN or inf, so checkpoint {step} was "
+        f"not written ({kept}); lower optim.learning_rate or set optim.grad_clip_norm"
+    )
+
+
+class HoldInterrupts:
+    """Ctrl-C inside the block is held until the block ends, then raised: orbax never sees a
+    KeyboardInterrupt half-way through writing or finishing a checkpoint."""
+
+    def __enter__(self):
+        self.pending = False
+        self.previous = None
+        if threading.current_thread() is threading.main_thread():
+            self.previous = signal.getsignal(signal.SIGINT)
+            signal.signal(signal.SIGINT, self._hold)
+        return self
+
+    def _hold(self, signum, frame) -> None:
+        self.pending = True
+
+    def __exit__(self, kind, value, traceback) -> None:
+        if self.previous is None:
+            return
+        signal.signal(signal.SIGINT, self.previous)
+        if self.pending and kind is None:
+            if callable(self.previous):
+                self.previous(signal.SIGINT, None)  # the default handler raises KeyboardInterrupt
+            elif self.previous == signal.SIG_DFL:
+                raise KeyboardInterrupt
+
+
+def _remove_partial_checkpoints(directory: Path) -> None:
+    """Orbax's temporary step folders (a save cut short by a crash): never a resumable state."""
+    if not directory.is_dir():
+        return
+    for path in directory.iterdir():
+        if path.is_dir() and ".orbax-checkpoint-tmp" in path.name:
+            shutil.rmtree(path, ignore_errors=True)
+
+
+def _training_mesh(batch_size: int, progress: bool):
+    """The mesh the batch is split over: every device of every process in a multi-process job
+    (the batch must split over them); in one process the most local devices that split the
+    batch evenly (a note says when some stay idle)."""
+    devices = jax.devices()
+    if jax.process_count() > 1:
+        if batch_size % len(devices):
+            raise ConfigError(
+                f"data.batch_size {batch_size} must be a multiple of the {len(devices)} devices "
+                f"of the {jax.process_count()} processes (the global batch is split over all)")
+        return data_mesh(devices)
+    count = max(k for k in range(1, len(devices) + 1) if batch_size % k == 0)
+    if count < len(devices) and progress:
+        print(f"jaxden: note: data.batch_size {batch_size} splits evenly over {count} of the "
+              f"{len(devices)} JAX devices; training uses {count} (a batch size that is a "
+              f"multiple of {len(devices)} uses all)", file=sys.stderr)
+    return data_mesh(devices[:count])
+
+
+def _peer_failure(error: BaseException) -> bool:
+    """Whether an exception of a multi-process step means another process is gone."""
+    if isinstance(error, JaxdenError):
+        return False
+    text = str(error)
+    runtime = getattr(jax.errors, "JaxRuntimeError", ())
+    return isinstance(error, runtime) or any(
+        word in text for word in ("Gloo", "gloo", "coordination", "heartbeat", "UNAVAILABLE"))
 
 
 def _resolved_model_config(config: TrainConfig, saved: Any) -> Any:
@@ -172,8 +362,16 @@ def train_and_evaluate(
     """Train (or resume) in ``workdir``; returns the final evaluation metrics.
 
     ``stop_after``: stop after this many steps of this call (for tests of resumption).
+
+    The workdir is locked (a second run on it is an error). Before every checkpoint the
+    parameters and optimiser state are checked for NaN / inf (a diverged state is never
+    saved: a one-line error names the step). Ctrl-C waits for a checkpoint being written and
+    then raises KeyboardInterrupt (nothing half-written is left). In a multi-process job
+    (:func:`jaxden.distributed.initialize`) every process runs this with the same config and
+    workdir (on a shared filesystem): each loads its rows of every batch, process 0 alone
+    writes the workdir, and a job restarted after losing a process resumes from the last
+    checkpoint.
     """
-    from jaxden.checkpoint import Checkpointer
     from jaxden.config import config_diff, config_to_dict, dump_config, load_config
 
     workdir = Path(workdir)
@@ -193,6 +391,14 @@ def train_and_evaluate(
                 f"{workdir} holds a run with another config ({'; '.join(differences[:5])}); "
                 f"use a new --workdir"
             )
+    several = jax.process_count() > 1
+    primary = jax.process_index() == 0
+    if several:  # shared data (a SURE cache) is built by process 0 alone, then only read
+        from jax.experimental import multihost_utils
+
+        if primary:
+            prepare_shared_data(config, progress=progress)
+        multihost_utils.sync_global_devices("jaxden: shared data ready")
 
     # Everything the config can get wrong fails here, before the workdir records the config
     # (a failed start must not leave a workdir that refuses the corrected config).
@@ -200,79 +406,160 @@ def train_and_evaluate(
     loss_fn = loss_function(config.optim.loss, config.optim.loss_reduction)
     optimizer = make_optimizer(config.optim)
     train_loader, val_loader = _loaders(config, task)
-    mesh = data_mesh()
-    if config.data.batch_size % mesh.devices.size:
-        raise ConfigError(
-            f"data.batch_size {config.data.batch_size} must be a multiple of the {mesh.devices.size} devices"
-        )
+    mesh = _training_mesh(config.data.batch_size, progress and primary)
 
     key = jax.random.PRNGKey(config.seed)
-    first = task.prepare(next(iter(train_loader.epoch(0))))
-    params = task.init(key, first)
+    first = task.prepare(next(iter(batches_from(train_loader, 0, mesh))))
+    params = _initial_params(task, key, first)
     state = TrainState(params, optimizer.init(params), jnp.asarray(0, jnp.int32))
 
-    workdir.mkdir(parents=True, exist_ok=True)
-    if not saved_json.exists():
-        from jaxden.fileio import atomic_write_text
+    with contextlib.ExitStack() as stack:
+        if primary:
+            from jaxden.fileio import atomic_write_text, folder_lock
 
-        atomic_write_text(config_file, dump_config(config, header="resolved training config"))
-        atomic_write_text(saved_json, json.dumps(resolved, indent=2))
-    meta = {**task.meta, "train_config": resolved}
-    checkpointer = Checkpointer(workdir, max_to_keep=config.keep_checkpoints)
+            workdir.mkdir(parents=True, exist_ok=True)
+            stack.enter_context(folder_lock(workdir, TRAIN_LOCK, "training run"))
+            if not saved_json.exists():
+                atomic_write_text(config_file, dump_config(config, header="resolved training config"))
+                atomic_write_text(saved_json, json.dumps(resolved, indent=2))
+        return _train(config, workdir, task, loss_fn, optimizer, train_loader, val_loader, mesh,
+                      state, progress=progress and primary, stop_after=stop_after)
+
+
+def _initial_params(task: Task, key, first) -> Any:
+    """``task.init`` as one jitted program (cached on disk like the steps, the same values as
+    op by op). In a multi-process job process 0 alone computes it and sends it to the others:
+    JAX caches compilations from process 0 only, and a program for another process's device
+    would be compiled afresh there at every start."""
+    init = jax.jit(task.init)
+    if jax.process_count() == 1:
+        return init(key, first)
+    from jax.experimental import multihost_utils
+
+    if jax.process_index() == 0:
+        params = jax.device_get(init(key, first))
+    else:
+        params = jax.tree_util.tree_map(lambda s: np.zeros(s.shape, s.dtype),
+                                        jax.eval_shape(init, key, first))
+    return multihost_utils.broadcast_one_to_all(params)
+
+
+def _latest_step(checkpointer) -> int | None:
+    """The newest checkpoint's step, the same in every process (process 0's)."""
+    latest = checkpointer.latest_step() if checkpointer is not None else None
+    if jax.process_count() == 1:
+        return latest
+    from jax.experimental import multihost_utils
+
+    shared = int(multihost_utils.broadcast_one_to_all(np.int32(-1 if latest is None else latest)))
+    return None if shared < 0 else shared
+
+
+def _train(config, workdir, task, loss_fn, optimizer, train_loader, val_loader, mesh, state, *,
+           progress: bool, stop_after: int | None) -> dict[str, Any]:
+    """The loop of :func:`train_and_evaluate` once the workdir is locked."""
+    from jaxden.checkpoint import Checkpointer
+    from jaxden.config import config_to_dict
+    from jaxden.errors import CheckpointError
+
+    primary = jax.process_index() == 0
+    several = jax.process_count() > 1
+    meta = {**task.meta, "train_config": config_to_dict(config)}
+    checkpointer = None
+    if primary:
+        checkpointer = Checkpointer(workdir, max_to_keep=config.keep_checkpoints)
+        _remove_partial_checkpoints(checkpointer.directory)
+    elif workdir.is_dir():  # other processes only read, and only what process 0 saved
+        with contextlib.suppress(CheckpointError):
+            checkpointer = Checkpointer(workdir, create=False)
     start = 0
-    if checkpointer.latest_step() is not None:
+    latest = _latest_step(checkpointer)
+    if latest is not None:
+        if checkpointer is None:
+            raise CheckpointError(
+                f"process {jax.process_index()} cannot see the checkpoints of {workdir} that "
+                f"process 0 found: every process needs the workdir on one shared filesystem")
         expect = {k: task.meta[k] for k in ("kind", "model", "model_config")}
-        saved = checkpointer.read_meta().get("model_config")
+        saved = checkpointer.read_meta(latest).get("model_config")
         if saved != expect["model_config"] and _resolved_model_config(config, saved) == \
                 expect["model_config"]:
             # Saved before a config field with a default was added: the same model.
             expect["model_config"] = saved
-        state, _ = checkpointer.restore(state, expect=expect)
+        state, _ = checkpointer.restore(state, step=latest, expect=expect)
         start = int(state.step)
     state = replicate(state, mesh)
 
     train_step = jax.jit(make_train_step(task, optimizer, loss_fn), donate_argnums=0)
     eval_step = jax.jit(make_eval_step(task, loss_fn))
-    log = MetricsLog(workdir / "metrics.jsonl", start)
+    log = MetricsLog(workdir / "metrics.jsonl", start) if primary else None
     schedule = make_schedule(config.optim)
     end = config.optim.steps if stop_after is None else min(config.optim.steps, start + stop_after)
-
     bar = None
     if progress:
         from tqdm import tqdm
 
         bar = tqdm(total=config.optim.steps, initial=start, desc=f"train {config.model}", unit="step")
     last_eval: dict[str, float] = {}
-    if start == 0:  # where the curve starts: the untrained model on the validation split
-        initial = evaluate(eval_step, state.params, val_loader, mesh, config.eval_batches, task.prepare)
-        log.write({"step": 0, **initial})
-    tick = time.perf_counter()
-    batches = batches_from(train_loader, start)
-    for step in range(start, end):
-        batch = shard_batch(task.prepare(next(batches)), mesh)
-        state, metrics = train_step(state, batch)
-        done = step + 1
-        if done % config.log_every == 0 or done == end:
-            loss = float(metrics["loss"])
-            if not math.isfinite(loss):
-                raise JaxdenError(f"training diverged at step {done}: loss {loss}; lower optim.learning_rate")
-            now = time.perf_counter()
-            log.write({"step": done, "loss": loss, "grad_norm": float(metrics["grad_norm"]),
-                       "lr": float(schedule(step)), "seconds": now - tick})
-            tick = now
+    last_saved = latest
+    done = start
+    try:
+        if start == 0:  # where the curve starts: the untrained model on the validation split
+            initial = evaluate(eval_step, state.params, val_loader, mesh, config.eval_batches,
+                               task.prepare)
+            if log is not None:
+                log.write({"step": 0, **initial})
+        tick = time.perf_counter()
+        batches = batches_from(train_loader, start, mesh)
+        global_batch = config.data.batch_size
+        for step in range(start, end):
+            batch = shard_batch(task.prepare(next(batches)), mesh, global_batch)
+            state, metrics = train_step(state, batch)
+            done = step + 1
+            if done % config.log_every == 0 or done == end:
+                loss = float(host_value(metrics["loss"]))
+                if not math.isfinite(loss):
+                    raise JaxdenError(f"training diverged at step {done}: loss {loss}; lower "
+                                      f"optim.learning_rate")
+                now = time.perf_counter()
+                if log is not None:
+                    log.write({"step": done, "loss": loss,
+                               "grad_norm": float(host_value(metrics["grad_norm"])),
+                               "lr": float(schedule(step)), "seconds": now - tick})
+                tick = now
+                if bar is not None:
+                    bar.set_postfix(loss=f"{loss:.4g}")
+            if done % config.eval_every == 0 or done == config.optim.steps:
+                last_eval = evaluate(eval_step, state.params, val_loader, mesh,
+                                     config.eval_batches, task.prepare)
+                if log is not None:
+                    log.write({"step": done, **last_eval})
+            if done % config.checkpoint_every == 0 or done == end:
+                check_finite_state(state, done, last_saved)
+                if primary:
+                    host_state = jax.tree_util.tree_map(host_value, state) if several else state
+                    with HoldInterrupts():
+                        checkpointer.save(done, host_state, meta)
+                last_saved = done
             if bar is not None:
-                bar.set_postfix(loss=f"{loss:.4g}")
-        if done % config.eval_every == 0 or done == config.optim.steps:
-            last_eval = evaluate(eval_step, state.params, val_loader, mesh, config.eval_batches, task.prepare)
-            log.write({"step": done, **last_eval})
-        if done % config.checkpoint_every == 0 or done == end:
-            checkpointer.save(done, state, meta)
+                bar.update(1)
+    except Exception as error:
+        if several and _peer_failure(error):
+            from jaxden.distributed import DistributedError
+
+            first = (str(error).strip().splitlines() or [type(error).__name__])[0][:200]
+            raise DistributedError(
+                f"the distributed job stopped near step {done + 1}: another process failed or "
+                f"was stopped ({first}); start every process again with the same command to "
+                f"resume from the last checkpoint (step {last_saved or 0})") from None
+        raise
+    finally:
         if bar is not None:
-            bar.update(1)
-    checkpointer.wait()
-    checkpointer.close()
-    if bar is not None:
-        bar.close()
+            bar.close()
+        if checkpointer is not None:
+            with HoldInterrupts():  # a checkpoint being written is finished, never cut
+                checkpointer.wait()
+                checkpointer.close()
     if not last_eval:
-        last_eval = evaluate(eval_step, state.params, val_loader, mesh, config.eval_batches, task.prepare)
+        last_eval = evaluate(eval_step, state.params, val_loader, mesh, config.eval_batches,
+                             task.prepare)
     return {"step": end, **last_eval}

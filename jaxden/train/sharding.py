@@ -1,5 +1,10 @@
-"""Data parallelism over all local devices with jax.sharding: the batch is split along its first
-axis, parameters are replicated.
+"""Data parallelism with jax.sharding: the batch is split along its first axis over the devices
+of a 1-D mesh ("data"), parameters are replicated.
+
+In one process the mesh holds (some of) the local devices and the host batch is placed whole.
+In a multi-process job (:mod:`jaxden.distributed`) the mesh holds every device of every
+process: each process holds only the rows of the global batch that its own devices take
+(:func:`process_rows`) and :func:`shard_batch` assembles the global array from those.
 """
 
 from __future__ import annotations
@@ -9,7 +14,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from jaxden.errors import ConfigError
+from jaxden.errors import ConfigError, JaxdenError
 
 
 # --------------------------------------------------------------------------------- sharding
@@ -18,23 +23,66 @@ def data_mesh(devices=None) -> jax.sharding.Mesh:
     return jax.sharding.Mesh(devices, ("data",))
 
 
-def shard_batch(batch: Any, mesh: jax.sharding.Mesh) -> Any:
-    """Place a host batch on the mesh, split along the first axis of every array."""
+def process_rows(size: int, mesh: jax.sharding.Mesh) -> slice | None:
+    """The rows of a global batch of ``size`` that this process's devices take (one block per
+    device, in mesh order); None when ``size`` does not split evenly over the mesh."""
+    count = mesh.devices.size
+    if size % count:
+        return None
+    per_device = size // count
+    me = jax.process_index()
+    mine = [i for i, device in enumerate(mesh.devices.flat) if device.process_index == me]
+    if not mine:
+        raise JaxdenError(f"process {me} has no device in the training mesh")
+    if mine != list(range(mine[0], mine[-1] + 1)):
+        raise JaxdenError(f"the devices of process {me} are not contiguous in the mesh")
+    return slice(mine[0] * per_device, (mine[-1] + 1) * per_device)
+
+
+def shard_batch(batch: Any, mesh: jax.sharding.Mesh, global_size: int | None = None) -> Any:
+    """Place a host batch on the mesh, split along the first axis of every array.
+
+    One process: ``batch`` is the whole batch. Several: ``batch`` holds this process's rows
+    (:func:`process_rows`) of a global batch of ``global_size`` rows.
+    """
     spec = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("data"))
     count = mesh.devices.size
+    several = jax.process_count() > 1
 
     def put(array):
         array = np.asarray(array)
         if array.ndim == 0:
-            return jax.device_put(array, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
-        if array.shape[0] % count:
+            return replicate(array, mesh)
+        rows = global_size if several and global_size is not None else array.shape[0]
+        if rows % count:
             raise ConfigError(
-                f"batch size {array.shape[0]} must be a multiple of the number of devices ({count})"
+                f"batch size {rows} must be a multiple of the number of devices ({count})"
             )
+        if several:
+            return jax.make_array_from_process_local_data(spec, array,
+                                                          (rows, *array.shape[1:]))
         return jax.device_put(array, spec)
 
     return jax.tree_util.tree_map(put, batch)
 
 
 def replicate(tree: Any, mesh: jax.sharding.Mesh) -> Any:
-    return jax.device_put(tree, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
+    """Every device of the mesh gets the whole tree (in a multi-process job every process must
+    pass the same values: each places its own copy on its devices)."""
+    sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+    if jax.process_count() == 1:
+        return jax.device_put(tree, sharding)
+
+    def put(leaf):
+        host = host_value(leaf)
+        return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
+
+    return jax.tree_util.tree_map(put, tree)
+
+
+def host_value(value: Any) -> np.ndarray:
+    """A NumPy copy of a replicated (or local) value, also when the array spans devices of
+    other processes (each process reads its own replica)."""
+    if isinstance(value, jax.Array) and not value.is_fully_addressable:
+        return np.asarray(value.addressable_data(0))
+    return np.asarray(value)
