@@ -318,6 +318,7 @@ def test_specular_chain_on_glass_fills_the_dark_albedo():
     np.testing.assert_array_equal(chain.depth, first.depth)
 
 
+@pytest.mark.slow  # ~16 s of Mitsuba compilation and rendering
 def test_feature_spp_sets_the_feature_samples(cornell, cornell_frame):
     # At spp = 8 the features average min(8, feature_spp) = 8 samples for any feature_spp
     # >= 8: the same render.
@@ -335,6 +336,7 @@ def test_feature_spp_sets_the_feature_samples(cornell, cornell_frame):
     assert errors[1] < 0.75 * errors[0], errors
 
 
+@pytest.mark.slow  # ~16 s of Mitsuba compilation and rendering
 def test_feature_passes_average_like_one_pass(cornell):
     # A sample budget of 2 x the film forces 32 feature passes at 64 feature spp; interior
     # pixels (one diffuse reflectance exactly) must come out the same as in one pass.
@@ -407,6 +409,7 @@ def test_crop_camera_equals_mitsuba_film_crop(cornell, camera):
     assert sensors[0] is sensors[1]
 
 
+@pytest.mark.slow  # ~16 s of Mitsuba compilation and rendering
 def test_crop_of_an_orthographic_camera_uses_the_film_crop(cornell):
     camera = {"type": "orthographic", "near_clip": 0.01,
               "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 3], target=[0, 0, 0],
@@ -429,6 +432,7 @@ def test_crop_of_an_orthographic_camera_uses_the_film_crop(cornell):
     assert best < 0.5 * min(errors.values())
 
 
+@pytest.mark.slow  # ~16 s of Mitsuba compilation and rendering
 def test_size_override_and_sensor_override(cornell):
     frame = render_frame(cornell, spp=2, seed=0, size=(20, 10))
     assert frame.color.shape == (10, 20, 3)
@@ -500,7 +504,9 @@ def library():
     return get
 
 
-@pytest.mark.parametrize("name", BUILTIN)
+@pytest.mark.parametrize("name", [  # the two scenes no other test here loads run with --runslow
+    pytest.param(n, marks=pytest.mark.slow) if n in ("glossy-glass", "small-lights") else n
+    for n in BUILTIN])
 def test_builtin_scene_loads_and_renders(name, library):
     scene, frame = library(name)
     sensor = scene.sensors()[0]

@@ -154,6 +154,7 @@ def test_two_devices_give_the_same_loss_and_gradients_as_one(tiny_dataset):
     assert optax.global_norm(state.params) > 0
 
 
+@pytest.mark.slow  # ~10 s; the default suite trains wskp and the mixer elsewhere
 def test_log_ratio_reduction_trains_and_a_run_from_before_the_field_resumes(tiny_dataset, tmp_path):
     config = small_config(tiny_dataset, "wskp", steps=4)
     ratio = TrainConfig(**{**config.__dict__, "checkpoint_every": 2, "eval_every": 4,
