@@ -249,3 +249,35 @@ def test_incomplete_dataset_is_refused(tmp_path):
         build_dataset(CONFIG, tmp_path / "d", executor="serial", render_fn=Crash(), progress=False)
     with pytest.raises(DatasetError, match=r"incomplete \(3 of 24 files built\)"):
         DatasetLoader(tmp_path / "d", "train")
+
+
+# ------------------------------------------------------------------------- Noise2Noise
+def test_target_spp_pairs_each_input_with_its_own_crops_independent_render(dataset):
+    """With target_spp = 8 the target of each 1- and 2-spp input is the 8-spp input of the same
+    crop (read back from its EXR), at the same sub-crop and symmetry; never the reference."""
+    from jaxden.io.exr import read_frame
+    from jaxden.data.layout import load_manifest
+
+    loader = DatasetLoader(dataset, "train", batch_size=2, crop_size=12, seed=3, augment=False,
+                           shuffle=False, target_spp=8, features=("color", "albedo"))
+    assert loader.spp_levels == (1, 2)
+    manifest = load_manifest(dataset)
+    by_id = {item.id: item for item in manifest.items}
+    for batch in loader.epoch(0):
+        for row, item_id in enumerate(batch.items):
+            item = by_id[item_id]
+            siblings = manifest.items_of(item.crop)
+            target = next(i for i in siblings if i.kind == "input" and i.spp == 8)
+            reference = next(i for i in siblings if i.kind == "reference")
+            expected = read_frame(dataset / target.path).color
+            np.testing.assert_array_equal(batch.reference.color[row], expected)
+            assert not np.array_equal(expected, read_frame(dataset / reference.path).color)
+            assert batch.reference.spp[row] == 8 and item.spp in (1, 2)
+
+
+def test_target_spp_is_refused_when_missing_or_also_an_input(dataset):
+    with pytest.raises(DatasetError, match="target_spp 4 is not an input spp level"):
+        DatasetLoader(dataset, "train", batch_size=2, target_spp=4, features=("color",))
+    with pytest.raises(DatasetError, match="also an input level"):
+        DatasetLoader(dataset, "train", batch_size=2, spp=[1, 8], target_spp=8,
+                      features=("color",))

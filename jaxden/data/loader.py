@@ -104,6 +104,10 @@ class DatasetLoader:
       shuffle: shuffle the samples every epoch (else manifest order).
       drop_last: drop the last incomplete batch (default) or yield it smaller.
       cache: keep decoded EXRs in memory; None (default) caches when the split fits in 2 GiB.
+      target_spp: None (default) pairs each input with its crop's reference; an spp level
+        instead pairs it with the crop's own input at that level, an independent noisy render
+        (another seed), as the target of Noise2Noise training. The level must not be one of
+        the inputs', so that no input is its own target.
 
     ``len(loader)`` is the number of batches per epoch; ``loader.epoch(e)`` yields the batches of
     epoch e; iterating the loader itself yields successive epochs' batches, one epoch per
@@ -125,6 +129,7 @@ class DatasetLoader:
         shuffle: bool = True,
         drop_last: bool = True,
         cache: bool | None = None,
+        target_spp: int | None = None,
     ) -> None:
         self.directory = Path(directory)
         manifest = load_manifest(self.directory)
@@ -153,6 +158,8 @@ class DatasetLoader:
                 f"crop_size {crop_size} must be in 1..{stored} (the dataset's crop size)"
             )
         levels = sorted({item.spp for item in manifest.items if item.kind == "input"})
+        if spp is None and target_spp is not None:
+            levels = [level for level in levels if level != target_spp]
         if spp is not None:
             missing = [s for s in spp if s not in levels]
             if missing:
@@ -165,10 +172,27 @@ class DatasetLoader:
                 "features include 'variance' but the spp levels include 1 (no variance from one "
                 "sample): drop 'variance' or choose spp levels >= 2"
             )
+        all_levels = sorted({item.spp for item in manifest.items if item.kind == "input"})
+        if target_spp is not None:
+            if target_spp not in all_levels:
+                raise DatasetError(
+                    f"target_spp {target_spp} is not an input spp level of {self.directory}; "
+                    f"it has {all_levels}"
+                )
+            if target_spp in levels:
+                raise DatasetError(
+                    f"target_spp {target_spp} is also an input level ({list(levels)}): an input "
+                    f"would be its own target; choose input levels without it"
+                )
         samples: list[tuple[Item, Item]] = []
         for crop in crops:
             items = manifest.items_of(crop.id)
-            reference = next(item for item in items if item.kind == "reference")
+            if target_spp is None:
+                reference = next(item for item in items if item.kind == "reference")
+            else:
+                reference = next(
+                    item for item in items if item.kind == "input" and item.spp == target_spp
+                )
             for item in sorted(items, key=lambda i: i.spp):
                 if item.kind == "input" and item.spp in levels:
                     samples.append((item, reference))
@@ -186,6 +210,7 @@ class DatasetLoader:
         self.batch_size = int(batch_size)
         self.seed = int(seed)
         self.spp_levels = tuple(levels)
+        self.target_spp = target_spp
         self.features = tuple(features)
         self.reference_features = tuple(reference_features)
         self.augment = augment

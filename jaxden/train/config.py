@@ -22,6 +22,12 @@ class DataConfig:
     batch_size: int = bounded(8, low=1, high=65536)
     spp: tuple[int, ...] | None = bounded(None, low=1, high=2**24)  # None: every input spp level of the dataset
     augment: bool = True
+    # Noise2Noise: train against the crop's own input at this spp level (an independent noisy
+    # render) instead of its reference; validation keeps the references. Only a loss whose
+    # expectation over the target's noise is the clean loss plus a term without gradient keeps
+    # the clean optimum: "l2" and "relmse_sg" qualify (their gradient is linear in the target);
+    # "l1", "smape", "relmse" and the "log_ratio" reduction do not (the training loop warns).
+    target_spp: int | None = bounded(None, low=1, high=2**24)
 
     def __post_init__(self):
         from jaxden.paths import expand_path
