@@ -1,8 +1,10 @@
 """``jaxden demo``: the main job on built-in defaults (no downloads, no user data).
 
 Renders built-in scenes progressively (increasing spp) with colour, variance of the mean and
-features, plus an independent high-spp reference; denoises every level with OIDN and, when a
-mixer for OIDN ships with the package, with progressive denoising PD(OIDN); writes every frame
+features, plus an independent high-spp reference; denoises every level with OIDN, with the
+shipped real-time denoiser WSKP-6 (``wskp-6``: trained at 1 spp, so its error stops falling as
+the spp grow, where MC's and PD's keep falling) and, when a mixer for OIDN ships with the
+package, with progressive denoising PD(OIDN) (from 2 spp: it needs a variance); writes every frame
 as EXR and prints a table of errors against the reference (linear HDR relMSE, SMAPE, RMSE and
 HDR-FLIP), also saved as ``summary.json`` and ``summary.md``.
 
@@ -34,12 +36,14 @@ from jaxden.errors import JaxdenError
 class DemoSettings:
     scenes: tuple[str, ...] = ("cornell-box", "texture-bump")
     size: tuple[int, int] = (128, 128)
-    spp_levels: tuple[int, ...] = (4, 16, 64, 256)
+    spp_levels: tuple[int, ...] = (1, 4, 16, 64, 256)
     reference_spp: int = 4096
     seed: int = 7
+    realtime: tuple[str, ...] = ("wskp-6",)  # shipped denoisers run at every level
 
 
-QUICK = DemoSettings(scenes=("cornell-box",), size=(64, 64), spp_levels=(4, 16, 64), reference_spp=1024)
+QUICK = DemoSettings(scenes=("cornell-box",), size=(64, 64), spp_levels=(1, 4, 16, 64),
+                     reference_spp=1024)
 
 
 def _metrics(image: np.ndarray, reference: np.ndarray, flip_maps: dict | None = None,
@@ -110,7 +114,7 @@ def run_demo(out: Path, quick: bool = False, settings: DemoSettings | None = Non
     ``report.html``; ``progress``: a progress bar over the renders on stderr."""
     from tqdm import tqdm
 
-    from jaxden.denoise.registry import make_denoiser
+    from jaxden.denoise.registry import load_denoiser, make_denoiser
     from jaxden.io.exr import write_frame, write_image
     from jaxden.io.png import write_png
     from jaxden.render.core import render_frame
@@ -122,6 +126,7 @@ def run_demo(out: Path, quick: bool = False, settings: DemoSettings | None = Non
         raise JaxdenError(f"--out {out} exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
     oidn = make_denoiser("oidn")
+    realtime = {name.replace("-", ""): load_denoiser(name) for name in settings.realtime}
     progressive = _progressive_denoiser()
     rows, flip_maps = [], {}
     started = time.perf_counter()
@@ -150,8 +155,10 @@ def run_demo(out: Path, quick: bool = False, settings: DemoSettings | None = Non
                         attributes={"scene": scene, "seed": settings.seed + spp})
             results = {"mc": frame.color}
             results["oidn"] = np.asarray(oidn(frame))
+            for method, denoiser in realtime.items():
+                results[method] = np.asarray(denoiser(frame))
             alphas = {}
-            if progressive is not None:
+            if progressive is not None and frame.variance is not None:
                 results["pd_oidn"], alphas["pd_oidn"] = progressive(frame)
             for method, image in results.items():
                 stem = f"spp{spp:05d}" if method == "mc" else f"spp{spp:05d}.{method}"
