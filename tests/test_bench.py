@@ -102,14 +102,18 @@ def test_denoisers_bench_one_model(tiny, capsys, monkeypatch):
     assert result["kp_s"] > 0 and result["oidn_s"] > 0
 
 
-@pytest.mark.slow  # four models initialised and compiled: ~15-50 s here
+@pytest.mark.slow  # seven models initialised and compiled: ~30-90 s here
 def test_denoisers_bench(tiny, capsys):
+    from jaxden.bench import denoisers
+
     result = run_json("denoisers", capsys)
-    assert_ratios(result, ["wskp3_over_oidn", "wskp6_over_oidn", "kp_over_oidn",
-                           "unet_over_oidn"])
+    assert_ratios(result, [f"{key}_over_oidn" for key in denoisers.MODELS]
+                  + [f"{key}_over_kp" for key in denoisers.MODELS if key != "kp"])
     assert (result["width"], result["height"]) == FRAME_SIZE
-    for key in ("wskp3_s", "wskp6_s", "kp_s", "unet_s", "oidn_s"):
-        assert result[key] > 0
+    for key in (*denoisers.MODELS, "oidn"):
+        assert result[f"{key}_s"] > 0
+    assert result["wskp6_over_kp"] == pytest.approx(result["wskp6_s"] / result["kp_s"])
+    assert 0 < result["wskp6_network_over_kp"] < result["wskp6_over_kp"]
 
 
 def test_sure_bench(tiny, capsys):
@@ -124,8 +128,11 @@ def test_progressive_bench(tiny, capsys):
     result = run_json("progressive", capsys)
     assert_ratios(result, ["pd_over_oidn", "pd_single_over_oidn", "mixer_over_oidn",
                            "tstat_over_oidn", "closed_form_over_oidn",
-                           "closed_form_stops_over_closed_form"])
+                           "closed_form_stops_over_closed_form", "pd_wskp6_over_wskp6",
+                           "pd_wskp6_closed_form_k1_over_wskp6"])
     assert (result["width"], result["height"]) == FRAME_SIZE and result["mixer"] == "oidn-pd"
+    # PD around a JAX base does at least the base's own forward
+    assert result["pd_wskp6_s"] > result["wskp6_s"]
 
 
 def test_render_bench(tiny, capsys):

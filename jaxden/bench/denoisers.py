@@ -1,11 +1,16 @@
 """Benchmark ``denoisers``: inference time of jaxden's denoisers / OIDN on the same frame.
 
 One 1280 x 720 frame (the Cornell box at 4 spp with its features; 320 x 180 with ``quick``) is
-denoised by WSKP-3, WSKP-6, KP (13 x 13, WSKP backbone), the U-Net and OIDN ('high' quality,
+denoised by WSKP-3, WSKP-6, WSKP-MR, KP (13 x 13, WSKP backbone), KP-1 (2 layers, 13 x 13),
+KP-2 (5 layers, 7 x 7), the U-Net and OIDN ('high' quality,
 pyoidn on the same CPU). The JAX models run in their inference (deploy) form, jitted and
 compiled before timing, with freshly initialised weights (inference time does not depend on
 the weights' values). Each is timed alternately with the others, median of the repeats.
-Keys ``<model>_over_oidn`` = model time / OIDN time (the issue's target: WSKP-6 <= 0.5).
+Keys ``<model>_over_oidn`` = model time / OIDN time, ``<model>_over_kp`` = model time / KP's
+(the WSKP paper's target: WSKP-6 <= 0.5 KP) and ``wskp6_network_over_kp``: WSKP-6's
+ImportanceNet alone (its 6 layers, no kernel decoding) / KP, the floor of ``wskp6_over_kp``
+for any decoder (the two models share that backbone; KP's last layer and 13 x 13 filter are
+what WSKP-6 saves).
 """
 
 from __future__ import annotations
@@ -14,7 +19,8 @@ import numpy as np
 
 from jaxden.bench import bench_frame, median_times, register
 
-MODELS = {"wskp3": "wskp3", "wskp6": "wskp", "kp": "kp", "unet": "unet"}
+MODELS = {"wskp3": "wskp3", "wskp6": "wskp", "wskp_mr": "wskp_mr", "kp": "kp", "kp1": "kp1",
+          "kp2": "kp2", "unet": "unet"}
 #: (width, height) and repeats of ``quick`` (the tests make it smaller still).
 QUICK_SIZE, QUICK_REPEATS = (320, 180), 3
 
@@ -36,8 +42,21 @@ def bench_denoisers(quick: bool) -> dict:
         runners[key] = (lambda f=function: jax.block_until_ready(f(device_frame)))
     oidn = make_denoiser("oidn")
     runners["oidn"] = lambda: oidn(frame)
+    if "wskp6" in MODELS:
+        from jaxden.denoise.nn.wskp import RepVGGStack, network_inputs
+
+        wskp6 = make_denoiser("wskp", key=jax.random.PRNGKey(0)).deployed()
+        config = wskp6.config
+        net = RepVGGStack(config.num_layers, config.width, 2 * len(config.kernel_sizes),
+                          config.deploy)
+        network = jax.jit(lambda f: net.apply(wskp6.params, network_inputs(f, config.tonemap)))
+        runners["wskp6_network"] = lambda: jax.block_until_ready(network(device_frame))
     median = median_times(runners, repeats)
     result: dict = {f"{key}_over_oidn": median[key] / median["oidn"] for key in MODELS}
+    result.update({f"{key}_over_kp": median[key] / median["kp"] for key in MODELS
+                   if key != "kp" and "kp" in median})
+    if "wskp6_network" in median and "kp" in median:
+        result["wskp6_network_over_kp"] = median["wskp6_network"] / median["kp"]
     result.update({f"{key}_s": value for key, value in median.items()})
     result.update({"width": size[0], "height": size[1], "repeats": repeats,
                    "devices": len(jax.devices()), "oidn_quality": "high"})

@@ -15,7 +15,14 @@ compiled and warmed up before timing, timed alternately, median of the repeats:
   with Gaussian local means, width 12 px) / one OIDN call; it replaces the mixer call;
 - ``closed_form_stops_over_closed_form``: the range-aware closed form (``closed_form_stops =
   1``: one blurred pair of local sums per occupied brightness stratum) / the plain one, the
-  cost of the strata.
+  cost of the strata;
+- ``pd_wskp6_over_wskp6``: the whole pipeline around the shipped real-time denoiser WSKP-6
+  (jitted, deploy form): y, SURE by ``jax.jvp`` with 4 probes, the mixer (one call; the
+  weights of ``oidn-pd``: a mixer for WSKP-6 has the same architecture, so the same cost) and
+  the t-statistic / one WSKP-6 forward. SURE by jvp costs about one forward per probe, in
+  parallel; the WSKP paper's point is a real-time base, so this ratio says what PD adds;
+- ``pd_wskp6_closed_form_k1_over_wskp6``: the same with the closed-form mixer (range-aware,
+  ``closed-form:stops=1``) and one probe: the cheapest PD(WSKP-6) jaxden offers.
 """
 
 from __future__ import annotations
@@ -33,7 +40,8 @@ def bench_progressive(quick: bool) -> dict:
 
     from jaxden.denoise.registry import load_denoiser
     from jaxden.sure.denoiser import denoise_with_sure
-    from jaxden.progressive.mixer import closed_form_alpha, load_mixer, mixer_alpha
+    from jaxden.progressive.mixer import (closed_form_alpha, closed_form_mixer, load_mixer,
+                                          mixer_alpha)
     from jaxden.progressive.pipeline import progressive_denoise, shipped_mixer_path
     from jaxden.progressive.tstat import t_statistic_scaling
 
@@ -53,8 +61,22 @@ def bench_progressive(quick: bool) -> dict:
         return progressive_denoise(frame, oidn, params, config, key, num_probes=4,
                                    swap_average=swap_average)[0]
 
+    wskp6 = load_denoiser("wskp-6")
+    wskp6_forward = wskp6.function()
+    device_frame = jax.device_put(frame)
+
+    closed_params, closed_config = closed_form_mixer("closed-form:stops=1")
+
+    def pd_wskp6(mixer_params=params, mixer_config=config, probes=4):
+        out = progressive_denoise(device_frame, wskp6, mixer_params, mixer_config, key,
+                                  num_probes=probes, swap_average=False)[0]
+        return jax.block_until_ready(out)
+
     runners = {
         "oidn": lambda: oidn(frame),
+        "wskp6": lambda: jax.block_until_ready(wskp6_forward(device_frame)),
+        "pd_wskp6": pd_wskp6,
+        "pd_wskp6_closed_form_k1": lambda: pd_wskp6(closed_params, closed_config, 1),
         "pd": lambda: pd(True),
         "pd_single": lambda: pd(False),
         "mixer": lambda: mixer_alpha(params, config, x, y, var, sure_map),
@@ -67,6 +89,8 @@ def bench_progressive(quick: bool) -> dict:
         **{f"{name}_over_oidn": median[name] / median["oidn"]
            for name in ("pd", "pd_single", "mixer", "tstat", "closed_form")},
         "closed_form_stops_over_closed_form": median["closed_form_stops"] / median["closed_form"],
+        "pd_wskp6_over_wskp6": median["pd_wskp6"] / median["wskp6"],
+        "pd_wskp6_closed_form_k1_over_wskp6": median["pd_wskp6_closed_form_k1"] / median["wskp6"],
         **{f"{name}_s": value for name, value in median.items()},
         "denoiser": "oidn (CPU, high quality)",
         "mixer": "oidn-pd",
