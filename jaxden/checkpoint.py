@@ -19,28 +19,38 @@ Released weights (shipped inside the package) are one ``.msgpack`` file of param
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
+import shutil
 from pathlib import Path
 from typing import Any
 
 import jax
 import numpy as np
 
-from jaxden.errors import CheckpointError
+from jaxden.errors import CheckpointError, OutputError
 from jaxden.fileio import check_json_fields, read_json
 
 
 class _QuietOrbaxMetadata(logging.Filter):
     """Orbax warns on every restore of a checkpoint saved without its optional metadata file
-    (all of ours): noise for users, so that one message is dropped."""
+    (all of ours): noise for users, so that one message is dropped. So are the tracebacks its
+    background threads log when the disk refuses a write: that error reaches ``save`` /
+    ``wait``, which report it in one line (:meth:`Checkpointer._save_failed`)."""
 
     def filter(self, record: logging.LogRecord) -> bool:
-        return "Metadata file does not exist" not in record.getMessage()
+        message = record.getMessage()
+        if "Metadata file does not exist" in message:
+            return False
+        failed = record.exc_info[1] if record.exc_info else None
+        return record.levelno < logging.ERROR or (
+            _write_failure(message) is None and (failed is None or _write_failure(failed) is None))
 
 
 logging.getLogger("absl").addFilter(_QuietOrbaxMetadata())
+logging.getLogger("asyncio").addFilter(_QuietOrbaxMetadata())
 
 CHECKPOINT_SUBDIR = "checkpoints"
 #: The fields every meta record (checkpoint or released weights) must have, with their types.
@@ -85,17 +95,44 @@ class Checkpointer:
         return self._manager.latest_step()
 
     def save(self, step: int, state: Any, meta: dict[str, Any]) -> None:
+        """Start saving ``step`` (orbax writes in the background; :meth:`wait` for it).
+
+        A disk without room for it is an OutputError before anything is written; a write the
+        disk refuses later is one too (see :meth:`_save_failed`)."""
         ocp = _ocp()
         meta = {**meta, "step": int(step)}
-        self._manager.save(
-            int(step),
-            args=ocp.args.Composite(
-                state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)
-            ),
-        )
+        _check_room(self.directory, state, step)
+        try:
+            self._manager.save(
+                int(step),
+                args=ocp.args.Composite(
+                    state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)
+                ),
+            )
+        except Exception as error:  # noqa: BLE001 - orbax raises ValueError for ENOSPC
+            raise self._save_failed(error) from None
 
     def wait(self) -> None:
-        self._manager.wait_until_finished()
+        try:
+            self._manager.wait_until_finished()
+        except Exception as error:  # noqa: BLE001
+            raise self._save_failed(error) from None
+
+    def _save_failed(self, error: Exception) -> Exception:
+        """What to raise for a failed save: an OutputError naming the folder and the reason
+        when the file system refused a write, else ``error`` itself (a bug keeps its
+        traceback). The unfinished step folder is removed once orbax stops writing (whatever
+        is left is removed when the run starts again); finished checkpoints are kept."""
+        reason = _write_failure(error)
+        if reason is None:
+            return error
+        with contextlib.suppress(Exception):
+            self._manager.close()
+        for path in self.directory.glob("*.orbax-checkpoint-tmp*"):
+            shutil.rmtree(path, ignore_errors=True)
+        return OutputError(f"cannot write a checkpoint into {self.directory}: {reason} (the "
+                           f"checkpoints saved before are kept; make room and run the same "
+                           f"command to resume)")
 
     def read_meta(self, step: int | None = None) -> dict[str, Any]:
         ocp = _ocp()
@@ -169,6 +206,38 @@ class Checkpointer:
 
     def close(self) -> None:
         self._manager.close()
+
+
+_WRITE_FAILURES = ("No space left on device", "Disk quota exceeded", "Read-only file system",
+                   "Permission denied")
+#: Room a checkpoint needs beyond its arrays' bytes (orbax's metadata, the meta record).
+CHECKPOINT_MARGIN_BYTES = 1 << 20
+
+
+def _write_failure(error: BaseException | str) -> str | None:
+    """The reason when ``error`` (an OSError, or orbax's / TensorStore's errors or log
+    messages that carry the OS message in their text) is the file system refusing a write;
+    None otherwise."""
+    if isinstance(error, OSError) and error.strerror:
+        return error.strerror
+    text = str(error)
+    return next((reason for reason in _WRITE_FAILURES if reason in text), None)
+
+
+def _check_room(directory: Path, state: Any, step: int) -> None:
+    """OutputError when ``directory``'s disk has less free space than the state's bytes plus
+    :data:`CHECKPOINT_MARGIN_BYTES` (a save that would run out of space half way)."""
+    need = sum(int(getattr(leaf, "nbytes", 0)) for leaf in jax.tree_util.tree_leaves(state))
+    need += CHECKPOINT_MARGIN_BYTES
+    try:
+        free = shutil.disk_usage(directory if directory.exists() else directory.parent).free
+    except OSError:
+        return
+    if free < need:
+        raise OutputError(
+            f"cannot write checkpoint {step} into {directory}: No space left on device (it "
+            f"needs about {need / 1e6:.1f} MB, {free / 1e6:.1f} MB are free; the checkpoints "
+            f"saved before are kept; make room and run the same command to resume)")
 
 
 def check_meta(meta: dict[str, Any], expect: dict[str, Any], where: str) -> None:

@@ -206,3 +206,64 @@ def check_json_fields(data: dict, fields: dict, where: str, error=JaxdenError) -
             raise error(f"{where}: field {key!r} must be {_json_type_name(types)}, found "
                         f"{_json_type_name(type(data[key]))} {str(data[key])[:40]!r}")
     return data
+
+
+def read_jsonl(path: str | os.PathLike, what: str, *, error=JaxdenError,
+               fields: dict | None = None) -> tuple[list[dict], bool]:
+    """Read the JSON-lines file ``path`` (one object per line, e.g. ``metrics.jsonl``):
+    ``(records, cut)``. A last line without its newline that does not parse is what a write
+    cut short (a kill, a full disk) leaves: it is dropped and ``cut`` is True. Anything else
+    that is not an object with ``fields`` (see :func:`read_json`) raises ``error`` naming the
+    file and the line. Blank lines are skipped."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise error(f"{path}: {what} is missing") from None
+    except OSError as problem:
+        raise error(f"{path}: cannot read {what}: {problem.strerror or problem}") from None
+    lines = data.split(b"\n")
+    records, cut = [], False
+    for number, raw in enumerate(lines, 1):
+        if not raw.strip():
+            continue
+        last = number == len(lines)  # no newline after it
+        try:
+            record = json.loads(raw.decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as problem:
+            if last:
+                cut = True
+                break
+            reason = getattr(problem, "msg", None) or problem.reason
+            raise error(f"{path}: line {number} of {what} is not valid JSON ({reason}); "
+                        f"fix or delete that line") from None
+        where = f"{path}: line {number} of {what}"
+        if not isinstance(record, dict):
+            raise error(f"{where}: expected an object, found {_json_type_name(type(record))}")
+        if fields:
+            check_json_fields(record, fields, where, error)
+        records.append(record)
+    return records, cut
+
+
+def append_line(path: str | os.PathLike, line: str) -> None:
+    """Append ``line`` and a newline to ``path`` (created if missing) in one piece: a write
+    that fails (a full disk) is cut off again, so the file never ends in half a line; raises
+    :class:`OutputError` naming the file."""
+    path = Path(path)
+    data = memoryview((line + "\n").encode("utf-8"))
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+    except OSError as problem:
+        raise OutputError(f"cannot write {path}: {problem.strerror or problem}") from None
+    try:
+        size = os.fstat(fd).st_size
+        try:
+            while data:
+                data = data[os.write(fd, data):]
+        except OSError as problem:
+            with contextlib.suppress(OSError):
+                os.ftruncate(fd, size)
+            raise OutputError(f"cannot write {path}: {problem.strerror or problem}") from None
+    finally:
+        os.close(fd)

@@ -28,8 +28,10 @@ run's ``result.json`` (its overrides, resolved config, final training metrics an
 ``DIR/summary.json`` and ``DIR/summary.md`` tabulate all runs, with the mean and spread over
 seeds when ``seed`` is an axis. A rerun skips every run whose ``result.json`` records the same
 resolved config, and an interrupted run resumes from its last checkpoint, so a sweep is
-resumable as a whole. Runs go through :mod:`jaxden.executor` (``serial`` by default: each
-training run already uses every core of a small machine; ``local`` / ``ray`` to spread them).
+resumable as a whole (a damaged ``result.json`` makes its run count as unfinished: a note
+says so and the run is redone from its checkpoints). Runs go through :mod:`jaxden.executor`
+(``serial`` by default: each training run already uses every core of a small machine;
+``local`` / ``ray`` to spread them).
 
 Data that several runs read (a mixer's SURE cache over the dataset) is built or confirmed once,
 in the calling process, before any run is dispatched; the runs then only read it, so runs on
@@ -194,10 +196,9 @@ def _run_one(task: tuple[str, str, tuple[str, ...], dict, dict[str, Any], bool])
     train_config = load_train_config(base, list(overrides))
     resolved = config_to_dict(train_config)
     result_file = run_dir / RESULT_NAME
-    if result_file.is_file():
-        previous = json.loads(result_file.read_text())
-        if previous.get("config") == resolved and previous.get("evaluate") == evaluate:
-            return {**previous, "skipped": True}
+    previous = _finished_result(result_file, resolved, evaluate, values)
+    if previous is not None:
+        return {**previous, "skipped": True}
     train = train_and_evaluate(train_config, run_dir, progress=progress)
     evaluations = {}
     if evaluate["pd"]:
@@ -239,6 +240,46 @@ def _run_one(task: tuple[str, str, tuple[str, ...], dict, dict[str, Any], bool])
               "evaluations": evaluations}
     atomic_write_text(result_file, json.dumps(result, indent=1, sort_keys=True))
     return {**result, "skipped": False}
+
+
+#: The fields of a run's result.json that a rerun and the summary read.
+_RESULT_FIELDS = {"run": str, "values": dict, "overrides": list, "config": dict,
+                  "evaluate": dict, "train": dict, "evaluations": dict}
+_TRAIN_FIELDS = {"step": int, "val_loss?": float, "val_baseline_loss?": float}
+
+
+def _finished_result(path: Path, resolved: dict, evaluate: dict, values: dict) -> dict | None:
+    """The recorded result of a finished run with this config and evaluation, else None.
+
+    A result.json that cannot be read, is malformed or lacks what the summary shows counts as
+    not finished, with a note: the run is redone, which resumes from its last checkpoint and
+    only evaluates again, and its result.json is rewritten. (It is jaxden's own record,
+    written atomically, so damage comes from outside; the trained model is in the
+    checkpoints, so redoing is cheap, and one damaged record should not stop a sweep.)"""
+    import sys
+
+    from jaxden.errors import JaxdenError
+    from jaxden.fileio import check_json_fields, read_json
+
+    if not path.exists():
+        return None
+    try:
+        previous = read_json(path, "the run's result", error=ConfigError, fields=_RESULT_FIELDS)
+        check_json_fields(previous["train"], _TRAIN_FIELDS, f"{path}: field 'train'",
+                          ConfigError)
+        try:
+            _metrics(previous)
+        except (KeyError, TypeError, ValueError, AttributeError) as error:
+            raise ConfigError(f"{path}: the run's result has no readable metrics "
+                              f"({type(error).__name__}: {str(error)[:60]})") from None
+    except JaxdenError as error:
+        print(f"jaxden: note: {error}; redoing the run (it resumes from its last checkpoint)",
+              file=sys.stderr, flush=True)
+        return None
+    if previous["config"] == resolved and previous["evaluate"] == evaluate \
+            and previous["values"] == values:
+        return previous
+    return None
 
 
 def _worker_setup() -> None:

@@ -177,6 +177,12 @@ class Manifest:
 
     @classmethod
     def from_json(cls, data: Any, where: str = MANIFEST_NAME) -> Manifest:
+        """The manifest of ``data`` (parsed JSON); DatasetError naming ``where`` and the field
+        for anything jaxden could not use: a wrong type, a crop window that is not 4 whole
+        numbers, an item of no crop, a crop without its reference, an item path leaving the
+        folder."""
+        from jaxden.fileio import check_json_fields
+
         if not isinstance(data, dict) or data.get("format") != MANIFEST_FORMAT:
             raise DatasetError(
                 f"{where}: not a jaxden dataset manifest (no format '{MANIFEST_FORMAT}')"
@@ -186,32 +192,36 @@ class Manifest:
                 f"{where}: manifest format version {data.get('format_version')} is not supported "
                 f"(this jaxden reads version {MANIFEST_VERSION})"
             )
-        try:
-            crops = [
-                Crop(**{**c, "window": tuple(int(v) for v in c["window"])}) for c in data["crops"]
-            ]
-            items = [Item(**item) for item in data["items"]]
-            manifest = cls(
-                config=data["config"],
-                scenes=data["scenes"],
-                crops=crops,
-                items=items,
-                renderer=data.get("renderer", ""),
-                created=data.get("created", ""),
-                updated=data.get("updated", ""),
-                jaxden_version=data.get("jaxden_version", ""),
-                extra=data.get("extra", {}),
-            )
-        except (KeyError, TypeError, ValueError) as error:
-            raise DatasetError(
-                f"{where}: malformed manifest ({type(error).__name__}: {error})"
-            ) from None
-        for item in manifest.items:
-            if not isinstance(item.path, str) or not inside_folder(item.path):
-                raise DatasetError(
-                    f"{where}: item {item.id!r} has path {item.path!r}, which leaves the dataset "
-                    f"folder (item paths must be relative, without '..')")
-        return manifest
+        check_json_fields(data, _MANIFEST_FIELDS, where, DatasetError)
+        check_json_fields(data["config"], {"crop_size": int}, f"{where}: field 'config'",
+                          DatasetError)
+        crops = [_crop_from_json(c, f"{where}: crops[{i}]") for i, c in enumerate(data["crops"])]
+        by_id = {crop.id: crop for crop in crops}
+        items = [_item_from_json(c, f"{where}: items[{i}]") for i, c in enumerate(data["items"])]
+        for name, ids in (("crop", [c.id for c in crops]), ("item", [i.id for i in items])):
+            if len(set(ids)) < len(ids):
+                twice = min(i for i in ids if ids.count(i) > 1)
+                raise DatasetError(f"{where}: two {name}s have the id {twice!r}")
+        for index, item in enumerate(items):
+            if item.crop not in by_id:
+                raise DatasetError(f"{where}: items[{index}] ({item.id!r}) names the crop "
+                                   f"{item.crop!r}, which is not in 'crops'")
+        for crop in crops:
+            references = sum(i.crop == crop.id and i.kind == "reference" for i in items)
+            if references != 1:
+                raise DatasetError(f"{where}: crop {crop.id!r} has {references} reference "
+                                   f"items, expected 1")
+        return cls(
+            config=data["config"],
+            scenes=data["scenes"],
+            crops=crops,
+            items=items,
+            renderer=data.get("renderer") or "",
+            created=data.get("created") or "",
+            updated=data.get("updated") or "",
+            jaxden_version=data.get("jaxden_version") or "",
+            extra=data.get("extra") or {},
+        )
 
     def save(self, directory: str | os.PathLike) -> Path:
         """Write ``DIR/manifest.json`` atomically (temporary file + rename)."""
@@ -222,6 +232,48 @@ class Manifest:
 
         atomic_write_text(path, text)
         return path
+
+
+_MANIFEST_FIELDS = {"config": dict, "scenes": list, "crops": list, "items": list,
+                   "renderer?": str, "created?": str, "updated?": str, "jaxden_version?": str,
+                   "extra?": dict}
+_CROP_FIELDS = {"id": str, "scene": str, "scene_index": int, "crop_index": int,
+                "window": list, "split": str}
+_ITEM_FIELDS = {"id": str, "crop": str, "path": str, "kind": str, "spp": int, "seed": int,
+                "sha256?": str, "bytes?": int, "render_seconds?": float}
+
+
+def _crop_from_json(data: Any, where: str) -> Crop:
+    from jaxden.fileio import check_json_fields
+
+    check_json_fields(data, _CROP_FIELDS, where, DatasetError)
+    window = data["window"]
+    if len(window) != 4 or not all(type(v) is int and v >= 0 for v in window) \
+            or min(window[2:]) < 1:
+        raise DatasetError(f"{where}: field 'window' must be 4 whole numbers (top, left >= 0, "
+                           f"height, width >= 1), found {str(window)[:60]}")
+    if data["split"] not in SPLIT_NAMES:
+        raise DatasetError(f"{where}: field 'split' must be one of {', '.join(SPLIT_NAMES)}, "
+                           f"found {data['split'][:20]!r}")
+    return Crop(data["id"], data["scene"], data["scene_index"], data["crop_index"],
+                tuple(window), data["split"])
+
+
+def _item_from_json(data: Any, where: str) -> Item:
+    from jaxden.fileio import check_json_fields
+
+    check_json_fields(data, _ITEM_FIELDS, where, DatasetError)
+    if data["kind"] not in ("input", "reference"):
+        raise DatasetError(f"{where}: field 'kind' must be 'input' or 'reference', found "
+                           f"{data['kind'][:20]!r}")
+    if data["spp"] < 1:
+        raise DatasetError(f"{where}: field 'spp' must be >= 1, found {data['spp']}")
+    if not inside_folder(data["path"]):
+        raise DatasetError(
+            f"{where}: item {data['id']!r} has path {data['path']!r}, which leaves the dataset "
+            f"folder (item paths must be relative, without '..')")
+    return Item(data["id"], data["crop"], data["path"], data["kind"], data["spp"],
+                data["seed"], data.get("sha256"), data.get("bytes"), data.get("render_seconds"))
 
 
 def inside_folder(relative: str) -> bool:
@@ -248,10 +300,9 @@ def load_manifest(directory: str | os.PathLike) -> Manifest:
             f"{directory} is not a jaxden dataset: it has no {MANIFEST_NAME} "
             f"(build one with `jaxden dataset build CONFIG {directory}`)"
         )
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise DatasetError(f"{path}: cannot be read as JSON: {error}") from None
+    from jaxden.fileio import read_json
+
+    data = read_json(path, "the dataset manifest", error=DatasetError)
     return Manifest.from_json(data, where=str(path))
 
 

@@ -167,21 +167,42 @@ def _save_json(path: Path, data: dict) -> None:
     atomic_write_text(path, json.dumps(data, indent=1))
 
 
+#: Fields of the cache manifest that jaxden reads (checked on load; ``?``: optional).
+_MANIFEST_FIELDS = {"format": str, "format_version": int, "identity": dict, "cache_key": str,
+                    "items": dict, "complete?": bool, "created?": str}
+_IDENTITY_FIELDS = {"dataset": dict, "denoiser": dict, "settings": dict}
+_RECORD_FIELDS = {"path": str, "sha256": str, "bytes": int, "source_sha256": str,
+                  "seed?": int, "seconds?": float}
+
+
 def _load_cache_manifest(directory: Path) -> dict[str, Any] | None:
+    """The cache manifest of ``directory`` (None when there is none); DatasetError naming the
+    file and the field when it is unreadable, malformed, wrongly typed or of another format."""
+    from jaxden.data.layout import inside_folder
+    from jaxden.fileio import check_json_fields, read_json
+
     path = directory / CACHE_MANIFEST
     if not path.exists():
         return None
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise DatasetError(f"{path}: cannot be read as JSON: {error}") from None
-    if not isinstance(data, dict) or data.get("format") != CACHE_FORMAT:
-        raise DatasetError(f"{path}: not a jaxden SURE cache manifest (no format '{CACHE_FORMAT}')")
-    if data.get("format_version") != CACHE_VERSION:
+    what = "the SURE cache manifest"
+    data = read_json(path, what, error=DatasetError)
+    if data.get("format") != CACHE_FORMAT:
+        raise DatasetError(f"{path}: not a jaxden SURE cache manifest (no format "
+                           f"'{CACHE_FORMAT}'); delete it to rebuild the cache")
+    check_json_fields(data, _MANIFEST_FIELDS, f"{path}: {what}", DatasetError)
+    if data["format_version"] != CACHE_VERSION:
         raise DatasetError(
             f"{path}: SURE cache format version {data.get('format_version')} is not supported "
             f"(this jaxden reads version {CACHE_VERSION}); rebuild into another folder"
         )
+    check_json_fields(data["identity"], _IDENTITY_FIELDS, f"{path}: {what}, field 'identity'",
+                      DatasetError)
+    for item_id, record in data["items"].items():
+        where = f"{path}: {what}, item {item_id!r}"
+        check_json_fields(record, _RECORD_FIELDS, where, DatasetError)
+        if not inside_folder(record["path"]):
+            raise DatasetError(f"{where}: path {record['path']!r} leaves the cache folder (item "
+                               f"paths must be relative, without '..')")
     return data
 
 

@@ -30,7 +30,6 @@ import os
 import subprocess
 import sys
 import sysconfig
-import tempfile
 from pathlib import Path
 
 from jaxden.errors import JaxdenError
@@ -117,29 +116,33 @@ def cache_key() -> str:
 
 
 def _read_cache(key: str) -> tuple[str, str] | None:
-    """(variant, reason) from the cache file if its key matches; None on any problem."""
+    """(variant, reason) from the cache file if its key matches; None when it is missing,
+    unreadable, malformed, wrongly typed or stale (a broken cache is a miss, never an error:
+    the probe runs again and rewrites it)."""
+    from jaxden.fileio import read_json
+
     try:
-        data = json.loads((_cache_dir() / CACHE_FILE_NAME).read_text())
-        if data.get("key") != key:
-            return None
-        variant, reason = data["variant"], data.get("reason", "")
-        if variant not in (FAST_VARIANT, FALLBACK_VARIANT) or not isinstance(reason, str):
-            return None
-        return variant, reason
-    except Exception:  # noqa: BLE001 - a broken cache is never an error, just a miss
+        data = read_json(_cache_dir() / CACHE_FILE_NAME, "the Mitsuba variant cache",
+                         fields={"key": str, "variant": str, "reason?": str})
+    except JaxdenError:
         return None
+    if data["key"] != key or data["variant"] not in (FAST_VARIANT, FALLBACK_VARIANT):
+        return None
+    return data["variant"], data.get("reason") or ""
 
 
 def _write_cache(key: str, variant: str, reason: str) -> None:
+    """Record the choice (atomic: readers never see half a file; nothing is left behind
+    when the disk is full or the folder read-only: the next run just probes again)."""
+    from jaxden.fileio import atomic_write_text
+
     try:
         folder = _cache_dir()
         folder.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=folder, prefix=".variant-", suffix=".json")
-        with os.fdopen(fd, "w") as handle:
-            json.dump({"key": key, "variant": variant, "reason": reason}, handle)
-        os.replace(tmp, folder / CACHE_FILE_NAME)  # atomic: readers never see half a file
-    except OSError:
-        pass  # a read-only home is fine: we just probe again next time
+        atomic_write_text(folder / CACHE_FILE_NAME,
+                          json.dumps({"key": key, "variant": variant, "reason": reason}))
+    except (OSError, JaxdenError):
+        pass
 
 
 def probe_variant(variant: str, timeout: float = PROBE_TIMEOUT_S) -> tuple[bool, str]:

@@ -99,6 +99,14 @@ def _loaders(config: TrainConfig, task: Task):
     data = config.data
     if not data.dataset:
         raise ConfigError("data.dataset must name a dataset folder (built by `jaxden dataset build`)")
+    if data.target_spp is not None and (config.optim.loss not in ("l2", "relmse_sg")
+                                        or config.optim.loss_reduction != "mean"):
+        import warnings
+
+        warnings.warn(
+            f"data.target_spp trains against noisy targets, but optim.loss = "
+            f"{config.optim.loss!r} with reduction {config.optim.loss_reduction!r} is biased by "
+            f"their noise (only 'l2' and 'relmse_sg' with 'mean' are not)", stacklevel=2)
     common = {
         "crop_size": data.crop_size,
         "spp": data.spp,
@@ -106,7 +114,8 @@ def _loaders(config: TrainConfig, task: Task):
         "reference_features": ("color",),
     }
     train = DatasetLoader(
-        data.dataset, data.split, data.batch_size, seed=config.seed, augment=data.augment, **common
+        data.dataset, data.split, data.batch_size, seed=config.seed, augment=data.augment,
+        target_spp=data.target_spp, **common
     )
     val = DatasetLoader(
         data.dataset, data.val_split, data.batch_size, seed=config.seed + 1, augment=False,
@@ -166,20 +175,26 @@ def _read_draws(loader, draws) -> Any:
 
 
 class MetricsLog:
-    """Append-only JSONL log; entries of steps beyond a resumed checkpoint are dropped first."""
+    """Append-only JSONL log. On resume from the checkpoint of ``resume_step`` the entries of
+    later steps (and of step 0 when no checkpoint is kept: the run starts over) are dropped,
+    and so is a last line cut short by a kill; any other broken line is a one-line error
+    naming the file and the line. Each entry is appended whole or not at all."""
 
     def __init__(self, path: Path, resume_step: int):
+        from jaxden.fileio import atomic_write_text, read_jsonl
+
         self.path = path
         if path.exists():
-            kept = [
-                line for line in path.read_text().splitlines()
-                if line.strip() and json.loads(line).get("step", 0) <= resume_step
-            ]
-            path.write_text("".join(line + "\n" for line in kept))
+            records, cut = read_jsonl(path, "the metrics log", error=JaxdenError,
+                                      fields={"step?": int})
+            kept = [r for r in records if resume_step > 0 and r.get("step", 0) <= resume_step]
+            if cut or len(kept) < len(records):
+                atomic_write_text(path, "".join(json.dumps(r) + "\n" for r in kept))
 
     def write(self, record: dict[str, Any]) -> None:
-        with open(self.path, "a") as handle:
-            handle.write(json.dumps(record) + "\n")
+        from jaxden.fileio import append_line
+
+        append_line(self.path, json.dumps(record))
 
 
 def evaluate(eval_step, params, loader, mesh, max_batches: int, prepare) -> dict[str, float]:
@@ -381,7 +396,9 @@ def train_and_evaluate(
     config_file = workdir / "config.toml"
     saved_json = workdir / "config.json"
     if saved_json.exists():
-        previous = json.loads(saved_json.read_text())
+        from jaxden.fileio import read_json
+
+        previous = read_json(saved_json, "the run's recorded config", error=ConfigError)
         with contextlib.suppress(ConfigError, TypeError, ValueError):
             # Today's defaults for fields added since the run started (same run).
             previous = config_to_dict(load_config(previous, TrainConfig))

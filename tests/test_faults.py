@@ -1,0 +1,314 @@
+"""Faults during `jaxden train` and `jaxden sweep`: SIGKILL mid-run and a full disk.
+
+What must hold: a killed run or sweep resumes with the same command, loses no finished
+checkpoint or run (their files are untouched: bytes and mtimes), redoes no finished run, and
+ends where an uninterrupted one ends; a full disk is one line ``jaxden: error: ... No space
+left on device`` with exit status 2, leaves no partial file (no temporary file, no half
+checkpoint, no cut metrics line), and the same command resumes once there is space.
+
+The commands run in subprocesses (what a user sees on stderr) through a small hook script
+that, at a chosen checkpoint of a chosen run folder, SIGKILLs its own process right after
+the save starts (orbax is then writing the checkpoint in the background) or fills the disk
+just before the save, so every fault hits the same point each time. The disk is a small
+tmpfs (root only; skipped otherwise). Data: the tiny Mitsuba-free dataset; model: a 4-step
+KP of one layer. Other faults are covered elsewhere: Ctrl-C and a locked workdir in
+test_train_reliability.py, a killed dataset build in test_dataset.py, full-disk denoise and
+render in test_adversarial.py.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jaxden.config import load_config
+from jaxden.data.builder import build_dataset, synthetic_render
+from jaxden.data.config import DatasetConfig
+
+ROOT = Path(__file__).resolve().parent.parent
+
+TRAIN = """
+model = "kp"
+seed = 1
+log_every = 1
+eval_every = 4
+eval_batches = 1
+checkpoint_every = 2
+keep_checkpoints = 3
+[model_config]
+num_layers = 1
+width = 8
+kernel_size = 3
+[data]
+dataset = "{dataset}"
+crop_size = 16
+batch_size = 2
+[optim]
+steps = 4
+learning_rate = 1e-3
+"""
+
+# Runs `jaxden ARGS` with one fault. JAXDEN_TEST_FAULT is "kill:<run folder>:<step>" (SIGKILL
+# right after the save of that checkpoint starts) or "fill:<run folder>:<step>:<filler file>"
+# (fill the disk just before that save; step 0: when that run starts, before its first file).
+HOOK = """
+import os, signal, sys
+from pathlib import Path
+from jaxden import checkpoint
+from jaxden.cli import main
+from jaxden.train import loop
+
+kind, name, step, *rest = os.environ["JAXDEN_TEST_FAULT"].split(":")
+step = int(step)
+
+def fill():
+    with open(rest[0], "wb", buffering=0) as handle:
+        try:
+            while True:
+                handle.write(b"\\0" * 4096)
+        except OSError:
+            pass
+
+real_save = checkpoint.Checkpointer.save
+real_train = loop.train_and_evaluate
+
+def save(self, at, state, meta):
+    hit = self.directory.name == name and int(at) == step
+    if hit and kind == "fill":
+        self.wait()  # earlier checkpoints finish first: only this one meets the full disk
+        fill()
+    real_save(self, at, state, meta)
+    if hit and kind == "kill":
+        os.kill(os.getpid(), signal.SIGKILL)
+
+def train_and_evaluate(config, workdir, **options):
+    if Path(workdir).name == name and step == 0 and kind == "fill":
+        fill()
+    return real_train(config, workdir, **options)
+
+checkpoint.Checkpointer.save = save
+loop.train_and_evaluate = train_and_evaluate
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    """(folder with the hook, the dataset and the training config, subprocess env)."""
+    folder = tmp_path_factory.mktemp("faults")
+    dataset = folder / "tiny"
+    config = load_config(ROOT / "experiments" / "configs" / "dataset-tiny.toml", DatasetConfig)
+    build_dataset(config, dataset, executor="serial", render_fn=synthetic_render,
+                  progress=False)
+    (folder / "train.toml").write_text(TRAIN.format(dataset=dataset))
+    (folder / "hook.py").write_text(HOOK)
+    # One XLA cache for every subprocess of this module: the same programs compile once.
+    # This checkout's jaxden, also for the hook script (run from another folder).
+    path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
+    env = {**os.environ, "JAXDEN_CACHE_DIR": str(folder / "cache"), "JAX_PLATFORMS": "cpu",
+           "JAXDEN_CPU_DEVICES": "1", "XLA_FLAGS": "--xla_backend_optimization_level=0",
+           "PYTHONPATH": path}
+    return folder, env
+
+
+def jaxden(setup, *argv, fault: str | None = None) -> subprocess.CompletedProcess:
+    folder, env = setup
+    if fault:
+        command = [sys.executable, str(folder / "hook.py"), *map(str, argv)]
+        env = {**env, "JAXDEN_TEST_FAULT": fault}
+    else:
+        command = [sys.executable, "-m", "jaxden.cli", *map(str, argv)]
+    return subprocess.run(command, env=env, capture_output=True, text=True, timeout=300,
+                          check=False)
+
+
+def write_sweep(folder: Path, target: Path) -> Path:
+    """Two runs, 'a' and 'b', of the same config: b must end exactly where a ends."""
+    path = target / "sweep.toml"
+    path.write_text(f'base = "{folder / "train.toml"}"\nmode = "zip"\n[axes]\n'
+                    'name = ["a", "b"]\n')
+    return path
+
+
+def files(folder: Path) -> dict[str, tuple[bytes, int]]:
+    """Every file under ``folder``: (bytes, mtime_ns), by relative path."""
+    return {str(p.relative_to(folder)): (p.read_bytes(), p.stat().st_mtime_ns)
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def assert_no_partial_files(folder: Path) -> None:
+    """No temporary file or orbax temporary folder; every JSON and JSONL file reads whole."""
+    from jaxden.fileio import read_json, read_jsonl
+
+    leftovers = [p for p in folder.rglob("*") if ".tmp" in p.name or "orbax-checkpoint-tmp"
+                 in p.name]
+    assert not leftovers, leftovers
+    for path in folder.rglob("*.json"):
+        if path.parent.name not in ("meta",):
+            read_json(path, "a json file", kind=(dict, list))
+    for path in folder.rglob("metrics.jsonl"):
+        assert read_jsonl(path, "the metrics log")[1] is False, path  # no cut last line
+
+
+def checkpoints(workdir: Path) -> list[int]:
+    return sorted(int(p.name) for p in workdir.iterdir() if p.name.isdigit())
+
+
+def logged_steps(workdir: Path) -> tuple[list[int], list[int]]:
+    """The steps of the loss entries and of the validation entries of metrics.jsonl."""
+    records = [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
+    return ([r["step"] for r in records if "loss" in r],
+            [r["step"] for r in records if "val_loss" in r])
+
+
+def error_lines(stderr: str) -> list[str]:
+    """stderr without the progress bar: what is left must be the one error line."""
+    lines = [line.strip() for line in stderr.replace("\r", "\n").splitlines()]
+    return [line for line in lines if line and not line.startswith("train kp")]
+
+
+def final_state(workdir: Path):
+    from jaxden.checkpoint import Checkpointer
+
+    checkpointer = Checkpointer(workdir, create=False)
+    try:
+        return checkpointer.restore()[0]
+    finally:
+        checkpointer.close()
+
+
+def assert_same_state(a: Path, b: Path) -> None:
+    import jax
+
+    x, y = final_state(a), final_state(b)
+    assert int(x["step"]) == int(y["step"])
+    for left, right in zip(jax.tree_util.tree_leaves(x), jax.tree_util.tree_leaves(y)):
+        np.testing.assert_allclose(np.asarray(left), np.asarray(right), rtol=1e-6, atol=1e-7)
+
+
+# ------------------------------------------------------------------------------ SIGKILL
+def test_training_killed_while_checkpointing_resumes(setup, tmp_path):
+    """SIGKILL while checkpoint 4 is being written: checkpoint 2 is kept untouched, the rerun
+    removes the unfinished save, resumes from 2 and finishes; every step is logged once."""
+    folder, _ = setup
+    workdir = tmp_path / "run"
+    killed = jaxden(setup, "train", folder / "train.toml", "--workdir", workdir,
+                    fault="kill:run:4")
+    assert killed.returncode == -signal.SIGKILL, killed.stderr[-3000:]
+    # The kill cuts the save short (it leaves orbax's temporary folder, never taken for a
+    # checkpoint), unless a descheduled main thread let orbax finish first.
+    assert checkpoints(workdir) == [2] and (workdir / "4.orbax-checkpoint-tmp").is_dir() \
+        or checkpoints(workdir) == [2, 4]
+    kept = files(workdir / "2")
+    done = jaxden(setup, "train", folder / "train.toml", "--workdir", workdir)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert checkpoints(workdir) == [2, 4]
+    assert files(workdir / "2") == kept
+    assert_no_partial_files(workdir)
+    assert logged_steps(workdir) == ([1, 2, 3, 4], [0, 4])
+
+
+def test_sweep_killed_mid_run_redoes_no_finished_run(setup, tmp_path):
+    """SIGKILL in the second run of a sweep (while its checkpoint 4 is written): the rerun
+    skips the finished run without touching any of its files, resumes the killed one from its
+    checkpoint 2, and that run ends exactly where the finished one (the same config) did:
+    same parameters, same validation loss, the same steps logged once."""
+    folder, _ = setup
+    sweep = write_sweep(folder, tmp_path)
+    workdir = tmp_path / "w"
+    killed = jaxden(setup, "sweep", sweep, "--workdir", workdir, fault="kill:b:4")
+    assert killed.returncode == -signal.SIGKILL, killed.stderr[-3000:]
+    assert (workdir / "a" / "result.json").is_file()
+    assert not (workdir / "b" / "result.json").exists()
+    finished = files(workdir / "a")
+    done = jaxden(setup, "sweep", sweep, "--workdir", workdir)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "(1 run now, 1 already finished)" in done.stdout
+    assert files(workdir / "a") == finished
+    assert_no_partial_files(workdir)
+    a, b = (json.loads((workdir / r / "result.json").read_text()) for r in ("a", "b"))
+    assert b["train"]["step"] == a["train"]["step"] == 4
+    assert b["train"]["val_loss"] == pytest.approx(a["train"]["val_loss"], rel=1e-6)
+    assert logged_steps(workdir / "b") == logged_steps(workdir / "a") == ([1, 2, 3, 4], [0, 4])
+    assert_same_state(workdir / "a", workdir / "b")
+    summary = json.loads((workdir / "summary.json").read_text())
+    assert [r["run"] for r in summary["runs"]] == ["a", "b"]
+
+
+# ---------------------------------------------------------------------------- full disk
+@pytest.fixture()
+def small_disk(tmp_path):
+    """A 4 MiB tmpfs (root only; skipped otherwise), unmounted afterwards."""
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        pytest.skip("needs root to mount a small tmpfs")
+    folder = tmp_path / "disk"
+    folder.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(folder)],
+                          capture_output=True, check=False)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.decode().strip()}")
+    yield folder
+    subprocess.run(["umount", str(folder)], check=False)
+
+
+def assert_one_disk_full_line(result: subprocess.CompletedProcess) -> None:
+    assert result.returncode == 2, result.stderr[-3000:]
+    lines = error_lines(result.stderr)
+    assert len(lines) == 1 and lines[0].startswith("jaxden: error: "), lines
+    assert "No space left on device" in lines[0], lines
+
+
+def test_full_disk_while_training_is_one_line_and_resumes(setup, small_disk):
+    """The disk fills up just before checkpoint 4: one line, exit 2, checkpoint 2 and the
+    metrics log whole, nothing partial; with space again the same command finishes."""
+    folder, _ = setup
+    workdir = small_disk / "run"
+    filler = small_disk / "filler"
+    full = jaxden(setup, "train", folder / "train.toml", "--workdir", workdir,
+                  fault=f"fill:run:4:{filler}")
+    assert_one_disk_full_line(full)
+    filler.unlink()
+    assert checkpoints(workdir) == [2]
+    assert_no_partial_files(workdir)
+    kept = files(workdir / "2")
+    done = jaxden(setup, "train", folder / "train.toml", "--workdir", workdir)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert checkpoints(workdir) == [2, 4] and files(workdir / "2") == kept
+    assert_no_partial_files(workdir)
+    assert logged_steps(workdir) == ([1, 2, 3, 4], [0, 4])
+
+
+@pytest.mark.parametrize("step", [pytest.param(0, id="before-run-b"),
+                                  pytest.param(4, id="checkpoint-of-run-b")])
+def test_full_disk_during_a_sweep_is_one_line_and_resumes(setup, small_disk, tmp_path, step):
+    """The disk fills up during the sweep's second run (before its first file, or just before
+    its checkpoint 4): one line, exit 2, nothing partial, the first run untouched; with space
+    again the same command skips the first run and finishes the second where the first
+    ended."""
+    folder, _ = setup
+    sweep = write_sweep(folder, tmp_path)
+    workdir = small_disk / "w"
+    filler = small_disk / "filler"
+    full = jaxden(setup, "sweep", sweep, "--workdir", workdir, fault=f"fill:b:{step}:{filler}")
+    assert_one_disk_full_line(full)
+    filler.unlink()
+    assert (workdir / "a" / "result.json").is_file()
+    assert not (workdir / "b" / "result.json").exists()
+    assert not (workdir / "summary.json").exists()
+    assert_no_partial_files(workdir)
+    finished = files(workdir / "a")
+    done = jaxden(setup, "sweep", sweep, "--workdir", workdir)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "(1 run now, 1 already finished)" in done.stdout
+    assert files(workdir / "a") == finished
+    assert_no_partial_files(workdir)
+    assert logged_steps(workdir / "b") == ([1, 2, 3, 4], [0, 4])
+    assert_same_state(workdir / "a", workdir / "b")
