@@ -48,8 +48,8 @@ def test_shipped_mixer_files_and_model_card():
         assert needle in card
     params, config = P.load_mixer("oidn-pd")
     assert config.features[:len(P.MIXER_FEATURES)] == P.MIXER_FEATURES
-    assert config.head == "closed_form_logit" and config.logit_bound == 4.0  # since session 10
-    # Since session 11 the closed form under the logit is range-aware, set at inference: the
+    assert config.head == "closed_form_logit" and config.logit_bound == 4.0  # the bounded head
+    # The closed form under the logit is range-aware, set at inference: the
     # shipped config is the trained one with exactly the recorded overrides applied.
     assert config.closed_form_stops == 1.0
     assert meta["inference_overrides"] == ["closed_form_stops=1"]
