@@ -266,6 +266,7 @@ def assert_one_disk_full_line(result: subprocess.CompletedProcess) -> None:
     assert "No space left on device" in lines[0], lines
 
 
+@pytest.mark.slow  # ~20 s; the sweep's case below fills the disk at a training checkpoint too
 def test_full_disk_while_training_is_one_line_and_resumes(setup, small_disk):
     """The disk fills up just before checkpoint 4: one line, exit 2, checkpoint 2 and the
     metrics log whole, nothing partial; with space again the same command finishes."""
@@ -286,7 +287,7 @@ def test_full_disk_while_training_is_one_line_and_resumes(setup, small_disk):
     assert logged_steps(workdir) == ([1, 2, 3, 4], [0, 4])
 
 
-@pytest.mark.parametrize("step", [pytest.param(0, id="before-run-b"),
+@pytest.mark.parametrize("step", [pytest.param(0, id="before-run-b", marks=pytest.mark.slow),
                                   pytest.param(4, id="checkpoint-of-run-b")])
 def test_full_disk_during_a_sweep_is_one_line_and_resumes(setup, small_disk, tmp_path, step):
     """The disk fills up during the sweep's second run (before its first file, or just before
