@@ -91,6 +91,18 @@ PD_ROWS = {
 }
 
 
+#: The real-time tables: README section -> the file their rows quote (rows by method label).
+RT_FILE = "rt-table1.json"
+
+
+def _rt(section: str, label: str, metric: str, index: int):
+    """Entry ``index`` (0 mean, 1 standard deviation) of ``section/label/metric`` in RT_FILE."""
+    def get(data):
+        return data[section][label][metric][index]
+    get.path = f"{section}/{label}/{metric}[{index}]"
+    return get
+
+
 def tables_under(heading: str, text: str | None = None) -> list[dict]:
     """The markdown tables of README.md under ``heading`` (up to the next heading of any level),
     as lists of {column name: cell} rows."""
@@ -145,6 +157,16 @@ def quotes(text: str | None = None) -> list[tuple[str, str, list]]:
             out.append((f"{current_set} / {row['mixer']} / {column}", row[column],
                         _pd(name, source)))
     assert seen == set(PD_ROWS), f"PD table rows missing: {set(PD_ROWS) - seen}"
+    per_frame, temporal = tables_under("### Weight-sharing kernel prediction", text)
+    metrics = {"PSNR (dB)": "psnr", "SSIM": "ssim", "relMSE": "relmse", "FLIP": "flip"}
+    for section, rows in (("per_frame", per_frame), ("temporal", temporal)):
+        for row in rows:
+            for column, metric in metrics.items():
+                cell = row[column]
+                sources = [(RT_FILE, _rt(section, row["method"], metric, 0))]
+                if "±" in cell:
+                    sources.append((RT_FILE, _rt(section, row["method"], metric, 1)))
+                out.append((f"real-time / {row['method']} / {column}", cell, sources))
     return out
 
 
