@@ -236,3 +236,49 @@ def test_every_result_file_is_listed_in_the_experiments_readme():
     assert [p.name for p in results if p.stem not in index] == []
     scripts = sorted(p.name for p in root.iterdir() if p.suffix in (".py", ".sh"))
     assert [name for name in scripts if name not in index] == []
+
+
+# ------------------------------------------------------------------------- rt_tables
+def _rt_result(model, seed, psnr, sizes=None, deploy=False, steps=4000, target_spp=None):
+    name = f"{model}-{'-'.join(map(str, sizes or []))}-{deploy}-{target_spp}-{seed}"
+    return {"run": name, "config": {
+                "model": model, "seed": seed, "optim": {"steps": steps},
+                "data": {"target_spp": target_spp},
+                "model_config": {**({"kernel_sizes": sizes} if sizes else {}), "deploy": deploy}},
+            "evaluations": {"den:/x/rt-test": {"den_psnr": psnr, "den_ssim": 0.5,
+                                               "den_relmse": 0.2, "den_flip": 0.2}}}
+
+
+def test_rt_tables_verdicts_from_seeds(tmp_path):
+    """Targets are 'met' only beyond the seed-to-seed spread, say when one seed is all there
+    is, and group the ablation's rows by kernel sizes and deploy form."""
+    import rt_tables
+
+    assert rt_tables.verdict(None, (1.0, 0.1, 2)).startswith("not measured")
+    assert rt_tables.verdict((26.0, float("nan"), 1), (25.0, 0.1, 2)).startswith("one seed")
+    assert rt_tables.verdict((26.0, 0.1, 2), (25.5, 0.6, 2)).startswith("NOT met")
+    assert rt_tables.verdict((26.0, 0.1, 2), (25.5, 0.2, 2)).startswith("met")
+    runs = {"rt-main": [_rt_result("wskp", 0, 26.8), _rt_result("wskp", 1, 26.6),
+                        _rt_result("kp", 0, 26.1), _rt_result("kp", 1, 26.3)],
+            "rt-ablation": [_rt_result("wskp", s, p, sizes=k, steps=1000)
+                            for s in (0, 1) for k, p in (([3], 24.0 + s), ([13], 25.0),
+                                                         ([3, 5, 7, 9, 11, 13], 26.5 + 0.1 * s))]
+            + [_rt_result("wskp", s, 25.9, sizes=[3, 5, 7, 9, 11, 13], deploy=True, steps=1000)
+               for s in (0, 1)]}
+    for sweep, results in runs.items():
+        for result in results:
+            folder = tmp_path / "home" / "runs" / "sweeps" / sweep / result["run"]
+            folder.mkdir(parents=True, exist_ok=True)
+            (folder / "result.json").write_text(json.dumps(result))
+    out = tmp_path / "out"
+    out.mkdir()
+    assert rt_tables.main(["--home", str(tmp_path / "home"), "--out", str(out)]) == 0
+    table1 = (out / "rt-table1.md").read_text()
+    assert "| WSKP-6 | 26.70 ± 0.14 (2 seeds) |" in table1
+    assert "WSKP-6 PSNR >= KP's - 0.1 dB: met (26.70 against 26.20 dB)" in table1
+    fusion = (out / "rt-fusion.md").read_text()
+    assert "1000 steps" in fusion and "| kernel 3 | 24.50 ± 0.71 (2 seeds) |" in fusion
+    assert "six sizes beats the best single size" in fusion and ": met (margin +1.55 dB" in fusion
+    table5 = (out / "rt-table5.md").read_text()
+    assert "| WSKP-6, plain 5x5 convolutions | 25.90 ± 0.00 (2 seeds) |" in table5
+    assert "+0.6 dB): met (margin +0.65 dB" in table5
