@@ -50,9 +50,20 @@ memory grows with ``probe_batch``, not with ``num_probes``. Within a chunk the p
 once (only tangents are batched); each chunk reruns the primal.
 
 ``"fd"``: finite differences, for denoisers with no usable derivative. ``forward`` is the
-authors' form ``(F(x + eps b) - F(x)) / eps`` (bias ``O(eps)`` from curvature); ``central``
-is ``(F(x + eps b) - F(x - eps b)) / (2 eps)`` (bias ``O(eps^2)``, one more evaluation per
-probe). Both add round-off of order ``u |F(x)| / (eps |b|)`` (``u`` the float epsilon)
+authors' form ``(F(x + eps b) - F(x)) / eps``; ``central`` is ``(F(x + eps b) - F(x - eps b))
+/ (2 eps)`` (one more evaluation per probe). By Taylor, with ``H`` and ``T`` the second and
+third derivatives of ``F``, forward gives ``J b + (eps/2) H[b, b] + (eps^2/6) T[b, b, b] + ...``
+and central ``J b + (eps^2/6) T[b, b, b] + O(eps^4)``: the error of a single estimate is
+``O(eps)`` (curvature) for forward and ``O(eps^2)`` for central. Averaged over the probes,
+forward's ``O(eps)`` term cancels (``b_i H_i[b, b]`` is odd in ``b`` and the Gaussian probes
+are symmetric; it only adds probe variance). In fact the two schemes have exactly the same
+expectation: ``E[b_i F_i(x)] = 0`` and ``E[b_i F_i(x - eps b)] = -E[b_i F_i(x + eps b)]``, so
+both equal ``E[b_i F_i(x + eps b)] / eps = var_i E[J_ii(x + eps b)]`` (Stein's lemma): the
+Jacobian diagonal averaged over ``N(0, eps^2 diag(var))``. The bias of the estimate's
+expectation is therefore ``O(eps^2)`` for both, ``(eps^2/2) var_i sum_j var_j
+d^3 F_i / (dx_i dx_j^2) + O(eps^4)`` for smooth ``F``; central's gain is the smaller
+per-probe error (less probe variance), not a smaller bias. Both add round-off of order
+``u |F(x)| / (eps |b|)`` (``u`` the float epsilon)
 relative to ``J b``: in float32 with the authors' ``eps = 1e-4``, ``|F| ~ 1`` and
 ``|b| = sqrt(var) ~ 1e-2`` (high spp) that bound is ~10%; bright pixels are worse.
 
