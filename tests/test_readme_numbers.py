@@ -56,7 +56,9 @@ BENCHMARKS = {
         ("bench-denoisers.json", _key("wskp6_over_oidn")),
         ("bench-denoisers.json", _key("wskp3_over_oidn")),
         ("bench-denoisers.json", _key("kp_over_oidn")),
-        ("bench-denoisers.json", _key("unet_over_oidn"))]},
+        ("bench-denoisers.json", _key("unet_over_oidn")),
+        ("bench-denoisers.json", _key("wskp6_over_kp")),
+        ("bench-denoisers.json", _key("wskp6_network_over_kp"))]},
     "`jaxden bench sharding`": {"result": [("bench-sharding.json", _key("unet_ratio")),
                                            ("bench-sharding.json", _key("wskp_ratio"))]},
     "`jaxden bench sure`": {"result": [
@@ -69,7 +71,10 @@ BENCHMARKS = {
         ("bench-progressive.json", _key("pd_single_over_oidn")),
         ("bench-progressive.json", _key("mixer_over_oidn")),
         ("bench-progressive.json", _key("tstat_over_oidn")),
-        ("bench-progressive.json", _key("closed_form_over_oidn"))]},
+        ("bench-progressive.json", _key("closed_form_over_oidn")),
+        ("bench-progressive.json", _key("pd_wskp6_over_wskp6")),
+        ("bench-progressive.json", _key("pd_wskp6_closed_form_k1_over_wskp6"))]},
+    "`docs/scaling_bench.py`": {"result": [("scaling-ray-local.json", _key("ray_over_local"))]},
     "`jaxden bench render`": {"result": [
         ("bench-render.json", _key("ratio")),
         ("bench-render.json", _key("ratio_legacy_features"))]},

@@ -86,6 +86,7 @@ def test_progressive_cli_defaults_to_the_shipped_mixer(tmp_path, capsys):
     assert not (tmp_path / "kp.exr").exists()
 
 
+@pytest.mark.slow  # ~7 s; tests/test_demo_outputs.py runs the same demo entry point by default
 def test_demo_writes_frames_and_oidn_beats_the_noisy_input(tmp_path):
     from jaxden.demo import DemoSettings, run_demo
 
@@ -94,7 +95,7 @@ def test_demo_writes_frames_and_oidn_beats_the_noisy_input(tmp_path):
     summary = run_demo(tmp_path, settings=settings)
     rows = summary["rows"]
     assert {(r["spp"], r["method"]) for r in rows} == {
-        (s, m) for s in (4, 16) for m in ("mc", "oidn", "pd_oidn")}
+        (s, m) for s in (4, 16) for m in ("mc", "oidn", "wskp6", "pd_oidn")}
     assert json.loads((tmp_path / "summary.json").read_text())["rows"] == rows
     for name in ("reference.exr", "spp00004.exr", "spp00004.oidn.exr", "spp00016.pd_oidn.exr"):
         assert (tmp_path / "cornell-box" / name).is_file()
