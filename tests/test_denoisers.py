@@ -86,6 +86,7 @@ def test_oidn_clean_aux_auto_follows_the_frame_spp():
         OIDNConfig(clean_aux=True)
 
 
+@pytest.mark.slow  # ~10 s; the U-Net's numerics: tests/test_unet_reference.py
 @pytest.mark.parametrize("size", [(37, 21)])
 def test_unet_any_size_nonnegative_and_differentiable(size):
     frame, _ = smooth_scene(*size)

@@ -23,7 +23,7 @@ def random_frame(h=12, w=10, seed=0, batch=()):
     )
 
 
-@pytest.mark.parametrize("name", ["wskp3", "kp2"])
+@pytest.mark.parametrize("name", [pytest.param("wskp3", marks=pytest.mark.slow), "kp2"])
 def test_models_denoise_any_size_and_batch(name):
     den = make_denoiser(name, key=jax.random.PRNGKey(0))
     for frame in (random_frame(13, 9), random_frame(8, 8, batch=(2,))):
@@ -135,7 +135,7 @@ def test_missing_features_are_named():
         den(Frame(color=np.zeros((8, 8, 3), np.float32)))
 
 
-@pytest.mark.parametrize("name", ["wskp3", "kp2", "wskp_mr"])
+@pytest.mark.parametrize("name", ["wskp3", "kp2", pytest.param("wskp_mr", marks=pytest.mark.slow)])
 def test_deployed_form_gives_the_same_output(name):
     den = make_denoiser(name, key=jax.random.PRNGKey(5))
     frame = random_frame(13, 9, seed=4)  # odd sizes: the multi-resolution model pads

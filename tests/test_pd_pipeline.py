@@ -524,6 +524,7 @@ def test_mixer_alpha_script_matches_the_pipeline(trained):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+@pytest.mark.slow  # ~9 s; the report rows themselves: test_pd_report_rows_match_direct_computation
 def test_pd_report_script_tstat_override(trained, tmp_path, capsys):
     """experiments/pd_report.py pd --tstat KEY=VALUE: the rows are those of the mixer with that
     t-statistic field changed, and the provenance records it; a bad key names the field."""
