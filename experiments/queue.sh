@@ -22,7 +22,13 @@ step() {  # step NAME COMMAND...: run unless $H/done/NAME exists, time it
 }
 step data-rt $J dataset build experiments/configs/dataset-rt.toml --out "$H/data/rt" || exit 1
 step data-rt-test $J dataset build experiments/configs/dataset-rt-test.toml --out "$H/data/rt-test" || exit 1
-for extra in "$H"/queue.d/*.sh; do   # later steps, added without editing this file
+step data-rt-seq $J dataset sequences experiments/configs/sequences-rt-test.toml --out "$H/data/rt-seq" --quiet || exit 1
+# The real-time sweeps (experiments/README.md), most wanted first; each resumes where it stopped.
+step sweep-rt-main $J sweep experiments/sweeps/rt-main.toml --workdir "$H/runs/sweeps/rt-main"
+step sweep-rt-noise2noise $J sweep experiments/sweeps/rt-noise2noise.toml --workdir "$H/runs/sweeps/rt-noise2noise"
+step sweep-rt-ablation $J sweep experiments/sweeps/rt-ablation.toml --workdir "$H/runs/sweeps/rt-ablation"
+step sweep-rt-variants $J sweep experiments/sweeps/rt-variants.toml --workdir "$H/runs/sweeps/rt-variants"
+for extra in "$H"/queue.d/*.sh; do   # ad-hoc steps of this machine, outside the checkout
   [ -e "$extra" ] && source "$extra"
 done
 echo "queue: all done $(date -Is)"
