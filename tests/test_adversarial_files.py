@@ -13,100 +13,39 @@ Data: a tiny Mitsuba-free dataset (``synthetic_render``) and a 2-step KP model.
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import subprocess
 from pathlib import Path
 
 import pytest
+from helpers import (
+    assert_one_error_line,
+    build_tiny_dataset,
+    drop,
+    fill_disk,
+    json_paths,
+    run_cli,
+    set_or_delete,
+    small_tmpfs,
+    snapshot,
+    write_train_config,
+)
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
 from jaxden import cli
-from jaxden.config import load_config
-from jaxden.data.builder import build_dataset, synthetic_render
-from jaxden.data.config import DatasetConfig
 from jaxden.errors import JaxdenError
-
-ROOT = Path(__file__).resolve().parent.parent
-
-TRAIN = """
-model = "kp"
-seed = 1
-log_every = 1
-eval_every = 2
-eval_batches = 1
-checkpoint_every = 2
-[model_config]
-num_layers = 1
-width = 8
-kernel_size = 3
-[data]
-dataset = "{dataset}"
-crop_size = 16
-batch_size = 2
-[optim]
-steps = 2
-learning_rate = 1e-3
-"""
 
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
-    out = tmp_path_factory.mktemp("files") / "tiny"
-    config = load_config(ROOT / "experiments" / "configs" / "dataset-tiny.toml", DatasetConfig)
-    build_dataset(config, out, executor="serial", render_fn=synthetic_render, progress=False)
-    return out
-
-
-def snapshot(folder: Path) -> dict[str, bytes | None]:
-    return {str(p): (p.read_bytes() if p.is_file() else None) for p in sorted(folder.rglob("*"))}
-
-
-def run_cli(argv, capsys) -> tuple[int, list[str], str]:
-    """Exit status, the non-empty stderr lines and stdout of ``jaxden ARGV`` in process (a
-    traceback is an exception that fails the test)."""
-    capsys.readouterr()
-    try:
-        code = cli.main([str(a) for a in argv])
-    except SystemExit as exit_:
-        code = exit_.code
-    out, err = capsys.readouterr()
-    return code, [line for line in err.splitlines() if line.strip()], out
-
-
-def assert_one_error_line(code, lines, *words):
-    assert code == 2, (code, lines)
-    assert len(lines) == 1 and lines[0].startswith("jaxden: error: "), lines
-    for word in words:
-        assert word in lines[0], (word, lines[0])
+    return build_tiny_dataset(tmp_path_factory.mktemp("files") / "tiny")
 
 
 @pytest.fixture()
 def full_disk(tmp_path):
     """A 64 KiB tmpfs (root only; skipped otherwise), unmounted afterwards."""
-    if os.geteuid() != 0 or shutil.which("mount") is None:
-        pytest.skip("needs root to mount a small tmpfs")
-    folder = tmp_path / "full"
-    folder.mkdir()
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(folder)],
-                          capture_output=True, check=False)
-    if done.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.decode().strip()}")
-    yield folder
-    subprocess.run(["umount", str(folder)], check=False)
-
-
-def fill(folder: Path) -> Path:
-    """Write zeros into ``folder/filler`` until the disk is full; returns the filler."""
-    path = folder / "filler"
-    with open(path, "wb", buffering=0) as handle:
-        try:
-            while True:
-                handle.write(b"\0" * 4096)
-        except OSError:
-            pass
-    return path
+    with small_tmpfs(tmp_path / "full", "64k") as folder:
+        yield folder
 
 
 # ------------------------------------------------------------------ SURE cache manifest
@@ -124,23 +63,19 @@ def _cache(change):
     return text if isinstance(text, str) else json.dumps(data)
 
 
-def _drop(tree: dict, key: str) -> None:
-    del tree[key]
-
-
 CACHE_CASES = {
     "malformed": (lambda d: "{", "not valid JSON"),
     "truncated": (lambda d: json.dumps(d)[:50], "not valid JSON"),
     "list": (lambda d: "[]", "must be an object"),
     "not-utf8": (lambda d: "\udcff", "cannot read"),
-    "format-missing": (lambda d: _drop(d, "format"), "not a jaxden SURE cache manifest"),
+    "format-missing": (lambda d: drop(d, "format"), "not a jaxden SURE cache manifest"),
     "version-text": (lambda d: d.__setitem__("format_version", "1"), "'format_version'"),
     "items-list": (lambda d: d.__setitem__("items", []), "'items' must be an object"),
-    "identity-missing": (lambda d: _drop(d, "identity"), "'identity' is missing"),
+    "identity-missing": (lambda d: drop(d, "identity"), "'identity' is missing"),
     "settings-list": (lambda d: d["identity"].__setitem__("settings", []), "'settings'"),
     "record-string": (lambda d: d["items"].__setitem__("i", "x"), "item 'i'"),
     "record-bytes-text": (lambda d: d["items"]["i"].__setitem__("bytes", "10"), "'bytes'"),
-    "record-no-path": (lambda d: _drop(d["items"]["i"], "path"), "'path' is missing"),
+    "record-no-path": (lambda d: drop(d["items"]["i"], "path"), "'path' is missing"),
     "record-path-outside": (lambda d: d["items"]["i"].__setitem__("path", "../../x.exr"),
                             "leaves the cache folder"),
     "record-path-absolute": (lambda d: d["items"]["i"].__setitem__("path", "/etc/passwd"),
@@ -177,17 +112,11 @@ def test_sure_cache_reader_refuses_a_record_outside_the_folder(dataset, tmp_path
 
 
 # ------------------------------------------------------------- a run's recorded files
-def _train_config(folder: Path, dataset: Path) -> Path:
-    path = folder / "train.toml"
-    path.write_text(TRAIN.format(dataset=dataset))
-    return path
-
-
 @pytest.fixture(scope="module")
 def finished_run(dataset, tmp_path_factory):
     """A finished 2-step KP run: (train config, workdir)."""
     folder = tmp_path_factory.mktemp("run")
-    config = _train_config(folder, dataset)
+    config = write_train_config(folder, dataset)
     assert cli.main(["train", str(config), "--workdir", str(folder / "run")]) == 0
     return config, folder / "run"
 
@@ -270,7 +199,7 @@ def test_metrics_log_appends_whole_lines_or_nothing(full_disk):
     log = full_disk / "metrics.jsonl"
     metrics = MetricsLog(log, 0)
     metrics.write({"step": 1, "loss": 0.5})
-    fill(full_disk)
+    fill_disk(full_disk / "filler")
     with pytest.raises(OutputError, match=f"cannot write {log}: No space left on device"):
         metrics.write({"step": 2, "loss": 0.25, "note": "x" * 20000})
     assert log.read_text() == '{"step": 1, "loss": 0.5}\n'
@@ -296,7 +225,7 @@ def test_a_damaged_sweep_result_is_redone_with_a_note(dataset, tmp_path, capsys)
     than stopping a sweep of many runs on one damaged record."""
     from jaxden.sweep import run_sweep
 
-    base = _train_config(tmp_path, dataset)
+    base = write_train_config(tmp_path, dataset)
     sweep = tmp_path / "sweep.toml"
     sweep.write_text(f'base = "{base}"\n[axes]\nseed = [0, 1]\n')
     workdir = tmp_path / "w"
@@ -340,21 +269,12 @@ def test_variant_cache_write_on_a_full_disk_leaves_nothing(monkeypatch, full_dis
 
     monkeypatch.setenv("JAXDEN_CACHE_DIR", str(full_disk / "cache"))
     (full_disk / "cache").mkdir()
-    fill(full_disk)
+    fill_disk(full_disk / "filler")
     variant._write_cache("K", "scalar_rgb", "x" * 10000)  # no error: it is only a cache
     assert list((full_disk / "cache").iterdir()) == []
 
 
 # ------------------------------------------------------------ dataset manifest mutations
-def _paths(tree, prefix=()):
-    """Every key path of a JSON tree (the first two entries of each list)."""
-    children = (tree.items() if isinstance(tree, dict)
-                else enumerate(tree[:2]) if isinstance(tree, list) else ())
-    for key, value in children:
-        yield prefix + (key,)
-        yield from _paths(value, prefix + (key,))
-
-
 JUNK = st.one_of(
     st.none(), st.booleans(), st.integers(-10**30, 10**30),
     st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=6),
@@ -370,7 +290,7 @@ def manifest_case(dataset, tmp_path_factory):
     folder = tmp_path_factory.mktemp("mutated") / "d"
     shutil.copytree(dataset, folder)
     text = (folder / "manifest.json").read_text()
-    return folder, text, list(_paths(json.loads(text)))
+    return folder, text, list(json_paths(json.loads(text)))
 
 
 def _mutated(text: str, paths, draw) -> str:
@@ -384,15 +304,7 @@ def _mutated(text: str, paths, draw) -> str:
             ["../d/" + data["items"][item]["path"], "../../etc/passwd", "/etc/passwd",
              "s000-cornell-box/../../x.exr", data["items"][-1 - item]["path"], "~/x.exr"]))
         return json.dumps(data)
-    path = draw(st.sampled_from(paths))
-    node = data
-    for key in path[:-1]:
-        node = node[key]
-    if kind == "delete":
-        del node[path[-1]]
-    else:
-        node[path[-1]] = draw(JUNK)
-    return json.dumps(data)
+    return set_or_delete(data, paths, draw, JUNK, delete=kind == "delete")
 
 
 _KP = {"model": "kp", "model_config": {"num_layers": 1, "width": 8, "kernel_size": 3},

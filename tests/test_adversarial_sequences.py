@@ -21,6 +21,16 @@ from pathlib import Path
 from unittest import mock
 
 import pytest
+from helpers import (
+    assert_one_error_line,
+    build_tiny_dataset,
+    drop,
+    json_paths,
+    run_cli,
+    set_or_delete,
+    snapshot,
+    write_train_config,
+)
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
@@ -28,7 +38,6 @@ from jaxden import cli
 from jaxden.data.sequences import MANIFEST_NAME, SequenceConfig, load_sequence_config
 from jaxden.errors import JaxdenError
 
-ROOT = Path(__file__).resolve().parent.parent
 KEY = "s000-cornell-box"
 CONFIG_TOML = """name = "adv"
 scenes = ["cornell-box"]
@@ -42,31 +51,6 @@ rotation_deg = 20.0
 
 
 # ------------------------------------------------------------------------------- helpers
-def snapshot(folder: Path) -> dict[str, bytes | None]:
-    """Every path under ``folder`` (relative) with its bytes (None for folders)."""
-    return {str(p.relative_to(folder)): (p.read_bytes() if p.is_file() else None)
-            for p in sorted(folder.rglob("*"))}
-
-
-def run_cli(argv, capsys) -> tuple[int, list[str], str]:
-    """Exit status, the non-empty stderr lines and stdout of ``jaxden ARGV`` in process (a
-    traceback is an exception that fails the test)."""
-    capsys.readouterr()
-    try:
-        code = cli.main([str(a) for a in argv])
-    except SystemExit as exit_:
-        code = exit_.code
-    out, err = capsys.readouterr()
-    return code, [line for line in err.splitlines() if line.strip()], out
-
-
-def assert_one_error_line(code, lines, *words):
-    assert code == 2, (code, lines)
-    assert len(lines) == 1 and lines[0].startswith("jaxden: error: "), lines
-    for word in words:
-        assert word in lines[0], (word, lines[0])
-
-
 def _identity():
     """A denoiser that returns its input colour (no compile, no weights): the evaluation's
     reading of the set is what is under test."""
@@ -152,10 +136,6 @@ def _rename(data, new: str) -> None:
     data["sequences"][new] = data["sequences"].pop(KEY)
 
 
-def _drop(tree: dict, key) -> None:
-    del tree[key]
-
-
 def _exr(name: str, how):
     def damage(folder: Path) -> None:
         how(folder / KEY / name)
@@ -182,7 +162,7 @@ CASES = {
                   (M, "not valid JSON")),
     "empty": (_edit(lambda d: ""), (M, "not valid JSON"), (M, "not valid JSON")),
     "list": (_edit(lambda d: "[]"), (M, "must be an object"), (M, "must be an object")),
-    "format-missing": (_edit(lambda d: _drop(d, "format")), (M, "not a jaxden sequence"),
+    "format-missing": (_edit(lambda d: drop(d, "format")), (M, "not a jaxden sequence"),
                        (M, "not a jaxden sequence")),
     "config-list": (_edit(lambda d: d.__setitem__("config", [])),
                     (M, "'config' must be an object"), (M, "'config' must be an object")),
@@ -194,7 +174,7 @@ CASES = {
                            (M, "lists 3 frames, the set's config gives 4"), (ANOTHER, "frames")),
     "sequences-list": (_edit(lambda d: d.__setitem__("sequences", [])),
                        (M, "'sequences' must be an object"), (M, "'sequences' must be an")),
-    "sequences-missing": (_edit(lambda d: _drop(d, "sequences")), (M, "'sequences' is missing"),
+    "sequences-missing": (_edit(lambda d: drop(d, "sequences")), (M, "'sequences' is missing"),
                           (M, "'sequences' is missing")),
     "record-text": (_edit(lambda d: d["sequences"].__setitem__(KEY, "x")),
                     (M, KEY, "expected an object"), (M, KEY, "expected an object")),
@@ -202,7 +182,7 @@ CASES = {
                      (M, "'scene' must be a string"), (M, "'scene' must be a string")),
     "scene-other": (_edit(lambda d: d["sequences"][KEY].__setitem__("scene", "veach-mis")),
                     (M, "'scene' must be 'cornell-box'"), (M, "'scene' must be 'cornell-box'")),
-    "frames-missing": (_edit(lambda d: _drop(d["sequences"][KEY], "frames")),
+    "frames-missing": (_edit(lambda d: drop(d["sequences"][KEY], "frames")),
                        (M, "'frames' is missing"), (M, "'frames' is missing")),
     "frames-object": (_edit(lambda d: d["sequences"][KEY].__setitem__("frames", {})),
                       (M, "'frames' must be a list"), (M, "'frames' must be a list")),
@@ -223,7 +203,7 @@ CASES = {
                        (M, "'frame' must be 0")),
     "frame-extra": (_edit(lambda d: _frames(d).append(_frames(d)[0])),
                     (M, "lists 4 frames, the set's config gives 3"), (M, "lists 4 frames")),
-    "files-missing": (_edit(lambda d: _drop(_frames(d)[0], "files")), (M, "'files' is missing"),
+    "files-missing": (_edit(lambda d: drop(_frames(d)[0], "files")), (M, "'files' is missing"),
                       (M, "'files' is missing")),
     "files-one": (_edit(lambda d: _frames(d)[1]["files"].pop()), (M, "must list 2 files"),
                   (M, "must list 2 files")),
@@ -231,7 +211,7 @@ CASES = {
                   (M, "files[0]", "expected an object"), (M, "expected an object")),
     "path-number": (_edit(lambda d: _file(d, 0, 0).__setitem__("path", 0)),
                     (M, "'path' must be a string"), (M, "'path' must be a string")),
-    "path-missing": (_edit(lambda d: _drop(_file(d, 0, 1), "path")), (M, "'path' is missing"),
+    "path-missing": (_edit(lambda d: drop(_file(d, 0, 1), "path")), (M, "'path' is missing"),
                      (M, "'path' is missing")),
     "path-dotdot": (_edit(lambda d: _file(d, 0, 0).__setitem__("path", f"../{KEY}/f000.exr")),
                     (M, "leaves the sequence folder"), (M, "leaves the sequence folder")),
@@ -244,7 +224,7 @@ CASES = {
     "path-reference-as-input": (_edit(lambda d: _frames(d)[2]["files"].reverse()),
                                 (M, "'path' must be 'f002.exr' (the input"),
                                 (M, "'path' must be 'f002.exr'")),
-    "sha-missing": (_edit(lambda d: _drop(_file(d, 2, 0), "sha256")),
+    "sha-missing": (_edit(lambda d: drop(_file(d, 2, 0), "sha256")),
                     (M, "'sha256' is missing"), (M, "'sha256' is missing")),
     "sha-number": (_edit(lambda d: _file(d, 2, 0).__setitem__("sha256", 12)),
                    (M, "'sha256' must be a string"), (M, "'sha256' must be a string")),
@@ -313,26 +293,6 @@ def test_a_missing_or_wrong_folder_is_one_line(built, tmp_path, capsys):
 
 
 # --------------------------------------------------------------------------- jaxden sweep
-TRAIN = """
-model = "kp"
-seed = 1
-log_every = 1
-eval_every = 2
-eval_batches = 1
-checkpoint_every = 2
-[model_config]
-num_layers = 1
-width = 8
-kernel_size = 3
-[data]
-dataset = "{dataset}"
-crop_size = 16
-batch_size = 2
-[optim]
-steps = 2
-learning_rate = 1e-3
-"""
-
 PROGRESS = re.compile(r"^train \w+: +\d+%\|")  # tqdm's bar (the sweep has no --quiet)
 SWEEP_CASES = ("not-utf8", "path-dotdot", "frame-index-text", "frame-dropped", "exr-truncated")
 
@@ -342,19 +302,11 @@ def test_jaxden_sweep_on_a_broken_sequence_set_is_one_line(built, tmp_path, caps
     """`jaxden sweep` with ``[evaluate] sequences``: the intact set evaluates; with the run's
     result.json gone (the sweep redoes the run from its final checkpoint, no training), each
     broken set stops it in one line and changes nothing."""
-    from jaxden.config import load_config
-    from jaxden.data.builder import build_dataset, synthetic_render
-    from jaxden.data.config import DatasetConfig
-
-    dataset = tmp_path / "tiny"
-    build_dataset(load_config(ROOT / "experiments" / "configs" / "dataset-tiny.toml",
-                              DatasetConfig),
-                  dataset, executor="serial", render_fn=synthetic_render, progress=False)
+    dataset = build_tiny_dataset(tmp_path / "tiny")
     source, _, original = built
     folder = tmp_path / "set"
     shutil.copytree(source, folder)
-    base = tmp_path / "train.toml"
-    base.write_text(TRAIN.format(dataset=dataset))
+    base = write_train_config(tmp_path, dataset)
     sweep = tmp_path / "sweep.toml"
     sweep.write_text(f'base = "{base}"\n[axes]\nseed = [0]\n[evaluate]\n'
                      f'sequences = ["{folder}"]\n')
@@ -379,15 +331,6 @@ def test_jaxden_sweep_on_a_broken_sequence_set_is_one_line(built, tmp_path, caps
 
 
 # ------------------------------------------------------------------ manifest mutations
-def _paths(tree, prefix=()):
-    """Every key path of a JSON tree (the first two entries of each list)."""
-    children = (tree.items() if isinstance(tree, dict)
-                else enumerate(tree[:2]) if isinstance(tree, list) else ())
-    for key, value in children:
-        yield prefix + (key,)
-        yield from _paths(value, prefix + (key,))
-
-
 JUNK = st.one_of(
     st.none(), st.booleans(), st.integers(-10**30, 10**30),
     st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=6),
@@ -404,7 +347,7 @@ def mutation_case(built, tmp_path_factory):
     folder = tmp_path_factory.mktemp("mutated") / "set"
     shutil.copytree(built[0], folder)
     text = (folder / MANIFEST_NAME).read_text()
-    return folder, text, list(_paths(json.loads(text)))
+    return folder, text, list(json_paths(json.loads(text)))
 
 
 def _mutated(text: str, paths, draw) -> str:
@@ -429,15 +372,7 @@ def _mutated(text: str, paths, draw) -> str:
             ["../" + KEY, "/tmp", "", ".", "..", f"{KEY}/..", "s001-cornell-box", KEY + "/"]),
             st.text(max_size=8))))
         return json.dumps(data)
-    path = draw(st.sampled_from(paths))
-    node = data
-    for key in path[:-1]:
-        node = node[key]
-    if kind == "delete":
-        del node[path[-1]]
-    else:
-        node[path[-1]] = draw(JUNK)
-    return json.dumps(data)
+    return set_or_delete(data, paths, draw, JUNK, delete=kind == "delete")
 
 
 @settings(max_examples=100, deadline=None, derandomize=True, database=None,

@@ -24,14 +24,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import (
+    FAST_COMPILE,
+    build_tiny_dataset,
+    metrics_records,
+    restore_last_checkpoint,
+    write_train_config,
+)
 
 from jaxden.distributed import CPU_DEVICES_ENV, FORCE_DEVICES_OPTION, use_all_cores
 from jaxden.errors import ConfigError
-
-ROOT = Path(__file__).resolve().parent.parent
-#: XLA_FLAGS of the test subprocesses: no device count (the command under test chooses it,
-#: from JAXDEN_CPU_DEVICES), LLVM at -O0 like the suite (tests/conftest.py: compiles dominate).
-FAST_COMPILE = "--xla_backend_optimization_level=0"
 
 
 @functools.cache
@@ -117,26 +119,9 @@ def test_cli_exposes_one_device_per_core(tmp_path):
 
 
 # ------------------------------------------------------------------------- multi-process
-TRAIN_CONFIG = """
-model = "kp"
-seed = 1
-log_every = 1
-eval_every = 20
-eval_batches = 2
-checkpoint_every = 5
-keep_checkpoints = 5
-[model_config]
-num_layers = 1
-width = 8
-kernel_size = 3
-[data]
-dataset = "{dataset}"
-crop_size = 16
-batch_size = 4
-[optim]
-steps = 20
-learning_rate = 1e-3
-"""
+#: The tiny KP model, 20 steps of batches of 4 (split over the processes or devices).
+TRAIN_OPTIONS = {"steps": 20, "eval_every": 20, "eval_batches": 2, "checkpoint_every": 5,
+                 "keep_checkpoints": 5, "batch_size": 4}
 
 # Process 1 of the interrupted job: the real `jaxden train`, killed (SIGKILL, no clean-up)
 # when it takes the batch of step KILL_AT.
@@ -212,36 +197,22 @@ print("REPORT " + json.dumps(report))
 
 @pytest.fixture(scope="module")
 def tiny_dataset(tmp_path_factory):
-    from jaxden.config import load_config
-    from jaxden.data.builder import build_dataset, synthetic_render
-    from jaxden.data.config import DatasetConfig
-
-    out = tmp_path_factory.mktemp("dist") / "tiny"
-    config = load_config(ROOT / "experiments" / "configs" / "dataset-tiny.toml", DatasetConfig,
-                         ["crops_per_scene=4"])
-    build_dataset(config, out, executor="serial", render_fn=synthetic_render, progress=False)
-    return out
+    return build_tiny_dataset(tmp_path_factory.mktemp("dist") / "tiny", ["crops_per_scene=4"])
 
 
 def final_params(workdir: Path):
     import jax
 
-    from jaxden.checkpoint import Checkpointer
-
-    checkpointer = Checkpointer(workdir, create=False)
-    state, meta = checkpointer.restore()
-    checkpointer.close()
+    state, meta = restore_last_checkpoint(workdir)
     return meta["step"], jax.tree_util.tree_leaves(state["params"])
 
 
 def losses(workdir: Path) -> dict[int, float]:
-    records = [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
-    return {r["step"]: r["loss"] for r in records if "loss" in r}
+    return {r["step"]: r["loss"] for r in metrics_records(workdir) if "loss" in r}
 
 
 def run_driver(tmp_path, dataset, mode):
-    config = tmp_path / "train.toml"
-    config.write_text(TRAIN_CONFIG.format(dataset=dataset))
+    config = write_train_config(tmp_path, dataset, **TRAIN_OPTIONS)
     driver, killer = tmp_path / "driver.py", tmp_path / "killed.py"
     driver.write_text(DRIVER)
     killer.write_text(KILLED_PROCESS)
@@ -310,8 +281,7 @@ def test_two_processes_match_one_process_with_two_devices(tmp_path, tiny_dataset
 def test_bad_distributed_options_are_one_line(tmp_path, capsys, options, words):
     from jaxden.cli import main
 
-    config = tmp_path / "train.toml"
-    config.write_text(TRAIN_CONFIG.format(dataset=tmp_path))
+    config = write_train_config(tmp_path, tmp_path, **TRAIN_OPTIONS)
     assert main(["train", str(config), "--workdir", str(tmp_path / "w"), *options]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and words in err[0], err

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -28,33 +27,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from jaxden.config import load_config
-from jaxden.data.builder import build_dataset, synthetic_render
-from jaxden.data.config import DatasetConfig
-
-ROOT = Path(__file__).resolve().parent.parent
-
-TRAIN = """
-model = "kp"
-seed = 1
-log_every = 1
-eval_every = 4
-eval_batches = 1
-checkpoint_every = 2
-keep_checkpoints = 3
-[model_config]
-num_layers = 1
-width = 8
-kernel_size = 3
-[data]
-dataset = "{dataset}"
-crop_size = 16
-batch_size = 2
-[optim]
-steps = 4
-learning_rate = 1e-3
-"""
+from helpers import (
+    ROOT,
+    assert_one_error_line,
+    build_tiny_dataset,
+    checkpoint_steps,
+    cli_env,
+    metrics_records,
+    restore_last_checkpoint,
+    small_tmpfs,
+    write_train_config,
+)
 
 # Runs `jaxden ARGS` with one fault. JAXDEN_TEST_FAULT is "kill:<run folder>:<step>" (SIGKILL
 # right after the save of that checkpoint starts) or "fill:<run folder>:<step>:<filler file>"
@@ -104,19 +87,13 @@ sys.exit(main(sys.argv[1:]))
 def setup(tmp_path_factory):
     """(folder with the hook, the dataset and the training config, subprocess env)."""
     folder = tmp_path_factory.mktemp("faults")
-    dataset = folder / "tiny"
-    config = load_config(ROOT / "experiments" / "configs" / "dataset-tiny.toml", DatasetConfig)
-    build_dataset(config, dataset, executor="serial", render_fn=synthetic_render,
-                  progress=False)
-    (folder / "train.toml").write_text(TRAIN.format(dataset=dataset))
+    dataset = build_tiny_dataset(folder / "tiny")
+    write_train_config(folder, dataset, eval_every=4, keep_checkpoints=3, steps=4)
     (folder / "hook.py").write_text(HOOK)
     # One XLA cache for every subprocess of this module: the same programs compile once.
     # This checkout's jaxden, also for the hook script (run from another folder).
     path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
-    env = {**os.environ, "JAXDEN_CACHE_DIR": str(folder / "cache"), "JAX_PLATFORMS": "cpu",
-           "JAXDEN_CPU_DEVICES": "1", "XLA_FLAGS": "--xla_backend_optimization_level=0",
-           "PYTHONPATH": path}
-    return folder, env
+    return folder, cli_env(folder / "cache", PYTHONPATH=path)
 
 
 def jaxden(setup, *argv, fault: str | None = None) -> subprocess.CompletedProcess:
@@ -158,13 +135,9 @@ def assert_no_partial_files(folder: Path) -> None:
         assert read_jsonl(path, "the metrics log")[1] is False, path  # no cut last line
 
 
-def checkpoints(workdir: Path) -> list[int]:
-    return sorted(int(p.name) for p in workdir.iterdir() if p.name.isdigit())
-
-
 def logged_steps(workdir: Path) -> tuple[list[int], list[int]]:
     """The steps of the loss entries and of the validation entries of metrics.jsonl."""
-    records = [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
+    records = metrics_records(workdir)
     return ([r["step"] for r in records if "loss" in r],
             [r["step"] for r in records if "val_loss" in r])
 
@@ -175,23 +148,24 @@ def error_lines(stderr: str) -> list[str]:
     return [line for line in lines if line and not line.startswith("train kp")]
 
 
-def final_state(workdir: Path):
-    from jaxden.checkpoint import Checkpointer
-
-    checkpointer = Checkpointer(workdir, create=False)
-    try:
-        return checkpointer.restore()[0]
-    finally:
-        checkpointer.close()
-
-
 def assert_same_state(a: Path, b: Path) -> None:
     import jax
 
-    x, y = final_state(a), final_state(b)
+    x, y = restore_last_checkpoint(a)[0], restore_last_checkpoint(b)[0]
     assert int(x["step"]) == int(y["step"])
     for left, right in zip(jax.tree_util.tree_leaves(x), jax.tree_util.tree_leaves(y)):
         np.testing.assert_allclose(np.asarray(left), np.asarray(right), rtol=1e-6, atol=1e-7)
+
+
+def assert_sweep_resumes(setup, sweep: Path, workdir: Path) -> None:
+    """The same `jaxden sweep` again, after its run 'b' was stopped: it skips the finished run
+    'a' without touching any of its files, finishes 'b' and leaves nothing partial."""
+    finished = files(workdir / "a")
+    done = jaxden(setup, "sweep", sweep, "--workdir", workdir)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "(1 run now, 1 already finished)" in done.stdout
+    assert files(workdir / "a") == finished
+    assert_no_partial_files(workdir)
 
 
 # ------------------------------------------------------------------------------ SIGKILL
@@ -205,12 +179,12 @@ def test_training_killed_while_checkpointing_resumes(setup, tmp_path):
     assert killed.returncode == -signal.SIGKILL, killed.stderr[-3000:]
     # The kill cuts the save short (it leaves orbax's temporary folder, never taken for a
     # checkpoint), unless a descheduled main thread let orbax finish first.
-    assert checkpoints(workdir) == [2] and (workdir / "4.orbax-checkpoint-tmp").is_dir() \
-        or checkpoints(workdir) == [2, 4]
+    assert checkpoint_steps(workdir) == [2] and (workdir / "4.orbax-checkpoint-tmp").is_dir() \
+        or checkpoint_steps(workdir) == [2, 4]
     kept = files(workdir / "2")
     done = jaxden(setup, "train", folder / "train.toml", "--workdir", workdir)
     assert done.returncode == 0, done.stderr[-3000:]
-    assert checkpoints(workdir) == [2, 4]
+    assert checkpoint_steps(workdir) == [2, 4]
     assert files(workdir / "2") == kept
     assert_no_partial_files(workdir)
     assert logged_steps(workdir) == ([1, 2, 3, 4], [0, 4])
@@ -228,12 +202,7 @@ def test_sweep_killed_mid_run_redoes_no_finished_run(setup, tmp_path):
     assert killed.returncode == -signal.SIGKILL, killed.stderr[-3000:]
     assert (workdir / "a" / "result.json").is_file()
     assert not (workdir / "b" / "result.json").exists()
-    finished = files(workdir / "a")
-    done = jaxden(setup, "sweep", sweep, "--workdir", workdir)
-    assert done.returncode == 0, done.stderr[-3000:]
-    assert "(1 run now, 1 already finished)" in done.stdout
-    assert files(workdir / "a") == finished
-    assert_no_partial_files(workdir)
+    assert_sweep_resumes(setup, sweep, workdir)
     a, b = (json.loads((workdir / r / "result.json").read_text()) for r in ("a", "b"))
     assert b["train"]["step"] == a["train"]["step"] == 4
     assert b["train"]["val_loss"] == pytest.approx(a["train"]["val_loss"], rel=1e-6)
@@ -247,23 +216,13 @@ def test_sweep_killed_mid_run_redoes_no_finished_run(setup, tmp_path):
 @pytest.fixture()
 def small_disk(tmp_path):
     """A 4 MiB tmpfs (root only; skipped otherwise), unmounted afterwards."""
-    if os.geteuid() != 0 or shutil.which("mount") is None:
-        pytest.skip("needs root to mount a small tmpfs")
-    folder = tmp_path / "disk"
-    folder.mkdir()
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(folder)],
-                          capture_output=True, check=False)
-    if done.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.decode().strip()}")
-    yield folder
-    subprocess.run(["umount", str(folder)], check=False)
+    with small_tmpfs(tmp_path / "disk", "4m") as folder:
+        yield folder
 
 
 def assert_one_disk_full_line(result: subprocess.CompletedProcess) -> None:
-    assert result.returncode == 2, result.stderr[-3000:]
-    lines = error_lines(result.stderr)
-    assert len(lines) == 1 and lines[0].startswith("jaxden: error: "), lines
-    assert "No space left on device" in lines[0], lines
+    assert_one_error_line(result.returncode, error_lines(result.stderr),
+                          "No space left on device")
 
 
 @pytest.mark.slow  # ~20 s; the sweep's case below fills the disk at a training checkpoint too
@@ -277,12 +236,12 @@ def test_full_disk_while_training_is_one_line_and_resumes(setup, small_disk):
                   fault=f"fill:run:4:{filler}")
     assert_one_disk_full_line(full)
     filler.unlink()
-    assert checkpoints(workdir) == [2]
+    assert checkpoint_steps(workdir) == [2]
     assert_no_partial_files(workdir)
     kept = files(workdir / "2")
     done = jaxden(setup, "train", folder / "train.toml", "--workdir", workdir)
     assert done.returncode == 0, done.stderr[-3000:]
-    assert checkpoints(workdir) == [2, 4] and files(workdir / "2") == kept
+    assert checkpoint_steps(workdir) == [2, 4] and files(workdir / "2") == kept
     assert_no_partial_files(workdir)
     assert logged_steps(workdir) == ([1, 2, 3, 4], [0, 4])
 
@@ -305,11 +264,6 @@ def test_full_disk_during_a_sweep_is_one_line_and_resumes(setup, small_disk, tmp
     assert not (workdir / "b" / "result.json").exists()
     assert not (workdir / "summary.json").exists()
     assert_no_partial_files(workdir)
-    finished = files(workdir / "a")
-    done = jaxden(setup, "sweep", sweep, "--workdir", workdir)
-    assert done.returncode == 0, done.stderr[-3000:]
-    assert "(1 run now, 1 already finished)" in done.stdout
-    assert files(workdir / "a") == finished
-    assert_no_partial_files(workdir)
+    assert_sweep_resumes(setup, sweep, workdir)
     assert logged_steps(workdir / "b") == ([1, 2, 3, 4], [0, 4])
     assert_same_state(workdir / "a", workdir / "b")

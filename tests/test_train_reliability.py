@@ -3,8 +3,6 @@ resumable workdir and one line, and two runs cannot write one workdir."""
 
 from __future__ import annotations
 
-import json
-import os
 import signal
 import subprocess
 import sys
@@ -14,57 +12,30 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import pytest
+from helpers import (
+    build_tiny_dataset,
+    checkpoint_steps,
+    cli_env,
+    metrics_records,
+    write_train_config,
+)
 
 from jaxden.cli import main
-from jaxden.config import load_config
-from jaxden.data.builder import build_dataset, synthetic_render
-from jaxden.data.config import DatasetConfig
 from jaxden.errors import JaxdenError
 from jaxden.fileio import folder_lock
 from jaxden.train import loop
 from jaxden.train.config import load_train_config
 
-ROOT = Path(__file__).resolve().parent.parent
-
-CONFIG = """
-model = "kp"
-seed = 1
-log_every = {log_every}
-eval_every = {steps}
-eval_batches = 1
-checkpoint_every = {checkpoint_every}
-keep_checkpoints = 3
-[model_config]
-num_layers = 1
-width = 8
-kernel_size = 3
-[data]
-dataset = "{dataset}"
-crop_size = 16
-batch_size = 2
-[optim]
-steps = {steps}
-learning_rate = 1e-3
-"""
-
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
-    out = tmp_path_factory.mktemp("reliability") / "tiny"
-    config = load_config(ROOT / "experiments" / "configs" / "dataset-tiny.toml", DatasetConfig)
-    build_dataset(config, out, executor="serial", render_fn=synthetic_render, progress=False)
-    return out
+    return build_tiny_dataset(tmp_path_factory.mktemp("reliability") / "tiny")
 
 
 def write_config(folder: Path, dataset: Path, steps=6, checkpoint_every=2, log_every=100) -> Path:
-    path = folder / "train.toml"
-    path.write_text(CONFIG.format(dataset=dataset, steps=steps,
-                                  checkpoint_every=checkpoint_every, log_every=log_every))
-    return path
-
-
-def checkpoint_steps(workdir: Path) -> list[int]:
-    return sorted(int(p.name) for p in workdir.iterdir() if p.name.isdigit())
+    return write_train_config(folder, dataset, steps=steps, log_every=log_every,
+                              eval_every=steps, checkpoint_every=checkpoint_every,
+                              keep_checkpoints=3)
 
 
 def test_a_diverged_state_is_never_checkpointed(tmp_path, dataset, monkeypatch):
@@ -115,8 +86,7 @@ def test_ctrl_c_finishes_the_checkpoint_and_prints_one_line(tmp_path, dataset):
     finishes."""
     config = write_config(tmp_path, dataset, steps=STEPS, checkpoint_every=1, log_every=1)
     workdir = tmp_path / "run"
-    env = {**os.environ, "JAXDEN_CACHE_DIR": str(tmp_path / "cache"), "JAX_PLATFORMS": "cpu",
-           "JAXDEN_CPU_DEVICES": "1", "XLA_FLAGS": "--xla_backend_optimization_level=0"}
+    env = cli_env(tmp_path / "cache")
     command = [sys.executable, "-m", "jaxden.cli", "train", str(config), "--workdir",
                str(workdir)]
     proc = subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -141,7 +111,7 @@ def test_ctrl_c_finishes_the_checkpoint_and_prints_one_line(tmp_path, dataset):
                             check=False)
     assert finish.returncode == 0, finish.stderr[-3000:]
     assert checkpoint_steps(workdir)[-1] == STEPS
-    records = [json.loads(line) for line in metrics.read_text().splitlines()]
+    records = metrics_records(workdir)
     # Every step logged once: none lost, none repeated.
     assert [r["step"] for r in records if "loss" in r] == list(range(1, STEPS + 1))
 
