@@ -288,18 +288,24 @@ def manifest_path(directory: str | os.PathLike) -> Path:
     return Path(directory) / MANIFEST_NAME
 
 
-def load_manifest(directory: str | os.PathLike) -> Manifest:
-    """Read ``DIR/manifest.json``; DatasetError if the folder or manifest is missing/invalid."""
+def manifest_path(directory, name: str, kind: str, command: str) -> Path:
+    """``directory / name``; DatasetError naming ``kind`` ("dataset", "sequence set") when the
+    folder is missing or a file, or has no such manifest (``command`` builds one)."""
     directory = Path(directory)
     if not directory.is_dir():
-        raise DatasetError(f"{directory} is a file, not a dataset folder" if directory.exists()
-                           else f"dataset folder {directory} does not exist")
-    path = directory / MANIFEST_NAME
+        raise DatasetError(f"{directory} is a file, not a {kind} folder" if directory.exists()
+                           else f"{kind} folder {directory} does not exist")
+    path = directory / name
     if not path.exists():
-        raise DatasetError(
-            f"{directory} is not a jaxden dataset: it has no {MANIFEST_NAME} "
-            f"(build one with `jaxden dataset build CONFIG {directory}`)"
-        )
+        raise DatasetError(f"{directory} is not a jaxden {kind}: it has no {name} "
+                           f"(build one with `{command}`)")
+    return path
+
+
+def load_manifest(directory: str | os.PathLike) -> Manifest:
+    """Read ``DIR/manifest.json``; DatasetError if the folder or manifest is missing/invalid."""
+    path = manifest_path(directory, MANIFEST_NAME, "dataset",
+                         f"jaxden dataset build CONFIG --out {directory}")
     from jaxden.fileio import read_json
 
     data = read_json(path, "the dataset manifest", error=DatasetError)

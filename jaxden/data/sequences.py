@@ -289,15 +289,11 @@ def build_sequences(config: SequenceConfig, out_dir, *, progress: bool = True) -
 
 def _read_set(directory) -> tuple[dict, SequenceConfig, Path]:
     """``(manifest, config, manifest path)`` of a complete sequence set, checked."""
+    from jaxden.data.layout import manifest_path
+
     directory = Path(directory)
-    if not directory.is_dir():
-        raise DatasetError(f"{directory} is a file, not a sequence folder" if directory.exists()
-                           else f"sequence folder {directory} does not exist")
-    path = directory / MANIFEST_NAME
-    if not path.exists():
-        raise DatasetError(f"{directory} is not a jaxden sequence set: it has no {MANIFEST_NAME} "
-                           f"(build one with `jaxden dataset sequences CONFIG --out "
-                           f"{directory}`)")
+    path = manifest_path(directory, MANIFEST_NAME, "sequence set",
+                         f"jaxden dataset sequences CONFIG --out {directory}")
     manifest = _read_manifest_file(path)
     try:
         config = load_sequence_config(manifest["config"])
