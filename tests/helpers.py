@@ -200,3 +200,56 @@ def restore_last_checkpoint(workdir: Path):
         return checkpointer.restore()
     finally:
         checkpointer.close()
+
+
+# --------------------------------------------------- a stopped command and what it left
+def files(folder: Path) -> dict[str, tuple[bytes, int]]:
+    """Every file under ``folder``: (bytes, mtime_ns), by relative path."""
+    return {str(p.relative_to(folder)): (p.read_bytes(), p.stat().st_mtime_ns)
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def assert_no_partial_files(folder: Path) -> None:
+    """No temporary file or orbax temporary folder; every JSON and JSONL file reads whole, and
+    so does every EXR."""
+    from jaxden.fileio import read_json, read_jsonl
+    from jaxden.io.exr import read_frame
+
+    leftovers = [p for p in folder.rglob("*") if ".tmp" in p.name or "orbax-checkpoint-tmp"
+                 in p.name]
+    assert not leftovers, leftovers
+    for path in folder.rglob("*.json"):
+        if path.parent.name not in ("meta",):
+            read_json(path, "a json file", kind=(dict, list))
+    for path in folder.rglob("metrics.jsonl"):
+        assert read_jsonl(path, "the metrics log")[1] is False, path  # no cut last line
+    for path in folder.rglob("*.exr"):
+        read_frame(path)
+
+
+def write_sweep(folder: Path, target: Path) -> Path:
+    """``target/sweep.toml``: two runs, 'a' and 'b', of the same config
+    (``folder/train.toml``): b must end exactly where a ends."""
+    path = target / "sweep.toml"
+    path.write_text(f'base = "{folder / "train.toml"}"\nmode = "zip"\n[axes]\n'
+                    'name = ["a", "b"]\n')
+    return path
+
+
+def logged_steps(workdir: Path) -> tuple[list[int], list[int]]:
+    """The steps of the loss entries and of the validation entries of metrics.jsonl."""
+    records = metrics_records(workdir)
+    return ([r["step"] for r in records if "loss" in r],
+            [r["step"] for r in records if "val_loss" in r])
+
+
+def assert_same_state(a: Path, b: Path) -> None:
+    """The last checkpoints of the run folders ``a`` and ``b`` hold the same step and (to
+    float32 round-off) the same parameters and optimizer state."""
+    import jax
+    import numpy as np
+
+    x, y = restore_last_checkpoint(a)[0], restore_last_checkpoint(b)[0]
+    assert int(x["step"]) == int(y["step"])
+    for left, right in zip(jax.tree_util.tree_leaves(x), jax.tree_util.tree_leaves(y)):
+        np.testing.assert_allclose(np.asarray(left), np.asarray(right), rtol=1e-6, atol=1e-7)

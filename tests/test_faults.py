@@ -25,17 +25,19 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 from helpers import (
     ROOT,
+    assert_no_partial_files,
     assert_one_error_line,
+    assert_same_state,
     build_tiny_dataset,
     checkpoint_steps,
     cli_env,
-    metrics_records,
-    restore_last_checkpoint,
+    files,
+    logged_steps,
     small_tmpfs,
+    write_sweep,
     write_train_config,
 )
 
@@ -107,54 +109,10 @@ def jaxden(setup, *argv, fault: str | None = None) -> subprocess.CompletedProces
                           check=False)
 
 
-def write_sweep(folder: Path, target: Path) -> Path:
-    """Two runs, 'a' and 'b', of the same config: b must end exactly where a ends."""
-    path = target / "sweep.toml"
-    path.write_text(f'base = "{folder / "train.toml"}"\nmode = "zip"\n[axes]\n'
-                    'name = ["a", "b"]\n')
-    return path
-
-
-def files(folder: Path) -> dict[str, tuple[bytes, int]]:
-    """Every file under ``folder``: (bytes, mtime_ns), by relative path."""
-    return {str(p.relative_to(folder)): (p.read_bytes(), p.stat().st_mtime_ns)
-            for p in sorted(folder.rglob("*")) if p.is_file()}
-
-
-def assert_no_partial_files(folder: Path) -> None:
-    """No temporary file or orbax temporary folder; every JSON and JSONL file reads whole."""
-    from jaxden.fileio import read_json, read_jsonl
-
-    leftovers = [p for p in folder.rglob("*") if ".tmp" in p.name or "orbax-checkpoint-tmp"
-                 in p.name]
-    assert not leftovers, leftovers
-    for path in folder.rglob("*.json"):
-        if path.parent.name not in ("meta",):
-            read_json(path, "a json file", kind=(dict, list))
-    for path in folder.rglob("metrics.jsonl"):
-        assert read_jsonl(path, "the metrics log")[1] is False, path  # no cut last line
-
-
-def logged_steps(workdir: Path) -> tuple[list[int], list[int]]:
-    """The steps of the loss entries and of the validation entries of metrics.jsonl."""
-    records = metrics_records(workdir)
-    return ([r["step"] for r in records if "loss" in r],
-            [r["step"] for r in records if "val_loss" in r])
-
-
 def error_lines(stderr: str) -> list[str]:
     """stderr without the progress bar: what is left must be the one error line."""
     lines = [line.strip() for line in stderr.replace("\r", "\n").splitlines()]
     return [line for line in lines if line and not line.startswith("train kp")]
-
-
-def assert_same_state(a: Path, b: Path) -> None:
-    import jax
-
-    x, y = restore_last_checkpoint(a)[0], restore_last_checkpoint(b)[0]
-    assert int(x["step"]) == int(y["step"])
-    for left, right in zip(jax.tree_util.tree_leaves(x), jax.tree_util.tree_leaves(y)):
-        np.testing.assert_allclose(np.asarray(left), np.asarray(right), rtol=1e-6, atol=1e-7)
 
 
 def assert_sweep_resumes(setup, sweep: Path, workdir: Path) -> None:
