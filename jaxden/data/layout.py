@@ -288,7 +288,7 @@ def manifest_path(directory: str | os.PathLike) -> Path:
     return Path(directory) / MANIFEST_NAME
 
 
-def manifest_path(directory, name: str, kind: str, command: str) -> Path:
+def require_manifest(directory, name: str, kind: str, command: str) -> Path:
     """``directory / name``; DatasetError naming ``kind`` ("dataset", "sequence set") when the
     folder is missing or a file, or has no such manifest (``command`` builds one)."""
     directory = Path(directory)
@@ -304,8 +304,8 @@ def manifest_path(directory, name: str, kind: str, command: str) -> Path:
 
 def load_manifest(directory: str | os.PathLike) -> Manifest:
     """Read ``DIR/manifest.json``; DatasetError if the folder or manifest is missing/invalid."""
-    path = manifest_path(directory, MANIFEST_NAME, "dataset",
-                         f"jaxden dataset build CONFIG --out {directory}")
+    path = require_manifest(directory, MANIFEST_NAME, "dataset",
+                            f"jaxden dataset build CONFIG --out {directory}")
     from jaxden.fileio import read_json
 
     data = read_json(path, "the dataset manifest", error=DatasetError)

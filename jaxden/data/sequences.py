@@ -289,11 +289,11 @@ def build_sequences(config: SequenceConfig, out_dir, *, progress: bool = True) -
 
 def _read_set(directory) -> tuple[dict, SequenceConfig, Path]:
     """``(manifest, config, manifest path)`` of a complete sequence set, checked."""
-    from jaxden.data.layout import manifest_path
+    from jaxden.data.layout import require_manifest
 
     directory = Path(directory)
-    path = manifest_path(directory, MANIFEST_NAME, "sequence set",
-                         f"jaxden dataset sequences CONFIG --out {directory}")
+    path = require_manifest(directory, MANIFEST_NAME, "sequence set",
+                            f"jaxden dataset sequences CONFIG --out {directory}")
     manifest = _read_manifest_file(path)
     try:
         config = load_sequence_config(manifest["config"])
