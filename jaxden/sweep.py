@@ -276,8 +276,14 @@ def _finished_result(path: Path, resolved: dict, evaluate: dict, values: dict) -
         print(f"jaxden: note: {error}; redoing the run (it resumes from its last checkpoint)",
               file=sys.stderr, flush=True)
         return None
-    if previous["config"] == resolved and previous["evaluate"] == evaluate \
-            and previous["values"] == values:
+    recorded = previous["config"]
+    try:  # today's defaults for config fields added since the run finished (the same run)
+        from jaxden.train.config import TrainConfig
+
+        recorded = config_to_dict(load_config(recorded, TrainConfig))
+    except (ConfigError, TypeError, ValueError):
+        pass
+    if recorded == resolved and previous["evaluate"] == evaluate and previous["values"] == values:
         return previous
     return None
 
