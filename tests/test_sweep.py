@@ -144,6 +144,17 @@ def test_tiny_mixer_sweep_end_to_end_and_resume(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "0 run now, 2 already finished" in out
     assert (workdir / "seed=0" / "metrics.jsonl").read_text() == log
+    # ... also when its recorded config predates a config field (a finished run recorded
+    # before `data.target_spp` existed is still finished) ...
+    record = workdir / "seed=0" / "result.json"
+    old = json.loads(record.read_text())
+    del old["config"]["data"]["target_spp"]
+    record.write_text(json.dumps(old))
+    assert [r["skipped"] for r in run_sweep(sweep, workdir, progress=False)] == [True, True]
+    # ... but not when a field it recorded differs.
+    old["config"]["optim"]["steps"] += 1
+    record.write_text(json.dumps(old))
+    assert [r["skipped"] for r in run_sweep(sweep, workdir, progress=False)] == [False, True]
     # ... and a run whose result is lost is redone from its finished checkpoint.
     (workdir / "seed=1" / "result.json").unlink()
     again = run_sweep(sweep, workdir, progress=False)
