@@ -145,6 +145,29 @@ def cli_env(cache: Path, **extra: str) -> dict[str, str]:
 
 
 # ------------------------------------------------------------------------- files
+def hooked_env(folder: Path, hook: str) -> dict[str, str]:
+    """Write the fault-injecting ``hook`` script to ``folder/hook.py``; the subprocess env for
+    it and for ``jaxden`` (this checkout's package, one XLA cache per test module)."""
+    (folder / "hook.py").write_text(hook)
+    path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
+    return cli_env(folder / "cache", PYTHONPATH=path)
+
+
+def run_jaxden(folder: Path, env: dict, argv, *, hook_var: str = "", hook_value: str | None = None,
+               **options) -> subprocess.CompletedProcess:
+    """``jaxden ARGV`` in a subprocess; with ``hook_value``, through ``folder/hook.py`` with
+    ``hook_var`` set to it (the hook decides where to act)."""
+    import sys
+
+    if hook_value:
+        command = [sys.executable, str(folder / "hook.py"), *map(str, argv)]
+        env = {**env, hook_var: hook_value}
+    else:
+        command = [sys.executable, "-m", "jaxden.cli", *map(str, argv)]
+    return subprocess.run(command, env=env, capture_output=True, text=True, timeout=300,
+                          check=False, **options)
+
+
 def snapshot(folder: Path) -> dict[str, bytes | None]:
     """Every path under ``folder`` (relative) with its bytes (None for folders)."""
     return {str(p.relative_to(folder)): (p.read_bytes() if p.is_file() else None)

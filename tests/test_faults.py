@@ -19,23 +19,21 @@ render in test_adversarial.py.
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 from helpers import (
-    ROOT,
     assert_no_partial_files,
     assert_one_error_line,
     assert_same_state,
     build_tiny_dataset,
     checkpoint_steps,
-    cli_env,
     files,
+    hooked_env,
     logged_steps,
+    run_jaxden,
     small_tmpfs,
     write_sweep,
     write_train_config,
@@ -91,22 +89,12 @@ def setup(tmp_path_factory):
     folder = tmp_path_factory.mktemp("faults")
     dataset = build_tiny_dataset(folder / "tiny")
     write_train_config(folder, dataset, eval_every=4, keep_checkpoints=3, steps=4)
-    (folder / "hook.py").write_text(HOOK)
-    # One XLA cache for every subprocess of this module: the same programs compile once.
-    # This checkout's jaxden, also for the hook script (run from another folder).
-    path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
-    return folder, cli_env(folder / "cache", PYTHONPATH=path)
+    return folder, hooked_env(folder, HOOK)
 
 
 def jaxden(setup, *argv, fault: str | None = None) -> subprocess.CompletedProcess:
     folder, env = setup
-    if fault:
-        command = [sys.executable, str(folder / "hook.py"), *map(str, argv)]
-        env = {**env, "JAXDEN_TEST_FAULT": fault}
-    else:
-        command = [sys.executable, "-m", "jaxden.cli", *map(str, argv)]
-    return subprocess.run(command, env=env, capture_output=True, text=True, timeout=300,
-                          check=False)
+    return run_jaxden(folder, env, argv, hook_var="JAXDEN_TEST_FAULT", hook_value=fault)
 
 
 def error_lines(stderr: str) -> list[str]:

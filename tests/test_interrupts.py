@@ -16,9 +16,7 @@ a full disk in test_faults.py and test_dataset.py.
 from __future__ import annotations
 
 import json
-import os
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -28,9 +26,10 @@ from helpers import (
     assert_same_state,
     build_tiny_dataset,
     checkpoint_steps,
-    cli_env,
     files,
+    hooked_env,
     logged_steps,
+    run_jaxden,
     write_sweep,
     write_train_config,
 )
@@ -85,21 +84,14 @@ if __name__ == "__main__":
 def setup(tmp_path_factory):
     """(folder with the hook, subprocess env)."""
     folder = tmp_path_factory.mktemp("interrupts")
-    (folder / "hook.py").write_text(HOOK)
-    path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
-    return folder, cli_env(folder / "cache", PYTHONPATH=path)
+    return folder, hooked_env(folder, HOOK)
 
 
 def jaxden(setup, *argv, sigint: str | None = None) -> subprocess.CompletedProcess:
     """``jaxden ARGV`` in its own session; with ``sigint``, through the hook (see HOOK)."""
     folder, env = setup
-    if sigint:
-        command = [sys.executable, str(folder / "hook.py"), *map(str, argv)]
-        env = {**env, "JAXDEN_TEST_SIGINT": sigint}
-    else:
-        command = [sys.executable, "-m", "jaxden.cli", *map(str, argv)]
-    return subprocess.run(command, env=env, capture_output=True, text=True, timeout=300,
-                          check=False, start_new_session=True)
+    return run_jaxden(folder, env, argv, hook_var="JAXDEN_TEST_SIGINT", hook_value=sigint,
+                      start_new_session=True)
 
 
 def assert_interrupted(result: subprocess.CompletedProcess) -> None:
