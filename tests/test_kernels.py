@@ -236,6 +236,85 @@ def test_decode_under_jit_and_vmap(rng):
     np.testing.assert_allclose(mapped, batched, rtol=1e-6, atol=1e-7)
 
 
+# ------------------------------------------------- the decoder's two paths (box form)
+def _three_map_inputs(rng, spread, shape=(2, 12, 15)):
+    """Colour and three importance maps whose range (max - min) over each image is ``spread``."""
+    color, _ = _inputs(rng, shape)
+    # A ramp along W plus noise: the windows at the low end hold only small weights.
+    maps = np.linspace(0.0, 1.0, shape[-1])[:, None] + 0.05 * rng.uniform(0, 1, shape + (3,))
+    maps = (maps - maps.min(axis=(-3, -2), keepdims=True))
+    maps = spread * maps / maps.max(axis=(-3, -2), keepdims=True) - spread / 2
+    logits = rng.standard_normal(shape + (3,)).astype(np.float32)
+    return color, maps.astype(np.float32), logits
+
+
+def test_path_choice_follows_the_importance_range(rng):
+    _, maps, _ = _three_map_inputs(rng, 63.0)
+    assert bool(kernels._global_shift_ok(maps))
+    _, wide, _ = _three_map_inputs(rng, 65.0)
+    assert not bool(kernels._global_shift_ok(wide))
+    # One wide map in one batch item sends the whole call to the per-window path.
+    mixed = maps.copy()
+    mixed[1, ..., 2] = wide[1, ..., 2]
+    assert not bool(kernels._global_shift_ok(mixed))
+    for bad in (np.nan, np.inf, -np.inf):
+        broken = maps.copy()
+        broken[0, 3, 4, 1] = bad
+        assert not bool(kernels._global_shift_ok(broken))
+
+
+@pytest.mark.parametrize("spread", [1.0, 20.0, 63.5, 64.5, 150.0])
+def test_both_paths_match_brute_force_near_the_threshold(rng, spread):
+    # Either side of GLOBAL_SHIFT_RANGE = 64: the global-shift path at 63.5 keeps every
+    # window's weights exact (its smallest window maximum is e^-63.5 of the image's), and the
+    # per-window path takes over at 64.5; both agree with the float64 per-pixel softmax.
+    sizes = (1, 3, 7, 13)
+    color, _ = _inputs(rng, (12, 15))
+    ramp = np.linspace(-spread / 2, spread / 2, 15)[None, :, None]
+    maps = (ramp + 0.2 * rng.standard_normal((12, 15, 4))).clip(-spread / 2, spread / 2)
+    maps = maps.astype(np.float32)
+    logits = rng.standard_normal((12, 15, 4)).astype(np.float32)
+    assert bool(kernels._global_shift_ok(maps)) == (spread < kernels.GLOBAL_SHIFT_RANGE)
+    alpha = np.exp(logits - logits.max(-1, keepdims=True))
+    alpha /= alpha.sum(-1, keepdims=True)
+    expected = sum(alpha[..., i : i + 1] * _numpy_filter(color, maps[..., i], k)
+                   for i, k in enumerate(sizes))
+    out = kernels.decode(color, maps, logits, sizes)
+    np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("spread", [30.0, 63.5])
+def test_the_two_paths_agree_in_value_and_gradient(rng, spread):
+    # The same inputs through each path directly (the production call picks one of them). At
+    # the threshold a window's weight sum is as small as e^-63.5: its square's inverse, which
+    # reverse mode forms for a quotient, would overflow float32 without the normalisation.
+    sizes = (3, 5, 9)
+    color, maps, logits = _three_map_inputs(rng, spread)
+    cotangent = rng.standard_normal(color.shape).astype(np.float32)
+    results = []
+    for path in (kernels._decode_shifted, kernels._decode_windowed):
+        fn = jax.jit(lambda c, i, a, path=path: path(c, i, a, kernel_sizes=sizes))
+        value, vjp = jax.vjp(fn, color, maps, logits)
+        results.append((value, vjp(cotangent)))
+    (v1, g1), (v2, g2) = results
+    np.testing.assert_allclose(v1, v2, rtol=1e-5, atol=1e-6)
+    for a, b in zip(g1, g2, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5 * np.abs(b).max())
+
+
+def test_decode_jvp_through_the_path_choice(rng):
+    # SURE's divergence is a jvp of the denoiser: the choice depends on the primal only, and
+    # the tangent of the global-shift path equals the per-window path's.
+    sizes = (3, 5, 9)
+    color, maps, logits = _three_map_inputs(rng, 10.0)
+    tangent = rng.standard_normal(color.shape).astype(np.float32)
+    outs = [jax.jvp(lambda c, p=path: p(c, maps, logits, kernel_sizes=sizes), (color,),
+                    (tangent,))[1] for path in (kernels._decode_shifted, kernels._decode_windowed)]
+    np.testing.assert_allclose(outs[0], outs[1], rtol=1e-5, atol=1e-6)
+    production = jax.jvp(lambda c: kernels.decode(c, maps, logits, sizes), (color,), (tangent,))
+    np.testing.assert_allclose(production[1], outs[1], rtol=1e-5, atol=1e-6)
+
+
 # ---------------------------------------------------------------------------- bad input
 def test_shape_and_option_errors(rng):
     color, importance = _inputs(rng, (6, 7))

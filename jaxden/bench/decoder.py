@@ -14,6 +14,9 @@ Time: wall-clock and process CPU time per call, both forms compiled first, the m
 ``repeats`` calls timed alternately (drift of a shared machine hits both alike). The unfold
 form takes tens of seconds per call at 720p, so it gets fewer repeats.
 
+``box_over_windowed`` (and ``backward_box_over_windowed``): the box form's global-shift path,
+which these inputs take (importance ~ N(0, 2^2)), over its per-window path alone.
+
 Keys: ``memory_ratio`` (box / unfold, forward; target <= 0.25), ``time_ratio`` (box / unfold
 wall time, forward; target <= 1.0), ``cpu_time_ratio``, the raw numbers, and the same for
 forward+backward (gradient w.r.t. colour, importance and logits): memory for both forms,
@@ -54,13 +57,24 @@ def _inputs(height: int, width: int, seed: int = 0):
     return jnp.asarray(color), jnp.asarray(importance), jnp.asarray(logits)
 
 
+def _decoder(form: str):
+    """'box' and 'unfold' are the public forms; 'windowed' is the box form's per-window path
+    alone (what 'box' falls back to for importance ranges >= 64; these inputs take the
+    global-shift path)."""
+    if form == "windowed":
+        return lambda c, i, a: kernels._decode_windowed(c, i, a, KERNEL_SIZES)
+    return lambda c, i, a: kernels.decode(c, i, a, KERNEL_SIZES, form)
+
+
 def _forward(form: str):
-    return jax.jit(lambda c, i, a: kernels.decode(c, i, a, KERNEL_SIZES, form))
+    return jax.jit(_decoder(form))
 
 
 def _backward(form: str):
+    decode = _decoder(form)
+
     def loss(c, i, a):
-        return jnp.sum(kernels.decode(c, i, a, KERNEL_SIZES, form))
+        return jnp.sum(decode(c, i, a))
 
     return jax.jit(jax.grad(loss, argnums=(0, 1, 2)))
 
@@ -103,11 +117,14 @@ def measure(size: tuple[int, int] = FULL_SIZE, repeats: int = 5, unfold_repeats:
         jnp.max(jnp.abs(forward["box"](*args) - forward["unfold"](*args)))
         / jnp.max(jnp.abs(forward["unfold"](*args)))
     )
-    wall, cpu = _time(forward, args, {"box": repeats, "unfold": unfold_repeats})
-    timed_bwd = {"box": backward["box"]}
+    forward["windowed"] = _forward("windowed")
+    wall, cpu = _time(forward, args,
+                      {"box": repeats, "windowed": repeats, "unfold": unfold_repeats})
+    timed_bwd = {"box": backward["box"], "windowed": _backward("windowed")}
     if time_unfold_backward:
         timed_bwd["unfold"] = backward["unfold"]
-    wall_bwd, cpu_bwd = _time(timed_bwd, args, {"box": repeats, "unfold": unfold_repeats})
+    wall_bwd, cpu_bwd = _time(timed_bwd, args,
+                              {"box": repeats, "windowed": repeats, "unfold": unfold_repeats})
 
     result = {
         "memory_ratio": memory["box"] / memory["unfold"],
@@ -128,6 +145,10 @@ def measure(size: tuple[int, int] = FULL_SIZE, repeats: int = 5, unfold_repeats:
         "backward_unfold_mb": memory_bwd["unfold"] / 2**20,
         "backward_box_s": wall_bwd["box"],
         "backward_box_cpu_s": cpu_bwd["box"],
+        "windowed_s": wall["windowed"],
+        "box_over_windowed": wall["box"] / wall["windowed"],
+        "backward_windowed_s": wall_bwd["windowed"],
+        "backward_box_over_windowed": wall_bwd["box"] / wall_bwd["windowed"],
     }
     if time_unfold_backward:
         result["backward_unfold_s"] = wall_bwd["unfold"]

@@ -45,6 +45,19 @@ Why this form and not the alternatives (max relative error against a float64 bru
   0.74, + 2-D table 0.82, + reduce_window 1.42; unfold 17.9. So robustness costs ~2.4x against
   the fastest unsafe form (one exponential per pixel instead of 2 k per pass).
 
+The production decoder (:func:`decode` with ``form="box"``, and :func:`filter_box`) takes a
+faster exact path whenever it can: if every importance map's range (max - min over the image)
+is below ``GLOBAL_SHIFT_RANGE`` = 64, one shift per map (its maximum) keeps every window's
+largest weight above e^-64, so nothing that matters underflows. The weights ``exp(I - max I)``
+are then computed once per pixel and map, the two box sums are power-of-two partial sums
+(k = 13 in 5 additions instead of 12) on channel-first planes (contiguous along W), and the
+quotient is normalised so that reverse mode never squares a tiny denominator. Otherwise (a
+wider range, NaN, inf) the call takes the per-window form above. The choice is one
+``lax.cond`` on the primal (jvp and grad keep it; a ``vmap`` over importance maps evaluates
+both paths). The trained WSKP-6 produces ranges of 4-47 on the held-out crops. Six kernels at
+1280 x 720, forward: about 2x faster than the per-window form alone, forward+backward 1.5x
+(``jaxden bench decoder`` reports both paths).
+
 Both filters are jitted, differentiable in ``color`` and ``importance``, accept leading batch
 dimensions, and are float32 throughout (inputs are promoted to at least float32).
 """
@@ -199,8 +212,8 @@ def _scaled_window_sum(log_scale, values, kernel_size: int, axis: int):
     return new_scale, total
 
 
-@functools.partial(jax.jit, static_argnames=("kernel_size",))
-def _filter_box(color, importance, kernel_size: int):
+def _filter_box_windowed(color, importance, kernel_size: int):
+    """The per-window-stabilised filter (any importance range); see the module docstring."""
     if kernel_size == 1:
         return color  # a 1 x 1 window: the weight is exactly 1
     ones = jnp.ones(color.shape[:-1] + (1,), color.dtype)
@@ -208,6 +221,103 @@ def _filter_box(color, importance, kernel_size: int):
     scale, sums = _scaled_window_sum(importance, values, kernel_size, axis=-1)  # along W
     _, sums = _scaled_window_sum(scale, sums, kernel_size, axis=-2)  # along H
     return sums[..., :-1] / sums[..., -1:]  # denominator >= 1 by construction
+
+
+#: Largest importance range (max - min over each map) that takes the global-shift path: every
+#: window's largest weight is then > e^-64 (a normal float32) and the terms that underflow
+#: (below e^-87.3) are < e^-23 of it, a relative error below 169 e^-23 = 2e-8.
+GLOBAL_SHIFT_RANGE = 64.0
+
+
+def _box_sum(values, kernel_size: int, axis: int):
+    """Zero-padded centred k-window sum along ``axis`` from power-of-two partial sums.
+
+    ``S_2m(i) = S_m(i) + S_m(i + m)`` builds windows of 1, 2, 4, 8 ... samples; the k-window is
+    the sum of the ones in k's binary expansion at consecutive offsets: k = 13 takes 3 doublings
+    and 2 additions instead of 12 shifted additions. All slices are static and the sum is
+    linear, so its transpose (the gradient) is the same shape of program.
+    """
+    radius = kernel_size // 2
+    size = values.shape[axis]
+    pad = [(0, 0)] * values.ndim
+    pad[axis] = (radius, radius)
+    partial = {1: jnp.pad(values, pad)}  # length size + k - 1
+    width = 1
+    while 2 * width <= kernel_size:
+        prev = partial[width]
+        length = prev.shape[axis] - width
+        partial[2 * width] = (jax.lax.slice_in_dim(prev, 0, length, axis=axis)
+                              + jax.lax.slice_in_dim(prev, width, width + length, axis=axis))
+        width *= 2
+    total, offset = None, 0
+    for width in sorted(partial, reverse=True):
+        if kernel_size & width:
+            part = jax.lax.slice_in_dim(partial[width], offset, offset + size, axis=axis)
+            total = part if total is None else total + part
+            offset += width
+    return total
+
+
+def _global_shift_ok(importance_maps):
+    """Scalar bool: every map's range (over H, W; all batch items) is below the threshold.
+
+    False for NaN or infinite importance, which then take the per-window path as before.
+    """
+    spread = jnp.max(importance_maps, axis=(-3, -2)) - jnp.min(importance_maps, axis=(-3, -2))
+    return jnp.all(spread < GLOBAL_SHIFT_RANGE)
+
+
+def _decode_shifted(color, importance_maps, fusion_logits, kernel_sizes):
+    """Filter and fuse with one shift per map (its maximum), channel-first: see the docstring.
+
+    Planes are (..., C, H, W) so that the window sums run along the contiguous W axis on
+    full-width vectors (channel-last (H, W, 4) vectorises badly on the CPU: 2x slower).
+    """
+    maps = jnp.moveaxis(importance_maps, -1, -3)  # (..., M, H, W)
+    shift = jax.lax.stop_gradient(jnp.max(maps, axis=(-2, -1), keepdims=True))
+    weights = jnp.exp(maps - shift)  # (..., M, H, W), in (e^-60, 1]
+    planes = jnp.moveaxis(color, -1, -3)  # (..., C, H, W)
+    alpha = jax.nn.softmax(jnp.moveaxis(fusion_logits, -1, -3), axis=-3)  # Eq. 5
+    out = jnp.zeros_like(planes)
+    for i, k in enumerate(kernel_sizes):
+        a = alpha[..., i : i + 1, :, :]
+        if k == 1:
+            out = out + a * planes
+            continue
+        w = weights[..., i : i + 1, :, :]
+        sums = jnp.concatenate([w * planes, w], axis=-3)
+        sums = _box_sum(_box_sum(sums, k, axis=-1), k, axis=-2)
+        # The weight sum lies in (e^-64, k^2]. Reverse mode of a quotient forms the inverse
+        # square of its denominator (e^128: inf in float32), so divide both by the sum (as a
+        # constant) first: the quotient's denominator is then 1 up to round-off.
+        norm = jax.lax.stop_gradient(1.0 / sums[..., -1:, :, :])
+        out = out + (sums[..., :-1, :, :] * norm) * (a / (sums[..., -1:, :, :] * norm))
+    return jnp.moveaxis(out, -3, -1)
+
+
+def _decode_windowed(color, importance_maps, fusion_logits, kernel_sizes):
+    filtered = [_filter_box_windowed(color, importance_maps[..., i], k)
+                for i, k in enumerate(kernel_sizes)]
+    return _fuse(jnp.stack(filtered, axis=-4), fusion_logits)
+
+
+def _decode_box(color, importance_maps, fusion_logits, kernel_sizes):
+    """The production decoder: the fast global-shift path when it is exact, else per window."""
+    return jax.lax.cond(
+        _global_shift_ok(importance_maps),
+        functools.partial(_decode_shifted, kernel_sizes=kernel_sizes),
+        functools.partial(_decode_windowed, kernel_sizes=kernel_sizes),
+        color, importance_maps, fusion_logits,
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("kernel_size",))
+def _filter_box(color, importance, kernel_size: int):
+    if kernel_size == 1:
+        return color
+    # One kernel size is a decode with a single map and a fusion weight of 1.
+    logits = jnp.zeros(importance.shape + (1,), color.dtype)
+    return _decode_box(color, importance[..., None], logits, (kernel_size,))
 
 
 def filter_box(color, importance, kernel_size: int):
@@ -280,9 +390,10 @@ def fuse(filtered, logits):
 # ---------------------------------------------------------------------------- decoder
 @functools.partial(jax.jit, static_argnames=("kernel_sizes", "form"))
 def _decode(color, importance_maps, fusion_logits, kernel_sizes, form):
-    filter_fn = _filter_box if form == "box" else _filter_unfold
+    if form == "box":
+        return _decode_box(color, importance_maps, fusion_logits, kernel_sizes)
     filtered = [
-        filter_fn(color, importance_maps[..., i], k) for i, k in enumerate(kernel_sizes)
+        _filter_unfold(color, importance_maps[..., i], k) for i, k in enumerate(kernel_sizes)
     ]
     return _fuse(jnp.stack(filtered, axis=-4), fusion_logits)
 
