@@ -210,11 +210,12 @@ def main(argv=None) -> int:
     if "wskp6_network_over_kp" in bench:
         lines += ["", f"WSKP-6's ImportanceNet alone (no kernel decoding) takes "
                   f"{bench['wskp6_network_over_kp']:.2f}x KP's time: the floor for any decoder. "
-                  "The rest of WSKP-6's time is the box-sum decoder of six kernel sizes, so a "
-                  "faster decoder (e.g. one stabilising shift for all sizes, sharing the window "
-                  "sums) is where the 0.5x target can still be met on this CPU; the paper's "
-                  "0.46x is measured on a GPU with a fused CUDA decoder. Machine, commit and "
-                  "load: `bench-denoisers.json` (_provenance)."]
+                  "The rest of WSKP-6's time is the box-sum decoder of six kernel sizes "
+                  "(`jaxden.denoise.kernels`: one exponential per pixel and map with a "
+                  "global shift when every importance range is below 64, the per-window form "
+                  "otherwise; `bench-decoder.json` times both). The paper's 0.46x is measured "
+                  "on a GPU with a fused CUDA decoder. Machine, commit and load: "
+                  "`bench-denoisers.json` (_provenance)."]
     (out / "rt-table3.md").write_text("\n".join(lines) + "\n")
 
     # Table 5 and Figures 9/10: the ablation sweep, every row at its own (shorter) budget
