@@ -1,5 +1,5 @@
 """The experiment scripts that stay in experiments/ (pd_report, pd_figure, mixer_alpha,
-ship_mixer), tested without data or renders."""
+ship_mixer, relmse_crops), tested without data or renders."""
 
 import json
 import sys
@@ -282,3 +282,41 @@ def test_rt_tables_verdicts_from_seeds(tmp_path):
     table5 = (out / "rt-table5.md").read_text()
     assert "| WSKP-6, plain 5x5 convolutions | 25.90 ± 0.00 (2 seeds) |" in table5
     assert "+0.6 dB): met (margin +0.65 dB" in table5
+
+
+def test_relmse_crops_matches_a_numpy_relmse_and_names_the_worst_crop(tmp_path, capsys):
+    # A tiny synthetic dataset (no Mitsuba); "oidn" is the model, so no training is needed.
+    from helpers import build_tiny_dataset
+
+    import relmse_crops
+    from jaxden.data.layout import load_manifest
+    from jaxden.denoise.registry import load_denoiser
+    from jaxden.io.exr import read_frame
+    from jaxden.metrics import relmse
+
+    data = build_tiny_dataset(tmp_path / "tiny", ["crops_per_scene=2"])
+    manifest = load_manifest(data)
+    split = manifest.crops[0].split
+    out = tmp_path / "crops.md"
+    assert relmse_crops.main(["--dataset", str(data), "--split", split, "--spp", "2",
+                              "--model", "oidn", "--out", str(out)]) == 0
+    result = json.loads(out.with_suffix(".json").read_text())
+    oidn = load_denoiser("oidn")
+    expected = {}
+    for crop in manifest.crops:
+        if crop.split != split:
+            continue
+        items = manifest.items_of(crop.id)
+        noisy = next(i for i in items if i.kind != "reference" and i.spp == 2)
+        ref = read_frame(data / next(i for i in items if i.kind == "reference").path).color
+        frame = read_frame(data / noisy.path)
+        expected[crop.id] = float(relmse(np.asarray(oidn(frame)), ref))
+    got = {r["crop"]: r["oidn"] for r in result["crops"]}
+    assert got.keys() == expected.keys() and len(got) >= 2
+    for crop, value in expected.items():
+        assert got[crop] == pytest.approx(value, rel=1e-4)
+    summary = result["summary"]["oidn"]
+    worst = max(expected, key=expected.get)
+    assert summary["worst_crop"] == worst
+    assert summary["mean"] == pytest.approx(np.mean(list(expected.values())), rel=1e-4)
+    assert "| oidn |" in out.read_text()
