@@ -198,3 +198,26 @@ def test_render_cli_api_and_dataset_apply_the_overrides(scene_dir, tmp_path, cap
     assert code == 0, capsys.readouterr().err
     files = sorted((tmp_path / "ds").rglob("*.exr"))
     assert len(files) == 2 and all(read_frame(f).color.shape == (8, 8, 3) for f in files)
+
+
+def test_a_scene_mitsuba_loads_but_cannot_render_is_one_line(tmp_path, capsys):
+    # A checkerboard as a bump map loads, but Mitsuba cannot differentiate it while rendering
+    # (a RuntimeError from inside drjit.custom): one line naming the file and the plugin.
+    from helpers import assert_one_error_line, run_cli
+
+    scene = tmp_path / "bump.xml"
+    scene.write_text("""<scene version="3.0.0">
+  <sensor type="perspective"><float name="fov" value="40"/>
+    <transform name="to_world"><lookat origin="0, 0, 3" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film>
+  </sensor>
+  <emitter type="constant"/>
+  <shape type="sphere"><bsdf type="bumpmap">
+    <texture type="checkerboard" name="arbitrary"/>
+    <bsdf type="diffuse"/>
+  </bsdf></shape>
+</scene>""")
+    code, lines, _ = run_cli(["render", str(scene), "--spp", "1", "--out",
+                              str(tmp_path / "out.exr")], capsys)
+    assert_one_error_line(code, lines, str(scene), "could not render", "eval_1_grad")
+    assert not (tmp_path / "out.exr").exists()

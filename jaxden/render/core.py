@@ -236,8 +236,18 @@ def _features_integrator(aux: str = "first-hit"):
 def _render(scene, sensor, integrator, seed: int, spp: int, channels: int) -> np.ndarray:
     import mitsuba as mi
 
-    image = np.array(mi.render(scene, sensor=sensor, integrator=integrator, seed=seed, spp=spp),
-                     dtype=np.float32)
+    try:
+        image = np.array(mi.render(scene, sensor=sensor, integrator=integrator, seed=seed,
+                                   spp=spp), dtype=np.float32)
+    except Exception as error:  # noqa: BLE001 - Mitsuba raises RuntimeError and others
+        # A scene Mitsuba loads but cannot render (e.g. a texture that a plugin cannot
+        # differentiate); the innermost message names the plugin.
+        while error.__cause__ is not None:
+            error = error.__cause__
+        message = " ".join(line.strip() for line in str(error).splitlines() if line.strip())
+        source = load.sensor_source(scene)
+        name = source.name if source is not None else "the scene"
+        raise SceneError(f"{name}: Mitsuba could not render it: {message}") from None
     if image.ndim != 3 or image.shape[-1] != channels:
         raise RuntimeError(f"expected a render with {channels} channels, got shape {image.shape}")
     return image
