@@ -1,7 +1,8 @@
 """The experiment scripts that stay in experiments/ (pd_report, pd_figure, mixer_alpha,
-ship_mixer, relmse_crops), tested without data or renders."""
+ship_mixer, relmse_crops, pd_ood), tested without data or renders."""
 
 import json
+import math
 import sys
 import xml.etree.ElementTree as ET
 from importlib.metadata import version
@@ -320,3 +321,31 @@ def test_relmse_crops_matches_a_numpy_relmse_and_names_the_worst_crop(tmp_path, 
     assert summary["worst_crop"] == worst
     assert summary["mean"] == pytest.approx(np.mean(list(expected.values())), rel=1e-4)
     assert "| oidn |" in out.read_text()
+
+
+def test_pd_ood_ratios_bound_and_diagnosis(tmp_path):
+    import pd_ood
+
+    def row(scene, spp, pd, den, sure):
+        return {"scene": scene, "crop": scene, "spp": spp, "pd_rmse": pd, "denoiser_rmse": den,
+                "pd_relmse": 2 * pd, "denoiser_relmse": 2 * den, "oracle_rmse": 0.9 * den,
+                "mixed_rmse": pd, "mc_rmse": 3 * den, "alpha": 0.8, "sure": sure,
+                "denoiser_mse_nc": den ** 2}
+
+    rows = [row("a", 16, 1.0, 1.0, 1.0), row("a", 32, 2.2, 2.0, 4.4),   # 1.00 and 1.10
+            row("b", 16, 0.5, 1.0, 1.0), row("b", 32, 0.5, 1.0, 1.0)]   # 0.50 twice
+    result = pd_ood.diagnose({"rows": rows})
+    assert result["scenes"]["a"]["rmse_gmean"] == pytest.approx(math.sqrt(1.1))
+    assert result["scenes"]["a"]["rmse_worst"] == pytest.approx(1.1)
+    assert result["scenes"]["a"]["cells_over_bound"] == 1
+    assert result["scenes"]["b"]["cells_over_bound"] == 0
+    assert result["overall"]["cells_over_bound"] == 1
+    # The set's ratio per spp is a ratio of means over crops, as pd_report's table.
+    assert result["per_spp"][32]["rmse"] == pytest.approx(2.7 / 3.0)
+    sure_errors = sorted(c["sure_error"] for c in result["cells"])
+    assert sure_errors[-1] == pytest.approx(0.1)  # 4.4 / 2.0^2 - 1
+    out = tmp_path / "diag"
+    report = tmp_path / "r.json"
+    report.write_text(json.dumps({"rows": rows}))
+    assert pd_ood.main([str(report), "--out", str(out)]) == 0
+    assert "| a | 1.049 |" in (tmp_path / "diag.md").read_text()
