@@ -246,6 +246,7 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
                 ("pd_over_denoiser_paper_range", "PD(OIDN) / OIDN, spp >= 32 (paper's range)"),
                 ("mixed_over_denoiser", "PD w/o t-test / OIDN, all spp"),
                 ("pd_pc_over_denoiser", "PD(OIDN), per-channel t / OIDN, all spp"),
+                ("pd_shared_over_denoiser", "PD(OIDN), shared t (authors') / OIDN, all spp"),
                 ("oracle_over_denoiser", "oracle mix / OIDN, all spp"),
                 ("oracle_over_denoiser_paper_range", "oracle mix / OIDN, spp >= 32"),
                 ("pd_over_mc_at_max_spp", f"PD(OIDN) / MC at {s['max_spp']} spp")]

@@ -28,7 +28,7 @@ import numpy as np
 from jaxden.data.crops import iter_crops
 from jaxden.errors import ConfigError, DatasetError
 
-PD_METHODS = ("mc", "denoiser", "mixed", "pd", "pd_pc", "oracle")
+PD_METHODS = ("mc", "denoiser", "mixed", "pd", "pd_pc", "pd_shared", "oracle")
 ORACLE_BLOCK = 8
 PAPER_MIN_SPP = 32  # the paper averages its Table 3 over 32..8192 spp
 PD_METRICS = ("rmse", "rmse_nc", "relmse", "flip", "mse_nc")
@@ -94,7 +94,9 @@ def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
                          progress: bool = False) -> list[dict[str, Any]]:
     """One row per (crop, spp): errors of MC, the denoiser, the mixer without the t-test, PD,
     PD with the per-channel t-statistic (``pd_pc``: the mixer's config with
-    ``tstat.per_channel = True``, same alpha) and the reference-fitted :func:`oracle_mix`
+    ``tstat.per_channel = True``, same alpha) and with the shared one (``pd_shared``: the
+    authors' form, ``per_channel = False``; one of the two equals ``pd``), and the
+    reference-fitted :func:`oracle_mix`
     bound, each as ``{method}_{metric}`` (metrics
     :data:`PD_METRICS`), plus ``sure`` (image mean
     of y's SURE), ``alpha`` / ``alpha_prime`` (means) and ``swap_gap`` (mean |alpha(x, y) -
@@ -117,6 +119,7 @@ def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
     model = load_denoiser(denoiser) if isinstance(denoiser, str) else denoiser
     params, config = load_mixer(mixer) if isinstance(mixer, (str, Path)) else mixer
     per_channel = dataclasses.replace(config.tstat, per_channel=True)
+    shared = dataclasses.replace(config.tstat, per_channel=False)
     base = jax.random.PRNGKey(seed)
     rows, index = [], 0
     crops = iter_crops(dataset_dir, split, spp)
@@ -127,11 +130,13 @@ def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
                 frame, model, params, config, jax.random.fold_in(base, index),
                 num_probes=num_probes)
             index += 1
-            alpha_pc = t_statistic_scaling(extras["alpha"], frame.color, extras["mixed"],
-                                           frame.variance, per_channel)
+            alpha_pc, alpha_shared = (
+                t_statistic_scaling(extras["alpha"], frame.color, extras["mixed"],
+                                    frame.variance, tstat) for tstat in (per_channel, shared))
             images = {"mc": frame.color, "denoiser": extras["denoised"],
                       "mixed": extras["mixed"], "pd": z,
                       "pd_pc": mix(frame.color, extras["denoised"], alpha_pc),
+                      "pd_shared": mix(frame.color, extras["denoised"], alpha_shared),
                       "oracle": oracle_mix(frame.color, extras["denoised"], reference.color)}
             row: dict[str, Any] = {"crop": crop.id, "scene": crop.scene, "spp": level}
             for method, image in images.items():
@@ -300,7 +305,9 @@ def summarize_progressive(rows) -> dict[str, Any]:
     ratios: dict[str, dict[str, float]] = defaultdict(dict)
     top = max(per_spp)
     for metric in ("rmse", "rmse_nc", "relmse", "flip"):
-        for method in ("pd", "pd_pc", "mixed", "oracle"):
+        for method in ("pd", "pd_pc", "pd_shared", "mixed", "oracle"):
+            if f"{method}_{metric}" not in per_spp[top]:
+                continue  # a report from before the row existed
             for suffix, low in (("", 0), ("_paper_range", PAPER_MIN_SPP)):
                 per = [m[f"{method}_{metric}"] / m[f"denoiser_{metric}"]
                        for level, m in per_spp.items()
@@ -308,7 +315,9 @@ def summarize_progressive(rows) -> dict[str, Any]:
                 ratios[f"{method}_over_denoiser{suffix}"][metric] = (
                     float(np.mean(per)) if per else float("nan"))
         mc = per_spp[top][f"mc_{metric}"]
-        for method in ("pd", "pd_pc"):
+        for method in ("pd", "pd_pc", "pd_shared"):
+            if f"{method}_{metric}" not in per_spp[top]:
+                continue
             ratios[f"{method}_over_mc_at_max_spp"][metric] = (
                 per_spp[top][f"{method}_{metric}"] / mc if mc > 0 else float("nan"))
     for level, m in per_spp.items():
@@ -383,6 +392,7 @@ def markdown_progressive(summary: dict[str, Any], denoiser: str = "OIDN") -> str
     """Table 3 / Fig. 10 on our data: per spp, mean over crops."""
     names = {"mc": "MC", "denoiser": denoiser, "mixed": "mix w/o t-test",
              "pd": f"PD({denoiser})", "pd_pc": f"PD({denoiser}), per-channel t",
+             "pd_shared": f"PD({denoiser}), shared t (authors')",
              "oracle": f"oracle mix ({ORACLE_BLOCK}² tiles)"}
     lines = ["| spp | method | RMSE | RMSE (noise-corr.) | relMSE | FLIP |",
              "|---:|---|---:|---:|---:|---:|"]
@@ -397,12 +407,12 @@ def markdown_progressive(summary: dict[str, Any], denoiser: str = "OIDN") -> str
     lines.append("| ratio | RMSE | RMSE (noise-corr.) | relMSE | FLIP |")
     lines.append("|---|---:|---:|---:|---:|")
     labels = {}
-    for method in ("pd", "pd_pc", "mixed", "oracle"):
+    for method in ("pd", "pd_pc", "pd_shared", "mixed", "oracle"):
         name = names[method]
         labels[f"{method}_over_denoiser"] = f"{name} / {denoiser}, mean over spp"
         labels[f"{method}_over_denoiser_paper_range"] = (
             f"{name} / {denoiser}, mean over spp >= {PAPER_MIN_SPP}")
-    for method in ("pd", "pd_pc"):
+    for method in ("pd", "pd_pc", "pd_shared"):
         labels[f"{method}_over_mc_at_max_spp"] = f"{names[method]} / MC at {summary['max_spp']} spp"
     for key, label in labels.items():
         if key not in summary["headline"]:
