@@ -16,6 +16,7 @@ from jax.scipy.special import ndtr
 
 from jaxden.config import bounded
 from jaxden.errors import ConfigError, FrameError
+from jaxden.progressive.closed_form import _blur_shifted
 from jaxden.progressive.checks import _check_image, _check_same, _check_variance_values
 from jaxden.progressive.heads import mix
 
@@ -98,20 +99,34 @@ def _gaussian_sigma(var, config: TStatConfig):
 
 
 def _blur_1d(image, taps, axis: int):
-    """Zero-padded correlation of (H, W, C) along ``axis`` (0: H, 1: W), odd-length ``taps``.
+    """Zero-padded correlation of (H, W, C) along ``axis`` (0: H, 1: W), odd-length ``taps``
+    (traced values: s depends on the data); neighbours outside the image are absent from the
+    sum. Shifted, weighted adds (:func:`jaxden.progressive.closed_form._blur_shifted`): on
+    XLA:CPU about 35x faster than the depthwise convolution this was at 1280 x 720."""
+    return _blur_shifted(image, taps, axis)
 
-    A depthwise convolution (the taps are traced values: s depends on the data); 'SAME'
-    padding with zeros = neighbours outside the image are absent from the sum.
-    """
-    channels, size = image.shape[-1], taps.shape[0]
-    kernel_hw = (size, 1) if axis == 0 else (1, size)
-    kernel = jnp.broadcast_to(taps.reshape(kernel_hw + (1, 1)), kernel_hw + (1, channels))
-    out = jax.lax.conv_general_dilated(
-        image[None], kernel.astype(image.dtype), window_strides=(1, 1), padding="SAME",
-        dimension_numbers=("NHWC", "HWIO", "NHWC"), feature_group_count=channels,
-        precision=jax.lax.Precision.HIGHEST,
-    )
-    return out[0]
+
+def _pick_along(var, index, diff, window: int, axis: int):
+    """One separable pass of the max-variance selection: per pixel, the (var, index, diff) of
+    the ``window`` neighbours along ``axis`` that is largest in var, then smallest in index;
+    out-of-image neighbours (var -inf, index int32 max) never win. Unrolled over the offsets
+    (static slices) on channel-first planes, carrying diff along instead of gathering it
+    afterwards: on XLA:CPU several times faster than a fori_loop of dynamic slices on
+    (H, W, C) followed by a gather."""
+    radius = window // 2
+    size = var.shape[axis]
+    pad = [(0, 0)] * var.ndim
+    pad[axis] = (radius, radius)
+    padded = (jnp.pad(var, pad, constant_values=-jnp.inf),
+              jnp.pad(index, pad, constant_values=np.iinfo(np.int32).max),
+              jnp.pad(diff, pad))
+    best = [jax.lax.slice_in_dim(a, 0, size, axis=axis) for a in padded]
+    for offset in range(1, window):
+        var_b, index_b, diff_b = (jax.lax.slice_in_dim(a, offset, offset + size, axis=axis)
+                                  for a in padded)
+        take_b = (var_b > best[0]) | ((var_b == best[0]) & (index_b < best[1]))
+        best = [jnp.where(take_b, b, a) for a, b in zip(best, (var_b, index_b, diff_b))]
+    return best
 
 
 def _max_variance_neighbour(var, diff, window: int):
@@ -119,30 +134,20 @@ def _max_variance_neighbour(var, diff, window: int):
 
     Ties go to the first maximum in row-major window order (top-left first), which for a
     fixed p is the smallest row-major image index; out-of-image positions never win (the
-    window is padded with var = -inf). The reduction "larger var, then smaller index" is a
-    total order, so ``reduce_window``'s unspecified reduction order cannot change the result.
+    window is padded with var = -inf).
     Returns (var_M, diff_M), each (H, W, C).
     """
-    radius = window // 2
-    height, width, channels = var.shape
+    height, width, _ = var.shape
     var = jax.lax.stop_gradient(var)  # M_p is a selection; no derivative through it
     index = jnp.broadcast_to(
         jnp.arange(height * width, dtype=jnp.int32).reshape(height, width, 1), var.shape
     )
-
-    def pick(a, b):
-        (var_a, index_a), (var_b, index_b) = a, b
-        take_b = (var_b > var_a) | ((var_b == var_a) & (index_b < index_a))
-        return jnp.where(take_b, var_b, var_a), jnp.where(take_b, index_b, index_a)
-
-    init = (jnp.array(-jnp.inf, var.dtype), jnp.array(np.iinfo(np.int32).max, jnp.int32))
-    var_m, index_m = jax.lax.reduce_window(
-        (var, index), init, pick, (window, window, 1), (1, 1, 1),
-        ((radius, radius), (radius, radius), (0, 0)),
-    )
-    flat_diff = diff.reshape(height * width, channels)
-    diff_m = jnp.take_along_axis(flat_diff, index_m.reshape(height * width, channels), axis=0)
-    return var_m, diff_m.reshape(height, width, channels)
+    # "Larger var, then smaller index" is a total order, so the best of the window is the
+    # best of the per-row bests: two separable passes of `window` comparisons each (on
+    # XLA:CPU about 9x faster than the 2-D reduce_window over the pairs at 1280 x 720).
+    planes = [jnp.moveaxis(a, -1, 0) for a in (var, index, diff)]  # (C, H, W)
+    var_m, _, diff_m = _pick_along(*_pick_along(*planes, window, axis=2), window, axis=1)
+    return jnp.moveaxis(var_m, 0, -1), jnp.moveaxis(diff_m, 0, -1)
 
 
 def _t_single(x, z, var, config: TStatConfig):
