@@ -1,4 +1,5 @@
-"""The paper's Figure 10 on our data: convergence plots and a progressive image series.
+"""The paper's Figures 2 and 10 on our data: SURE against the true error, convergence plots
+and a progressive image series.
 
     # error vs spp (log-log), mean over the test crops, from pd_report.py's JSON (no rendering)
     python experiments/pd_figure.py convergence \
@@ -7,6 +8,10 @@
     # one held-out crop at several spp: MC | OIDN | PD(OIDN) | alpha' | reference (sRGB previews)
     python experiments/pd_figure.py images --data $JAXDEN_HOME/data/test-high-chain \
         --crop s002-c000 --spp 64 512 4096 --out experiments/results/fig10-s002
+
+    # the paper's Figure 2: SURE and the input's variance against the true errors, per spp
+    python experiments/pd_figure.py sure --report experiments/results/sure-fig2.json \
+        --out experiments/results/fig2-sure
 
 ``convergence`` writes OUT.svg (RMSE and relMSE panels: MC, OIDN, PD(OIDN), the oracle mix)
 and OUT.json (the plotted means and the report's provenance). ``images`` writes OUT.png (rows:
@@ -46,16 +51,19 @@ def _log_ticks(lo: float, hi: float) -> list[float]:
     return [10.0**k for k in range(int(np.floor(np.log10(lo))), int(np.ceil(np.log10(hi))) + 1)]
 
 
-def svg_plot(curves: dict, title: str) -> str:
-    """Two log-log panels side by side, as an SVG document (no plotting dependency)."""
+def svg_plot(curves: dict, title: str, panels=PANELS, methods=METHODS,
+             dashed=("oracle",)) -> str:
+    """Log-log panels side by side (``panels``: (key, label) pairs, one per panel; ``methods``:
+    (key, legend, colour) per curve; ``dashed``: the keys drawn dashed), as an SVG document
+    (no plotting dependency)."""
     pw, ph, ml, mr, mt, mb = 360, 280, 62, 14, 36, 46
-    width = 2 * (pw + ml + mr)
-    height = ph + mt + mb + 22 * len(METHODS)
+    width = len(panels) * (pw + ml + mr)
+    height = ph + mt + mb + 22 * len(methods)
     out = [(f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
             f'font-family="sans-serif" font-size="12">'),
            f'<rect width="{width}" height="{height}" fill="white"/>',
            f'<text x="{width / 2}" y="18" text-anchor="middle" font-size="14">{title}</text>']
-    for p, (metric, label) in enumerate(PANELS):
+    for p, (metric, label) in enumerate(panels):
         ox = p * (pw + ml + mr) + ml
         data = curves[metric]
         spps = [s for s, _ in next(iter(data.values()))]
@@ -85,19 +93,20 @@ def svg_plot(curves: dict, title: str) -> str:
         out.append(f'<text x="{ox + pw / 2}" y="{mt + ph + 34}" text-anchor="middle">'
                    f'samples per pixel</text>')
         out.append(f'<text x="{ox + 8}" y="{mt + 16}">{label} (mean over crops)</text>')
-        for method, _, colour in METHODS:
+        for method, _, colour in methods:
             points = " ".join(f"{px(s):.1f},{py(v):.1f}" for s, v in data[method] if v > 0)
-            dash = ' stroke-dasharray="5,3"' if method == "oracle" else ""
+            dash = ' stroke-dasharray="5,3"' if method in dashed else ""
             out.append(f'<polyline points="{points}" fill="none" stroke="{colour}" '
                        f'stroke-width="2"{dash}/>')
             for s, v in data[method]:
                 if v > 0:
                     out.append(f'<circle cx="{px(s):.1f}" cy="{py(v):.1f}" r="2.5" '
                                f'fill="{colour}"/>')
-    for i, (_, name, colour) in enumerate(METHODS):
+    for i, (method, name, colour) in enumerate(methods):
         y = mt + ph + mb + 14 + 22 * i
+        dash = ' stroke-dasharray="5,3"' if method in dashed else ""
         out.append(f'<line x1="{ml}" y1="{y - 4}" x2="{ml + 30}" y2="{y - 4}" '
-                   f'stroke="{colour}" stroke-width="2"/>')
+                   f'stroke="{colour}" stroke-width="2"{dash}/>')
         out.append(f'<text x="{ml + 38}" y="{y}">{name}</text>')
     out.append("</svg>")
     return "\n".join(out) + "\n"
@@ -112,6 +121,50 @@ def cmd_convergence(args) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     title = args.title or f"{report['provenance']['dataset']['config']['name']}: error vs spp"
     atomic_write_text(out.with_suffix(".svg"), svg_plot(curves, title))
+    command = "python experiments/pd_figure.py " + " ".join(sys.argv[1:])
+    atomic_write_text(out.with_suffix(".json"), json.dumps(
+        {"curves": curves, "provenance": {"command": command, "report": str(args.report),
+                                          "report_provenance": report["provenance"]}},
+        indent=1, sort_keys=True) + "\n")
+    print(f"wrote {out.with_suffix('.svg')} and {out.with_suffix('.json')}")
+
+
+#: Figure 2's curves: each error next to its estimate (dashed).
+SURE_METHODS = (("input_mse_nc", "MC input: true MSE", "#7f7f7f"),
+                ("input_var", "MC input: estimate (variance of the mean)", "#7f7f7f"),
+                ("mse_nc", "denoised: true MSE", "#1f77b4"),
+                ("sure", "denoised: SURE", "#1f77b4"))
+
+
+def sure_curves(report: dict) -> dict:
+    """{denoiser: {curve: [(spp, mean over crops), ...]}} from a pd_report.py sure JSON."""
+    curves = {}
+    for denoiser, rows in report["rows"].items():
+        levels = sorted({row["spp"] for row in rows})
+        curves[denoiser] = {
+            key: [(spp, float(np.mean([r[key] for r in rows if r["spp"] == spp])))
+                  for spp in levels]
+            for key, _, _ in SURE_METHODS}
+    return curves
+
+
+def cmd_sure(args) -> None:
+    from jaxden.fileio import atomic_write_text
+
+    report = json.loads(Path(args.report).read_text())
+    missing = [k for k, _, _ in SURE_METHODS
+               if any(k not in r for rows in report["rows"].values() for r in rows)]
+    if missing:
+        raise SystemExit(f"{args.report}: rows lack {missing}: a report from before they were "
+                         "recorded; rerun pd_report.py sure")
+    curves = sure_curves(report)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    panels = [(name, Path(name).name) for name in curves]
+    title = args.title or (f"{report['provenance']['dataset']['config']['name']}: "
+                           "estimated and true error vs spp")
+    atomic_write_text(out.with_suffix(".svg"), svg_plot(
+        curves, title, panels=panels, methods=SURE_METHODS, dashed=("input_var", "sure")))
     command = "python experiments/pd_figure.py " + " ".join(sys.argv[1:])
     atomic_write_text(out.with_suffix(".json"), json.dumps(
         {"curves": curves, "provenance": {"command": command, "report": str(args.report),
@@ -203,6 +256,12 @@ def main(argv=None) -> int:
     p.add_argument("--title", default=None)
     p.add_argument("--out", required=True, help="output path without suffix")
     p.set_defaults(run=cmd_convergence)
+    p = sub.add_parser("sure", help="Figure 2: SURE and the input's variance against the "
+                                    "true errors, per spp, from a pd_report.py sure JSON")
+    p.add_argument("--report", required=True)
+    p.add_argument("--out", required=True, help="output path without suffix")
+    p.add_argument("--title", default=None)
+    p.set_defaults(run=cmd_sure)
     p = sub.add_parser("images", help="one crop at several spp: MC, OIDN, PD, alpha', reference")
     p.add_argument("--data", required=True)
     p.add_argument("--crop", required=True)

@@ -349,3 +349,27 @@ def test_pd_ood_ratios_bound_and_diagnosis(tmp_path):
     report.write_text(json.dumps({"rows": rows}))
     assert pd_ood.main([str(report), "--out", str(out)]) == 0
     assert "| a | 1.049 |" in (tmp_path / "diag.md").read_text()
+
+
+def test_sure_figure_curves_and_svg(tmp_path):
+    rows = []
+    for crop, scale in (("a", 1.0), ("b", 3.0)):
+        for spp in (2, 4):
+            rows.append({"crop": crop, "spp": spp, "input_mse_nc": scale / spp,
+                         "input_var": 1.1 * scale / spp, "mse_nc": 0.1 * scale,
+                         "sure": 0.12 * scale})
+    report = {"rows": {"oidn": rows, "runs/x": rows},
+              "provenance": {"dataset": {"config": {"name": "t"}}}}
+    curves = pd_figure.sure_curves(report)
+    assert curves["oidn"]["input_mse_nc"] == [(2, pytest.approx(1.0)), (4, pytest.approx(0.5))]
+    assert curves["runs/x"]["sure"][0] == (2, pytest.approx(0.24))
+    path = tmp_path / "r.json"
+    path.write_text(json.dumps(report))
+    assert pd_figure.main(["sure", "--report", str(path), "--out", str(tmp_path / "f")]) == 0
+    svg = ET.fromstring((tmp_path / "f.svg").read_text())
+    texts = [t.text for t in svg.iter("{http://www.w3.org/2000/svg}text")]
+    assert "oidn (mean over crops)" in texts and "x (mean over crops)" in texts
+    # the estimates are dashed, the true errors solid
+    dashed = [line for line in svg.iter("{http://www.w3.org/2000/svg}polyline")
+              if line.get("stroke-dasharray")]
+    assert len(dashed) == 4  # two estimates in each of two panels

@@ -155,7 +155,9 @@ def sure_accuracy(dataset_dir, denoiser, *, split: str = "test", seed: int = 0,
                   progress: bool = False) -> list[dict[str, Any]]:
     """One row per (crop, spp): ``sure`` (image mean of the per-pixel SURE of the denoiser's
     output), ``mse_nc`` (its noise-corrected true MSE against the reference), ``mse_raw``
-    (uncorrected) and ``reference_var`` (mean variance of the reference's pixel mean)."""
+    (uncorrected), ``reference_var`` (mean variance of the reference's pixel mean), and the
+    same for the input: ``input_var`` (the mean variance of its pixel mean, the unbiased
+    estimate of its MSE) and ``input_mse_nc`` (its noise-corrected true MSE)."""
     import jax
 
     from jaxden import metrics
@@ -180,6 +182,9 @@ def sure_accuracy(dataset_dir, denoiser, *, split: str = "test", seed: int = 0,
                                                             reference.variance)),
                 "mse_raw": float(metrics.mse(y, reference.color)),
                 "reference_var": float(np.mean(reference.variance)),
+                "input_var": float(np.mean(frame.variance)),
+                "input_mse_nc": float(metrics.noise_corrected_mse(
+                    np.asarray(frame.color, np.float32), reference.color, reference.variance)),
             })
     return rows
 
