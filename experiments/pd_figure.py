@@ -112,21 +112,26 @@ def svg_plot(curves: dict, title: str, panels=PANELS, methods=METHODS,
     return "\n".join(out) + "\n"
 
 
-def cmd_convergence(args) -> None:
+def _write_plot(out: Path, svg: str, curves: dict, report_path, report: dict) -> None:
+    """OUT.svg and OUT.json (the plotted means, this command and the report's provenance)."""
     from jaxden.fileio import atomic_write_text
 
+    atomic_write_text(out.with_suffix(".svg"), svg)
+    command = "python experiments/pd_figure.py " + " ".join(sys.argv[1:])
+    atomic_write_text(out.with_suffix(".json"), json.dumps(
+        {"curves": curves, "provenance": {"command": command, "report": str(report_path),
+                                          "report_provenance": report["provenance"]}},
+        indent=1, sort_keys=True) + "\n")
+    print(f"wrote {out.with_suffix('.svg')} and {out.with_suffix('.json')}")
+
+
+def cmd_convergence(args) -> None:
     report = json.loads(Path(args.report).read_text())
     curves = mean_curves(report["rows"])
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     title = args.title or f"{report['provenance']['dataset']['config']['name']}: error vs spp"
-    atomic_write_text(out.with_suffix(".svg"), svg_plot(curves, title))
-    command = "python experiments/pd_figure.py " + " ".join(sys.argv[1:])
-    atomic_write_text(out.with_suffix(".json"), json.dumps(
-        {"curves": curves, "provenance": {"command": command, "report": str(args.report),
-                                          "report_provenance": report["provenance"]}},
-        indent=1, sort_keys=True) + "\n")
-    print(f"wrote {out.with_suffix('.svg')} and {out.with_suffix('.json')}")
+    _write_plot(out, svg_plot(curves, title), curves, args.report, report)
 
 
 #: Figure 2's curves: each error next to its estimate (dashed).
@@ -149,8 +154,6 @@ def sure_curves(report: dict) -> dict:
 
 
 def cmd_sure(args) -> None:
-    from jaxden.fileio import atomic_write_text
-
     report = json.loads(Path(args.report).read_text())
     missing = [k for k, _, _ in SURE_METHODS
                if any(k not in r for rows in report["rows"].values() for r in rows)]
@@ -163,14 +166,8 @@ def cmd_sure(args) -> None:
     panels = [(name, Path(name).name) for name in curves]
     title = args.title or (f"{report['provenance']['dataset']['config']['name']}: "
                            "estimated and true error vs spp")
-    atomic_write_text(out.with_suffix(".svg"), svg_plot(
-        curves, title, panels=panels, methods=SURE_METHODS, dashed=("input_var", "sure")))
-    command = "python experiments/pd_figure.py " + " ".join(sys.argv[1:])
-    atomic_write_text(out.with_suffix(".json"), json.dumps(
-        {"curves": curves, "provenance": {"command": command, "report": str(args.report),
-                                          "report_provenance": report["provenance"]}},
-        indent=1, sort_keys=True) + "\n")
-    print(f"wrote {out.with_suffix('.svg')} and {out.with_suffix('.json')}")
+    _write_plot(out, svg_plot(curves, title, panels=panels, methods=SURE_METHODS,
+                              dashed=("input_var", "sure")), curves, args.report, report)
 
 
 def cmd_images(args) -> None:
