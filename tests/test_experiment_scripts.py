@@ -259,6 +259,10 @@ def test_rt_tables_verdicts_from_seeds(tmp_path):
     assert rt_tables.verdict((26.0, float("nan"), 1), (25.0, 0.1, 2)).startswith("one seed")
     assert rt_tables.verdict((26.0, 0.1, 2), (25.5, 0.6, 2)).startswith("NOT met")
     assert rt_tables.verdict((26.0, 0.1, 2), (25.5, 0.2, 2)).startswith("met")
+    # Noise2Noise is a measurement: a change within the spread is "no measurable difference".
+    assert rt_tables.change((22.3, 0.26, 2), (22.14, 0.33, 2)).endswith("no measurable difference")
+    assert rt_tables.change((22.0, 0.1, 2), (23.0, 0.2, 2)).endswith("noisy targets are worse")
+    assert rt_tables.change((22.0, 0.1, 1), (23.0, 0.2, 2)).startswith("one seed")
     runs = {"rt-main": [_rt_result("wskp", 0, 26.8), _rt_result("wskp", 1, 26.6),
                         _rt_result("kp", 0, 26.1), _rt_result("kp", 1, 26.3)],
             "rt-ablation": [_rt_result("wskp", s, p, sizes=k, steps=1000)
