@@ -55,7 +55,7 @@ quotient is normalised so that reverse mode never squares a tiny denominator. Ot
 wider range, NaN, inf) the call takes the per-window form above. The choice is one
 ``lax.cond`` on the primal (jvp and grad keep it; a ``vmap`` over importance maps evaluates
 both paths). The trained WSKP-6 produces ranges of 4-47 on the held-out crops. Six kernels at
-1280 x 720, forward: about 2x faster than the per-window form alone, forward+backward 1.5x
+1280 x 720: 2.2x faster than the per-window form alone forward, 1.3x forward+backward
 (``jaxden bench decoder`` reports both paths).
 
 Both filters are jitted, differentiable in ``color`` and ``importance``, accept leading batch
