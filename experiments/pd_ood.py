@@ -67,7 +67,7 @@ def diagnose(report: dict) -> dict:
         by_spp[row["spp"]].append(row)
     per_spp = {}
     for spp, rows in sorted(by_spp.items()):
-        mean = lambda key: sum(r[key] for r in rows) / len(rows)  # noqa: E731
+        mean = lambda key: sum(r[key] for r in rows) / len(rows)
         per_spp[spp] = {"rmse": mean("pd_rmse") / mean("denoiser_rmse"),
                         "relmse": mean("pd_relmse") / mean("denoiser_relmse"),
                         "oracle_rmse": mean("oracle_rmse") / mean("denoiser_rmse")}

@@ -116,6 +116,7 @@ def test_denoisers_bench(tiny, capsys):
     assert 0 < result["wskp6_network_over_kp"] < result["wskp6_over_kp"]
 
 
+@pytest.mark.slow  # a smoke test (10-20 s); experiments/run_benchmarks.sh runs the bench
 def test_sure_bench(tiny, capsys):
     result = run_json("sure", capsys)
     assert_ratios(result, ["jvp_k1_over_forward", "jvp_over_fd_k4"])
@@ -124,6 +125,7 @@ def test_sure_bench(tiny, capsys):
     assert result["denoiser"] == "wskp3 (3 layers, deploy form)"
 
 
+@pytest.mark.slow  # a smoke test (10-20 s); experiments/run_benchmarks.sh runs the bench
 def test_progressive_bench(tiny, capsys):
     result = run_json("progressive", capsys)
     assert_ratios(result, ["pd_over_oidn", "pd_single_over_oidn", "mixer_over_oidn",

@@ -61,6 +61,7 @@ def test_rows_equal_direct_metrics(dataset):
     assert f"{summary['den_psnr']:.2f}" in table
 
 
+@pytest.mark.slow  # ~20 s; test_temporal.py tests accumulation, rt-main measures it on rt-seq
 def test_temporal_accumulation_beats_single_frames(tmp_path):
     """A static camera (orbit of 0 degrees): accumulation averages the frames, so its input
     error falls about as 1 / frames, and the denoised accumulated frames beat the single ones.
