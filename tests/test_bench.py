@@ -79,6 +79,7 @@ def test_unknown_benchmark_names_the_valid_ones():
         bench.run("nope")
 
 
+@pytest.mark.slow  # a smoke test (5-10 s); test_kernels.py checks both decoder forms
 def test_decoder_bench(tiny, capsys):
     result = run_json("decoder", capsys)
     assert_ratios(result, ["memory_ratio", "time_ratio", "cpu_time_ratio",
