@@ -117,15 +117,23 @@ def single(summary: dict | None, prefix: str) -> dict:
             if f"{prefix}_{m}" in summary}
 
 
+def _compare(a, b):
+    """``(margin, spread)`` of two (mean, std, seeds) PSNR entries, or why there is none."""
+    if not a or not b:
+        return "not measured yet (runs missing)"
+    margin = a[0] - b[0]
+    if a[2] < 2 or b[2] < 2:
+        return f"one seed so far, margin {margin:+.2f} dB (no spread yet)"
+    return margin, max(a[1], b[1])
+
+
 def verdict(better, worse) -> str:
     """'met' when ``better``'s mean PSNR exceeds ``worse``'s by more than the larger of their
     seed-to-seed standard deviations (both need two seeds or more), else why not."""
-    if not better or not worse:
-        return "not measured yet (runs missing)"
-    margin = better[0] - worse[0]
-    if better[2] < 2 or worse[2] < 2:
-        return f"one seed so far, margin {margin:+.2f} dB (no spread yet)"
-    spread = max(better[1], worse[1])
+    result = _compare(better, worse)
+    if isinstance(result, str):
+        return result
+    margin, spread = result
     return (f"{'met' if margin > spread else 'NOT met'} (margin {margin:+.2f} dB, "
             f"seed-to-seed standard deviation {spread:.2f} dB)")
 
@@ -133,12 +141,10 @@ def verdict(better, worse) -> str:
 def change(noisy, clean) -> str:
     """A measurement, not a target: the PSNR change of noisy-target training against clean
     targets, and whether it exceeds the seed-to-seed spread."""
-    if not noisy or not clean:
-        return "not measured yet (runs missing)"
-    margin = noisy[0] - clean[0]
-    if noisy[2] < 2 or clean[2] < 2:
-        return f"one seed so far, {margin:+.2f} dB (no spread yet)"
-    spread = max(noisy[1], clean[1])
+    result = _compare(noisy, clean)
+    if isinstance(result, str):
+        return result
+    margin, spread = result
     if abs(margin) <= spread:
         return (f"{margin:+.2f} dB, within the seed-to-seed standard deviation ({spread:.2f} "
                 f"dB): no measurable difference")
