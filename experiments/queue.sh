@@ -27,7 +27,6 @@ step data-rt-seq $J dataset sequences experiments/configs/sequences-rt-test.toml
 step sweep-rt-main $J sweep experiments/sweeps/rt-main.toml --workdir "$H/runs/sweeps/rt-main"
 step sweep-rt-noise2noise $J sweep experiments/sweeps/rt-noise2noise.toml --workdir "$H/runs/sweeps/rt-noise2noise"
 step sweep-rt-ablation $J sweep experiments/sweeps/rt-ablation.toml --workdir "$H/runs/sweeps/rt-ablation"
-step sweep-rt-variants $J sweep experiments/sweeps/rt-variants.toml --workdir "$H/runs/sweeps/rt-variants"
 # Progressive denoising over the real-time WSKP-6 (`wskp-6-pd`): its training set, its mixer
 # (jvp SURE, one probe, width 16), and the 1..4096-spp sequence it is measured on.
 step data-pd-rt $J dataset build experiments/configs/dataset-pd-rt.toml --out "$H/data/pd-rt"
@@ -35,6 +34,8 @@ step mixer-wskp6 env XLA_FLAGS=--xla_force_host_platform_device_count=2 $J train
   experiments/configs/mixer-wskp6.toml data.dataset="$H/data/pd-rt" --workdir "$H/runs/mixer-wskp6"
 step data-pd-sequence $J dataset build experiments/configs/dataset-pd-sequence.toml \
   --out "$H/data/pd-sequence"
+# The remaining real-time models (WSKP-3, KP-1, KP-2, WSKP-MR, U-Net, WSKP-6+1x1), about 3 h.
+step sweep-rt-variants $J sweep experiments/sweeps/rt-variants.toml --workdir "$H/runs/sweeps/rt-variants"
 for extra in "$H"/queue.d/*.sh; do   # ad-hoc steps of this machine, outside the checkout
   [ -e "$extra" ] && source "$extra"
 done
