@@ -75,7 +75,7 @@ def provenance(args: argparse.Namespace, extra: dict) -> dict:
         "dataset": {"dir": str(args.data), "split": getattr(args, "split", None),
                     "manifest_sha256": _sha256(manifest_path(args.data)),
                     "config": manifest.config},
-        "seed": getattr(args, "seed", None), "probes": getattr(args, "probes", None),
+        "seed": getattr(args, "seed", None), "probes": getattr(args, "probes", None) or 4,
         **extra,
     }
 
@@ -136,7 +136,8 @@ def cmd_pd(args: argparse.Namespace) -> None:
                                    "logit_bound": config.logit_bound,
                                    "mixer_overrides": args.mixer_set,
                                    "closed_form_stops": config.closed_form_stops,
-                                   "tstat": config_to_dict(config.tstat)})
+                                   "tstat": config_to_dict(config.tstat),
+                                   "probes": args.probes or config.sure_probes})
         rows = pdreport.evaluate_progressive(args.data, args.denoiser[0], (params, config),
                                              split=args.split, seed=args.seed,
                                              num_probes=args.probes, spp=args.spp, progress=True)
@@ -169,7 +170,8 @@ def cmd_sure(args: argparse.Namespace) -> None:
     else:
         source = provenance(args, {"denoisers": [_weights_identity(s) for s in args.denoiser]})
         rows = {spec: pdreport.sure_accuracy(args.data, spec, split=args.split, seed=args.seed,
-                                             num_probes=args.probes, spp=args.spp, progress=True)
+                                             num_probes=args.probes or 4, spp=args.spp,
+                                             progress=True)
                 for spec in args.denoiser}
     summaries = {spec: pdreport.summarize_sure(r) for spec, r in rows.items()}
     result = {"summary": summaries, "rows": rows, "provenance": source}
@@ -189,7 +191,7 @@ def cmd_sure_buffers(args: argparse.Namespace) -> None:
                                    "render_seed_base": pdreport.BUFFER_SEED_BASE})
         rows = pdreport.sure_accuracy_buffers(args.data, args.denoiser, buffers=args.buffers,
                                               renders=args.renders, split=args.split,
-                                              seed=args.seed, num_probes=args.probes,
+                                              seed=args.seed, num_probes=args.probes or 4,
                                               spp=args.spp, progress=True)
         buffers, renders = args.buffers, args.renders
     keys = {"stein": "sure", "buffers": "sure_buffers", "extrapolated": "sure_buffers_rx"}
@@ -248,7 +250,9 @@ def main(argv=None) -> int:
         p.add_argument("--denoiser", action="append", required=True,
                        help="oidn, a shipped name or a checkpoint folder (sure: repeatable)")
         p.add_argument("--seed", type=int, default=0, help="seed of the SURE probes")
-        p.add_argument("--probes", type=int, default=4, help="SURE probes per image")
+        p.add_argument("--probes", type=int, default=None,
+                       help="SURE probes per image (default: pd, the mixer's training probes; "
+                            "sure / sure-buffers, 4)")
         p.add_argument("--spp", type=int, nargs="+", default=None,
                        help="only these input spp levels (default: all)")
         p.add_argument("--out", required=True, help="output path without suffix")

@@ -782,3 +782,28 @@ def test_cli_progressive_closed_form_mixer(tmp_path, capsys):
     assert code == 2 and "--mixer closed-form" in stderr
     with pytest.raises(ConfigError, match="no parameters to train"):
         mixer_task(load_train_config(TINY_MIXER, ["model_config.kind='closed_form'"]))
+
+
+def test_probes_default_to_the_mixers_training_probes(tmp_path, capsys):
+    """Without num_probes / --probes, PD takes as many SURE probes as the mixer was trained
+    with (its ``sure_probes``: the noise level of the SURE input it learned on); an explicit
+    count still wins."""
+    frame = small_frame(seed=13)
+    params, config = P.load_mixer("closed-form:sigma=4")
+    config = dataclasses.replace(config, sure_probes=2)
+    key = jax.random.PRNGKey(5)
+    z_default = np.asarray(P.progressive_denoise(frame, "oidn", params, config, key)[2]["sure"])
+    z_two, z_four = (np.asarray(P.progressive_denoise(frame, "oidn", params, config, key,
+                                                      num_probes=k)[2]["sure"]) for k in (2, 4))
+    np.testing.assert_array_equal(z_default, z_two)
+    assert np.abs(z_two - z_four).max() > 1e-4
+    params, shipped = P.load_mixer("oidn-pd")
+    source, out = tmp_path / "in.exr", tmp_path / "out.exr"
+    write_frame(source, frame)
+    code, _, stderr = run_cli(["progressive", source, "--denoiser", "oidn", "--out", out], capsys)
+    assert code == 0, stderr
+    assert read_header(out)["probes"] == shipped.sure_probes
+    code, _, stderr = run_cli(["progressive", source, "--denoiser", "oidn", "--out", out,
+                               "--probes", 3], capsys)
+    assert code == 0, stderr
+    assert read_header(out)["probes"] == 3

@@ -17,10 +17,11 @@ compiled and warmed up before timing, timed alternately, median of the repeats:
   1``: one blurred pair of local sums per occupied brightness stratum) / the plain one, the
   cost of the strata;
 - ``pd_wskp6_over_wskp6``: the whole pipeline around the shipped real-time denoiser WSKP-6
-  (jitted, deploy form): y, SURE by ``jax.jvp`` with 4 probes, the mixer (one call; the
-  weights of ``oidn-pd``: a mixer for WSKP-6 has the same architecture, so the same cost) and
-  the t-statistic / one WSKP-6 forward. SURE by jvp costs about one forward per probe, in
-  parallel; the WSKP paper's point is a real-time base, so this ratio says what PD adds;
+  (jitted, deploy form) with its shipped mixer ``wskp-6-pd``: y, SURE by ``jax.jvp`` with the
+  mixer's training probes (one), the mixer (one call) and the t-statistic / one WSKP-6
+  forward. SURE by jvp costs about one forward per probe; the WSKP paper's point is a
+  real-time base, so this ratio says what PD adds. (Without ``wskp-6-pd`` in the package it
+  falls back to ``oidn-pd``'s weights with 4 probes, and ``pd_wskp6_mixer`` says so);
 - ``pd_wskp6_closed_form_k1_over_wskp6``: the same with the closed-form mixer (range-aware,
   ``closed-form:stops=1``) and one probe: the cheapest PD(WSKP-6) jaxden offers.
 """
@@ -35,6 +36,8 @@ QUICK_SIZE, QUICK_REPEATS = (320, 180), 2
 
 @register("progressive")
 def bench_progressive(quick: bool) -> dict:
+    import dataclasses
+
     import jax
     import numpy as np
 
@@ -67,7 +70,15 @@ def bench_progressive(quick: bool) -> dict:
 
     closed_params, closed_config = closed_form_mixer("closed-form:stops=1")
 
-    def pd_wskp6(mixer_params=params, mixer_config=config, probes=4):
+    wskp6_mixer = shipped_mixer_path("wskp-6")
+    if wskp6_mixer is not None:
+        wskp6_params, wskp6_config = load_mixer(str(wskp6_mixer))
+        wskp6_mixer_name = wskp6_mixer.stem
+    else:
+        wskp6_params, wskp6_config = params, dataclasses.replace(config, sure_probes=4)
+        wskp6_mixer_name = "oidn-pd (no wskp-6-pd shipped)"
+
+    def pd_wskp6(mixer_params=wskp6_params, mixer_config=wskp6_config, probes=None):
         out = progressive_denoise(device_frame, wskp6, mixer_params, mixer_config, key,
                                   num_probes=probes, swap_average=False)[0]
         return jax.block_until_ready(out)
@@ -95,6 +106,8 @@ def bench_progressive(quick: bool) -> dict:
         "denoiser": "oidn (CPU, high quality)",
         "mixer": "oidn-pd",
         "sure": "forward differences, 4 probes",
+        "pd_wskp6_mixer": wskp6_mixer_name,
+        "pd_wskp6_sure": f"jvp, {wskp6_config.sure_probes} probes",
         "width": size[0],
         "height": size[1],
         "repeats": repeats,

@@ -169,15 +169,16 @@ def cmd_progressive(args: argparse.Namespace) -> int:
             and Path(config.denoiser).name != Path(args.denoiser).name):
         stderr(f"jaxden: note: the mixer was trained on the output of denoiser "
                 f"{config.denoiser!r}; mixing {denoiser.name!r} instead")
+    probes = args.probes or config.sure_probes
     z, alpha_prime, extras = progressive_denoise(
-        frame, denoiser, params, config, jax.random.PRNGKey(args.seed), num_probes=args.probes,
+        frame, denoiser, params, config, jax.random.PRNGKey(args.seed), num_probes=probes,
         method=args.method, eps=args.eps, probe_batch=args.probe_batch,
         tstat=None if args.no_tstat else config.tstat, nonfinite=args.nonfinite,
         swap_average=args.swap_average,
     )
     swap_average = config.swap_average if args.swap_average is None else args.swap_average
     attributes = {"source": str(args.input), "denoiser": denoiser.name, "mixer": str(args.mixer),
-                  "probes": args.probes, "seed": args.seed, "tstat": int(not args.no_tstat),
+                  "probes": probes, "seed": args.seed, "tstat": int(not args.no_tstat),
                   "swap_average": int(swap_average)}
     message = f"wrote {out} (progressive denoising: {denoiser.name} + mixer {args.mixer})"
     check_finite_result(z, "the progressive-denoising result",
@@ -220,7 +221,7 @@ def add_commands(sub) -> None:
         description="Writes z' = x + alpha' (y - x) as R,G,B; --alpha writes alpha' (R,G,B) and "
                     "alpha before the t-statistic scaling (unscaled.R/G/B).",
     )
-    sure_input_options(p)
+    sure_input_options(p, probes_from_mixer=True)
     p.add_argument("--mixer", default=None,
                    help="trained mixer: a shipped name (oidn-pd), a checkpoint folder of "
                         "`jaxden train` or a .msgpack file; or closed-form[:sigma=S] (the "

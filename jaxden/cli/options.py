@@ -186,12 +186,16 @@ def stderr(message: str) -> None:
     print(message, file=sys.stderr)
 
 
-def sure_input_options(parser: argparse.ArgumentParser) -> None:
+def sure_input_options(parser: argparse.ArgumentParser, *, probes_from_mixer: bool = False) -> None:
+    """The input and SURE options of ``jaxden sure`` and ``jaxden progressive``; with
+    ``probes_from_mixer`` ``--probes`` defaults to None (the mixer's training probes)."""
     parser.add_argument("input", help="input EXR: colour and the variance of the pixel mean")
     parser.add_argument("--denoiser", required=True,
                         help="oidn, a shipped model name, a checkpoint folder or a .msgpack file")
-    parser.add_argument("--probes", type=positive_int, default=4,
-                        help="SURE probes K (default 4)")
+    parser.add_argument("--probes", type=positive_int, default=None if probes_from_mixer else 4,
+                        help="SURE probes K (default: as many as the mixer was trained with, "
+                             "its sure_probes)" if probes_from_mixer else
+                        "SURE probes K (default 4)")
     parser.add_argument("--method", choices=("auto", "jvp", "fd"), default="auto",
                         help="SURE divergence: jvp (JAX denoisers), fd (finite differences; the "
                              "only choice for OIDN), auto (default)")

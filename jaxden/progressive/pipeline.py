@@ -25,7 +25,7 @@ def progressive_denoise(
     mixer_config: MixerConfig,
     key,
     *,
-    num_probes: int = 4,
+    num_probes: int | None = None,
     tstat=_FROM_CONFIG,
     method: str = "auto",
     eps: float | None = None,
@@ -48,7 +48,8 @@ def progressive_denoise(
       mixer_params, mixer_config: from :func:`load_mixer` (or :func:`mixer_init`).
       key: PRNG key of the SURE probes.
       num_probes, method (``auto``/``jvp``/``fd``), eps (None: measured default),
-        probe_batch: SURE options (:func:`jaxden.sure.sure`).
+        probe_batch: SURE options (:func:`jaxden.sure.sure`); ``num_probes`` None: the
+        mixer's ``sure_probes``, the number it was trained with (its SURE input's noise).
       tstat: :class:`TStatConfig`; default the mixer config's; None skips the scaling
         (the paper's "w/o t-test" ablation).
       nonfinite: ``"error"`` or ``"zero"`` (the authors' repair of NaN / negative variance).
@@ -68,6 +69,8 @@ def progressive_denoise(
 
     if tstat is _FROM_CONFIG:
         tstat = mixer_config.tstat
+    if num_probes is None:
+        num_probes = mixer_config.sure_probes
     if tstat is not None and not isinstance(tstat, TStatConfig):
         raise ConfigError(
             f"progressive_denoise: tstat must be a TStatConfig or None, got {tstat!r}"
@@ -115,13 +118,14 @@ def shipped_mixer_path(denoiser: str = "oidn"):
     return path if path.is_file() and path.with_suffix(".json").is_file() else None
 
 
-def shipped_progressive_denoiser(denoiser: str = "oidn", *, seed: int = 0, num_probes: int = 4):
+def shipped_progressive_denoiser(denoiser: str = "oidn", *, seed: int = 0,
+                                 num_probes: int | None = None):
     """PD(denoiser) with the mixer shipped in the package, or None when none ships.
 
     Returns a function ``frame -> (z_prime, alpha_prime)`` (NumPy float32, (H, W, 3) each):
     :func:`progressive_denoise` with the shipped mixer (``jaxden/weights/oidn-pd.msgpack`` for
     OIDN; see its model card ``oidn-pd.md``), its t-statistic config, ``num_probes`` SURE
-    probes drawn from ``PRNGKey(seed)``.
+    probes (None: as many as the mixer was trained with) drawn from ``PRNGKey(seed)``.
     """
     path = shipped_mixer_path(denoiser)
     if path is None:

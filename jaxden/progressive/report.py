@@ -90,7 +90,8 @@ def _crop_count(dataset_dir, split) -> int:
 
 
 def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
-                         seed: int = 0, num_probes: int = 4, spp: tuple[int, ...] | None = None,
+                         seed: int = 0, num_probes: int | None = None,
+                         spp: tuple[int, ...] | None = None,
                          progress: bool = False) -> list[dict[str, Any]]:
     """One row per (crop, spp): errors of MC, the denoiser, the mixer without the t-test, PD,
     PD with the per-channel t-statistic (``pd_pc``: the mixer's config with
@@ -104,7 +105,8 @@ def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
 
     ``denoiser``: a spec or :class:`jaxden.denoise.Denoiser`; ``mixer``: a spec for
     :func:`jaxden.progressive.load_mixer` or a ``(params, config)`` pair. SURE probes of item
-    ``i`` come from ``fold_in(PRNGKey(seed), i)``.
+    ``i`` come from ``fold_in(PRNGKey(seed), i)``; ``num_probes`` None: the mixer's
+    ``sure_probes`` (what it was trained with).
     """
     import dataclasses
 
