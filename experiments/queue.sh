@@ -34,8 +34,17 @@ step mixer-wskp6 env XLA_FLAGS=--xla_force_host_platform_device_count=2 $J train
   experiments/configs/mixer-wskp6.toml data.dataset="$H/data/pd-rt" --workdir "$H/runs/mixer-wskp6"
 step data-pd-sequence $J dataset build experiments/configs/dataset-pd-sequence.toml \
   --out "$H/data/pd-sequence"
+step data-pd-test-high $J dataset build experiments/configs/dataset-pd-test-high.toml \
+  --out "$H/data/pd-test-high"
 # The remaining real-time models (WSKP-3, KP-1, KP-2, WSKP-MR, U-Net, WSKP-6+1x1), about 3 h.
 step sweep-rt-variants $J sweep experiments/sweeps/rt-variants.toml --workdir "$H/runs/sweeps/rt-variants"
+# The progressive-denoising paper's Tables 1 and 2 on our data: bases trained on PD data
+# (U-Net x 4 feature sets, KP 5 x 5, WSKP-6), one mixer per base, PD reports on pd-test-high,
+# and SURE's accuracy for each base (experiments/README.md).
+step sweep-pd-bases env XLA_FLAGS=--xla_force_host_platform_device_count=2 $J sweep \
+  experiments/sweeps/pd-bases.toml --workdir "$H/runs/sweeps/pd-bases"
+step sweep-pd-mixers env XLA_FLAGS=--xla_force_host_platform_device_count=2 $J sweep \
+  experiments/sweeps/pd-mixers.toml --workdir "$H/runs/sweeps/pd-mixers"
 for extra in "$H"/queue.d/*.sh; do   # ad-hoc steps of this machine, outside the checkout
   [ -e "$extra" ] && source "$extra"
 done

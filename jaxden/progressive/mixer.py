@@ -174,7 +174,8 @@ class MixerConfig:
 
     SURE cache (the denoised images and SURE maps the mixer is trained on, computed once per
     dataset item by :func:`jaxden.progressive.cache_build.build_sure_cache`):
-      denoiser: denoiser spec (``oidn``, a checkpoint folder or a .msgpack file).
+      denoiser: denoiser spec (``oidn``, a checkpoint folder or a .msgpack file; paths may
+        use ``~`` and ``$JAXDEN_HOME``).
       cache: cache folder; empty = ``DATASET/derived/<denoiser>`` (see
         :func:`jaxden.progressive.cache.default_cache_dir`).
       sure_probes, sure_method (``auto``: jvp for JAX denoisers, fd for black boxes),
@@ -290,6 +291,12 @@ class MixerConfig:
             raise ConfigError(f"MixerConfig.sure_eps: expected > 0 or none, got {self.sure_eps!r}")
         if not self.denoiser:
             raise ConfigError("MixerConfig.denoiser: name the denoiser whose output is mixed")
+        from jaxden.paths import expand_path
+
+        # a trained base under "$JAXDEN_HOME/runs/..." or "~/...", as data.dataset allows
+        for name in ("denoiser", "cache"):
+            if isinstance(getattr(self, name), str):
+                object.__setattr__(self, name, expand_path(getattr(self, name)))
 
     @property
     def in_channels(self) -> int:
