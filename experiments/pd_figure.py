@@ -8,16 +8,23 @@ and a progressive image series.
     # one held-out crop at several spp: MC | OIDN | PD(OIDN) | alpha' | reference (sRGB previews)
     python experiments/pd_figure.py images --data $JAXDEN_HOME/data/test-high-chain \
         --crop s002-c000 --spp 64 512 4096 --out experiments/results/fig10-s002
+    # the same over another base denoiser and its mixer: MC | WSKP-6 | PD(WSKP-6) | ...
+    python experiments/pd_figure.py images --data DIR --crop ID --spp 64 512 \
+        --denoiser wskp-6 --mixer wskp-6-pd --probes 1 --out OUT
 
     # the paper's Figure 2: SURE and the input's variance against the true errors, per spp
     python experiments/pd_figure.py sure --report experiments/results/sure-fig2.json \
         --out experiments/results/fig2-sure
 
-``convergence`` writes OUT.svg (RMSE and relMSE panels: MC, OIDN, PD(OIDN), the oracle mix)
-and OUT.json (the plotted means and the report's provenance). ``images`` writes OUT.png (rows:
-spp; columns as above, one exposure for the whole figure: 1 / the 99th percentile of the
-reference's channel values unless ``--exposure``; alpha' shown per channel as colour, 1 =
-all denoised) and OUT.json (provenance, per-panel RMSE against the reference). Previews are
+The base denoiser is named as the mixers' model cards name it (``ship_mixer.denoiser_label``):
+OIDN for ``oidn``, WSKP-6 for ``wskp-6``, a checkpoint by its folder's name; ``convergence``
+takes it from the report's provenance, ``images`` from ``--denoiser``.
+
+``convergence`` writes OUT.svg (RMSE and relMSE panels: MC, the denoiser, PD(denoiser), the
+oracle mix) and OUT.json (the plotted means and the report's provenance). ``images`` writes
+OUT.png (rows: spp; columns as above, one exposure for the whole figure: 1 / the 99th
+percentile of the reference's channel values unless ``--exposure``; alpha' shown per channel
+as colour, 1 = all denoised) and OUT.json (provenance, per-panel RMSE against the reference). Previews are
 8-bit sRGB and clip; the numbers come from the float images.
 """
 
@@ -29,9 +36,16 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from ship_mixer import denoiser_label
 
-METHODS = (("mc", "MC", "#7f7f7f"), ("denoiser", "OIDN", "#1f77b4"),
-           ("pd", "PD(OIDN)", "#d62728"), ("oracle", "oracle mix (8x8 tiles)", "#2ca02c"))
+
+def convergence_methods(denoiser: str = "OIDN") -> tuple[tuple[str, str, str], ...]:
+    """The convergence curves (key, legend, colour) for a base denoiser's label."""
+    return (("mc", "MC", "#7f7f7f"), ("denoiser", denoiser, "#1f77b4"),
+            ("pd", f"PD({denoiser})", "#d62728"), ("oracle", "oracle mix (8x8 tiles)", "#2ca02c"))
+
+
+METHODS = convergence_methods()
 PANELS = (("rmse", "RMSE"), ("relmse", "relMSE"))
 
 
@@ -131,7 +145,10 @@ def cmd_convergence(args) -> None:
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     title = args.title or f"{report['provenance']['dataset']['config']['name']}: error vs spp"
-    _write_plot(out, svg_plot(curves, title), curves, args.report, report)
+    # reports from before other bases were measured name none: they are OIDN's
+    label = denoiser_label(report["provenance"].get("denoiser", "oidn"))
+    svg = svg_plot(curves, title, methods=convergence_methods(label))
+    _write_plot(out, svg, curves, args.report, report)
 
 
 #: Figure 2's curves: each error next to its estimate (dashed).
@@ -182,6 +199,13 @@ def cmd_images(args) -> None:
     from jaxden.progressive.pipeline import progressive_denoise
     from jaxden.progressive.report import iter_crops
 
+    if args.mixer is None:
+        from jaxden.progressive.pipeline import SHIPPED_MIXERS
+
+        if args.denoiser not in SHIPPED_MIXERS:
+            raise SystemExit(f"--mixer: no mixer ships for denoiser {args.denoiser!r}; name one")
+        args.mixer = SHIPPED_MIXERS[args.denoiser]
+    label = denoiser_label(args.denoiser)
     found = None
     for crop, reference, inputs in iter_crops(args.data, "all", tuple(args.spp)):
         if crop.id == args.crop:
@@ -204,7 +228,7 @@ def cmd_images(args) -> None:
         z, alpha_prime, extras = progressive_denoise(
             frame, model, params, config, jax.random.fold_in(jax.random.PRNGKey(args.seed), index),
             num_probes=args.probes)
-        panels = {"MC": frame.color, "OIDN": extras["denoised"], "PD(OIDN)": z}
+        panels = {"MC": frame.color, label: extras["denoised"], f"PD({label})": z}
         errors.append({"spp": spp, "alpha_prime_mean": float(np.mean(alpha_prime)),
                        **{name: float(metrics.rmse(np.asarray(image, np.float64), ref))
                           for name, image in panels.items()}})
@@ -215,7 +239,7 @@ def cmd_images(args) -> None:
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     write_png(out.with_suffix(".png"), _vstack(rows))
-    result = {"columns": ["MC", "OIDN", "PD(OIDN)", "alpha'", "reference"],
+    result = {"columns": ["MC", label, f"PD({label})", "alpha'", "reference"],
               "rows_spp": [e["spp"] for e in errors], "exposure": exposure, "rmse": errors,
               "provenance": source}
     atomic_write_text(out.with_suffix(".json"), json.dumps(result, indent=1, sort_keys=True)
@@ -259,12 +283,15 @@ def main(argv=None) -> int:
     p.add_argument("--out", required=True, help="output path without suffix")
     p.add_argument("--title", default=None)
     p.set_defaults(run=cmd_sure)
-    p = sub.add_parser("images", help="one crop at several spp: MC, OIDN, PD, alpha', reference")
+    p = sub.add_parser("images", help="one crop at several spp: MC, the denoiser, PD, alpha', "
+                                      "reference")
     p.add_argument("--data", required=True)
     p.add_argument("--crop", required=True)
     p.add_argument("--spp", type=int, nargs="+", required=True)
-    p.add_argument("--denoiser", default="oidn")
-    p.add_argument("--mixer", default="oidn-pd")
+    p.add_argument("--denoiser", default="oidn",
+                   help="base denoiser: oidn, a shipped name (wskp-6) or a checkpoint folder")
+    p.add_argument("--mixer", default=None,
+                   help="mixer (default: the one shipped for --denoiser, oidn-pd for oidn)")
     p.add_argument("--seed", type=int, default=0, help="seed of the SURE probes")
     p.add_argument("--probes", type=int, default=4)
     p.add_argument("--exposure", type=float, default=None)

@@ -6,6 +6,14 @@ model card (NAME.md) from the training run and, when given, the PD report on the
         [--report experiments/results/pd-oidn-test-shipped.json \
          --report experiments/results/pd-oidn-test-high-shipped.json]
 
+The card describes the mixer's base denoiser, ``MixerConfig.denoiser``: OIDN (``oidn``), weights
+shipped in the package (``wskp-6``) or a checkpoint folder; its name, the EXR channels it reads,
+how SURE was taken (finite differences for OIDN, ``jax.jvp`` for JAX denoisers) and, for OIDN
+alone, the pyoidn version. ``--config`` defaults to the committed experiments/configs/mixer-*.toml
+holding the run's model config (mixer-oidn.toml for an OIDN run when none does); the dataset's
+build command names experiments/configs/dataset-NAME.toml for the dataset's config name NAME
+when committed, else ``--dataset-config-file`` (default dataset-default.toml).
+
 The weights are the run's final checkpoint; the .json meta record gets the training config,
 the steps, the dataset's manifest hash, the final validation loss and (``training_facts``)
 everything the card says of the training. Rerunning with a report rewrites the same weights
@@ -16,8 +24,8 @@ everything the card says of the training. Rerunning with a report rewrites the s
 ``--reship NAME`` re-exports weights already shipped, without their training run: the same
 parameters, the training facts from their .json (for weights shipped before
 ``training_facts`` existed: the .json's train config, steps and final validation loss, the
-untrained / OIDN validation losses and logged minutes read back from the card, the dataset
-config from ``--dataset-config``).
+untrained and base-denoiser-alone validation losses and logged minutes read back from the
+card, the dataset config from ``--dataset-config``).
 
     python experiments/ship_mixer.py --reship oidn-pd --set closed_form_stops=1 \
         --config experiments/configs/mixer-oidn-cflogit.toml --report A.json --report B.json
@@ -35,6 +43,8 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_TRAIN_CONFIG = "experiments/configs/mixer-oidn.toml"
+DEFAULT_DATASET_CONFIG = "experiments/configs/dataset-default.toml"
 
 
 def pyoidn_version() -> str:
@@ -46,6 +56,157 @@ def pyoidn_version() -> str:
         return version("pyoidn")
     except PackageNotFoundError:
         return "not installed"
+
+
+def denoiser_label(spec) -> str:
+    """How cards and figures name a base denoiser (``MixerConfig.denoiser``, pd_report.py's
+    ``--denoiser``): ``oidn`` -> OIDN; a shipped or registered name in capitals (``wskp-6`` ->
+    WSKP-6); a checkpoint folder or weights file by its own name."""
+    spec = str(spec)
+    if spec == "oidn":
+        return "OIDN"
+    path = Path(spec)
+    if "/" in spec or path.suffix == ".msgpack" or path.exists():
+        return path.stem if path.suffix == ".msgpack" else path.name
+    return spec.upper()
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def base_denoiser(spec: str) -> dict:
+    """What the card says of the mixer's base denoiser ``spec`` (``MixerConfig.denoiser``).
+
+    ``label`` (:func:`denoiser_label`); ``black_box``: True for registered black boxes (OIDN),
+    whose SURE "auto" takes by finite differences (``jaxden.sure.denoiser.resolve_method``);
+    ``required``: the frame fields it reads (None when its weights are not here to say);
+    ``model`` and ``description``: the registered model of its weights; ``shipped``: its
+    weights file in jaxden/weights/, or None.
+    """
+    from jaxden.checkpoint import read_checkpoint_meta
+    from jaxden.config import load_config
+    from jaxden.denoise.registry import REGISTRY, WEIGHTS_DIR
+    from jaxden.errors import JaxdenError
+
+    base = {"spec": spec, "label": denoiser_label(spec), "black_box": False, "required": None,
+            "model": None, "description": None, "shipped": None}
+    path, shipped = Path(spec), WEIGHTS_DIR / f"{spec}.msgpack"
+    if not path.exists() and shipped.is_file():  # the order of load_denoiser
+        path = base["shipped"] = shipped
+    if path.exists():
+        try:
+            meta = read_checkpoint_meta(path)
+            definition = REGISTRY[meta["model"]]
+            config = load_config(meta.get("model_config", {}), definition.config_cls)
+        except (JaxdenError, KeyError):
+            return base
+        base.update(model=definition.name, description=definition.description,
+                    required=tuple(definition.required(config)))
+    elif spec in REGISTRY:
+        definition = REGISTRY[spec]
+        base.update(black_box=not definition.differentiable, model=definition.name,
+                    description=definition.description,
+                    required=tuple(definition.required(definition.config_cls())))
+    return base
+
+
+def _channels_text(field: str) -> str:
+    """``albedo`` -> "albedo.R/G/B", as the EXR names the field's channels."""
+    from jaxden.frame import CHANNELS
+
+    prefix = CHANNELS[field][0].split(".")[0]
+    return f"{prefix}.{'/'.join(c.split('.', 1)[1] for c in CHANNELS[field])}"
+
+
+def _words(items: list[str]) -> str:
+    return items[0] if len(items) == 1 else f"{', '.join(items[:-1])} and {items[-1]}"
+
+
+def _plural(count: int, noun: str) -> str:
+    return f"{count} {noun}{'' if count == 1 else 's'}"
+
+
+def _use_text(name: str, base: dict) -> str:
+    """The card's Use line: today's text for OIDN, else the CLI command naming both."""
+    if base["spec"] == "oidn":
+        return ("Use: `jaxden progressive IN.exr --denoiser oidn --out OUT.exr` (the mixer "
+                f"defaults to `{name}` for OIDN), or "
+                "`jaxden.progressive.shipped_progressive_denoiser('oidn')`. The input EXR needs "
+                "colour and the variance of the pixel mean (`variance.R/G/B`), plus albedo and "
+                "normal for OIDN.")
+    from jaxden.progressive.pipeline import SHIPPED_MIXERS
+
+    spec, label = base["spec"], base["label"]
+    text = f"Use: `jaxden progressive IN.exr --denoiser {spec} --mixer {name} --out OUT.exr`"
+    if SHIPPED_MIXERS.get(spec) == name:  # what shipped_progressive_denoiser(spec) loads
+        text += f", or `jaxden.progressive.shipped_progressive_denoiser('{spec}')`"
+    text += ". The input EXR needs colour and the variance of the pixel mean (`variance.R/G/B`)"
+    if base["required"] is None:
+        return text + f", plus the features {label} reads."
+    extra = [f for f in base["required"] if f not in ("color", "variance")]
+    if not extra:
+        return text + "."
+    return text + f", plus {_words([f'{f} (`{_channels_text(f)}`)' for f in extra])} for {label}."
+
+
+def _denoiser_text(mc: dict, base: dict, versions: dict) -> str:
+    """The card's Denoiser line: which base, and how SURE of its output was taken."""
+    method = mc["sure_method"]
+    if method == "auto":  # as jaxden.sure.denoiser.resolve_method resolves it
+        method = "fd" if base["black_box"] else "jvp"
+    if base["spec"] == "oidn":
+        oidn = f"pyoidn {versions.get('pyoidn_version', pyoidn_version())}"
+        if versions.get("pyoidn_version_trained"):
+            oidn += f" (trained with {versions['pyoidn_version_trained']})"
+        which = f"OIDN via {oidn} (CPU, 'high' quality, HDR, albedo + normal)"
+    else:
+        details = []
+        if base["shipped"] is not None:
+            sha = versions.get("denoiser_weights_sha256") or _sha256(base["shipped"])
+            details.append(f"`jaxden/weights/{base['spec']}.msgpack`, sha256 `{sha[:16]}...`")
+        if base["model"]:
+            details.append(f"model `{base['model']}`: {base['description']}")
+        source = "the weights shipped as" if base["shipped"] is not None else "the checkpoint"
+        which = (f"{base['label']}, {source} `{base['spec']}`"
+                 + (f" ({'; '.join(details)})" if details else ""))
+    if method == "jvp":
+        sure = (f"SURE of its output by jax.jvp (forward-mode derivative), "
+                f"{_plural(mc['sure_probes'], 'probe')}")
+    else:
+        default = ("1e-2 (default for black boxes)" if base["black_box"] else
+                   "1e-3 (default for JAX denoisers)")
+        sure = (f"SURE of its output by forward differences, {mc['sure_probes']} probes, eps "
+                f"{mc['sure_eps'] if mc['sure_eps'] is not None else default}")
+    return (f"- Denoiser: {which}; {sure}, probe seed {mc['sure_seed']} "
+            f"(`jaxden dataset sure-cache`).")
+
+
+def committed_dataset_config(dataset_config: dict | None) -> str:
+    """The committed dataset config that builds a dataset of this manifest config:
+    experiments/configs/dataset-NAME.toml for its name, else dataset-default.toml."""
+    name = (dataset_config or {}).get("name")
+    candidate = f"experiments/configs/dataset-{name}.toml"
+    return candidate if name and (ROOT / candidate).is_file() else DEFAULT_DATASET_CONFIG
+
+
+def committed_train_config(train_config: dict) -> str | None:
+    """The one committed experiments/configs/mixer-*.toml whose model config, seed and steps
+    are the run's, or None."""
+    from jaxden.errors import JaxdenError
+    from jaxden.train.config import load_train_config
+
+    matches = []
+    for path in sorted((ROOT / "experiments" / "configs").glob("mixer-*.toml")):
+        try:
+            committed = load_train_config(path)
+        except JaxdenError:
+            continue
+        if (committed.model_config == train_config.get("model_config")
+                and committed.seed == train_config.get("seed")
+                and committed.optim.steps == train_config.get("optim", {}).get("steps")):
+            matches.append(str(path.relative_to(ROOT)))
+    return matches[0] if len(matches) == 1 else None
 
 
 def _log(workdir: Path) -> list[dict]:
@@ -77,8 +238,9 @@ def _training_facts(workdir: Path) -> dict:
 
 _VALIDATION = re.compile(
     r"Validation (?P<metric>\w+) \(val split, \d+ batches\): (?P<initial>[\d.]+) untrained -> "
-    r"[\d.]+ trained \(OIDN alone: (?P<baseline>[\d.]+)\); (?P<minutes>\d+) min of logged")
+    r"[\d.]+ trained \(.+? alone: (?P<baseline>[\d.]+)\); (?P<minutes>\d+) min of logged")
 _WORKDIR = re.compile(r"python experiments/ship_mixer\.py --workdir (\S+)")
+_DATASET_BUILD = re.compile(r"jaxden dataset build (\S+) --out")
 
 
 def facts_from_shipped(meta: dict, card: str, dataset_config_file: Path | None = None) -> dict:
@@ -140,21 +302,26 @@ def _head_text(mc: dict) -> str:
 
 
 def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], size: int,
-          config_file: str = "experiments/configs/mixer-oidn.toml",
-          overrides: tuple[str, ...] = (), versions: dict | None = None) -> str:
-    """The model card; ``mc``: the resolved MixerConfig as a dict; ``reports``: (path, pd
-    report JSON) pairs, one section each; ``config_file``: the committed training config;
-    ``versions``: the .json's version fields (``pyoidn_version`` and, when it differed,
-    ``pyoidn_version_trained``)."""
+          config_file: str = DEFAULT_TRAIN_CONFIG,
+          overrides: tuple[str, ...] = (), versions: dict | None = None,
+          data_config_file: str | None = None) -> str:
+    """The model card; ``mc``: the resolved MixerConfig as a dict (its ``denoiser`` is the base
+    the card describes); ``reports``: (path, pd report JSON) pairs, one section each;
+    ``config_file``: the committed training config; ``versions``: the .json's version fields
+    (for OIDN ``pyoidn_version`` and, when it differed, ``pyoidn_version_trained``; for shipped
+    JAX weights ``denoiser_weights_sha256``); ``data_config_file``: the dataset config named in
+    the build command, None for :func:`committed_dataset_config`'s."""
     versions = versions or {}
-    oidn = f"pyoidn {versions.get('pyoidn_version', pyoidn_version())}"
-    if versions.get("pyoidn_version_trained"):
-        oidn += f" (trained with {versions['pyoidn_version_trained']})"
+    base = base_denoiser(mc["denoiser"])
+    label = base["label"]
     workdir = facts["workdir"]
     cfg = facts["train_config"]
-    data = facts["dataset_config"] or {}
+    data = train_data = facts["dataset_config"] or {}
+    derived_data_config = committed_dataset_config(data)
+    data_config_file = data_config_file or derived_data_config
+    long_name = "Intel Open Image Denoise" if base["spec"] == "oidn" else label
     lines = [
-        f"# Model card: `{name}` (progressive-denoising mixer for Intel Open Image Denoise)",
+        f"# Model card: `{name}` (progressive-denoising mixer for {long_name})",
         "",
         "Generated by `python experiments/ship_mixer.py` from the training run; numbers below are "
         "copied from the files named next to them.",
@@ -171,7 +338,7 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
         + "), head "
         f"`{mc['head']}` ({_head_text(mc)}, one alpha per colour channel). It mixes the Monte "
         f"Carlo input x "
-        f"and OIDN's output y per pixel; at inference the t-statistic scaling (window "
+        f"and {label}'s output y per pixel; at inference the t-statistic scaling (window "
         f"{mc['tstat']['window']}, a = {mc['tstat']['a']}, c = {mc['tstat']['c']}, "
         f"per_channel = {str(mc['tstat']['per_channel']).lower()}) makes the result consistent"
         + (" and alpha is the mean of the mixer's alpha and 1 - alpha of its swapped call "
@@ -179,27 +346,22 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
            if mc.get("swap_average") else ". ")
         + f"{size / 1024:.0f} KiB of float32 parameters." + _overrides_text(list(overrides)),
         "",
-        "Use: `jaxden progressive IN.exr --denoiser oidn --out OUT.exr` (the mixer defaults to "
-        f"`{name}` for OIDN), or `jaxden.progressive.shipped_progressive_denoiser('oidn')`. "
-        "The input EXR needs colour and the variance of the pixel mean (`variance.R/G/B`), plus "
-        "albedo and normal for OIDN.",
+        _use_text(name, base),
         "",
         "## Training data",
         f"- Dataset: `{cfg['data']['dataset']}`, what `jaxden dataset build "
-        f"experiments/configs/dataset-default.toml --out {cfg['data']['dataset']}` renders "
+        f"{data_config_file} --out {cfg['data']['dataset']}` renders "
         f"(manifest sha256 `{(facts['dataset_manifest_sha256'] or '?')[:16]}...`): "
         f"{len(data.get('scenes', []))} built-in scenes + "
         f"{data.get('procedural', {}).get('count', 0)} procedural scenes (seeds "
-        f"{data.get('procedural', {}).get('seed', '?')}+), {data.get('crops_per_scene', '?')} "
-        f"crops of {data.get('crop_size', '?')}^2 each, inputs at {data.get('spp')} spp, "
+        f"{data.get('procedural', {}).get('seed', '?')}+), "
+        f"{_plural(data['crops_per_scene'], 'crop') if 'crops_per_scene' in data else '? crops'} "
+        f"of {data.get('crop_size', '?')}^2 each, inputs at {data.get('spp')} spp, "
         f"references at {data.get('reference_spp')} spp, dataset seed {data.get('seed')}; "
         f"split by scene (train/val {data.get('splits', {}).get('train')}/"
         f"{data.get('splits', {}).get('val')}); features (albedo, normal): "
         f"{data.get('aux', 'first-hit')}, min(spp, {data.get('feature_spp', 16)}) samples.",
-        f"- Denoiser: OIDN via {oidn} (CPU, 'high' quality, HDR, albedo + normal); SURE of its "
-        f"output by forward differences, {mc['sure_probes']} probes, eps "
-        f"{mc['sure_eps'] if mc['sure_eps'] is not None else '1e-2 (default for black boxes)'}, "
-        f"probe seed {mc['sure_seed']} (`jaxden dataset sure-cache`).",
+        _denoiser_text(mc, base, versions),
         "",
         "## Training",
         f"- Config: `{config_file}`; seed {cfg['seed']}; "
@@ -209,15 +371,17 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
         f"Adam with a one-cycle schedule, peak lr {cfg['optim']['learning_rate']}.",
         f"- Validation {facts['val_metric']} (val split, {cfg['eval_batches']} batches): "
         f"{facts['val_loss_initial']:.5f} untrained -> {facts['val_loss_final']:.5f} trained "
-        f"(OIDN alone: {facts['val_baseline_loss']:.5f}); "
+        f"({label} alone: {facts['val_baseline_loss']:.5f}); "
         f"{facts['seconds_logged'] / 60:.0f} min of logged step time on the 2-core project CPU "
         f"(2 XLA host devices).",
-        f"- Retrain: `jaxden dataset build experiments/configs/dataset-default.toml --out "
+        f"- Retrain: `jaxden dataset build {data_config_file} --out "
         f"{cfg['data']['dataset']}` then `XLA_FLAGS=--xla_force_host_platform_device_count=2 "
         f"jaxden train {config_file} data.dataset={cfg['data']['dataset']}"
         f" --workdir {workdir}`, then `python experiments/ship_mixer.py --workdir {workdir} "
         f"--name {name}{' --swap-average' if mc.get('swap_average') else ''} "
         f"--config {config_file}"
+        + (f" --dataset-config-file {data_config_file}"
+           if data_config_file != derived_data_config else "")
         + "".join(f" --set {o}" for o in overrides)
         + "".join(f" --report {path}" for path, _ in reports) + "`.",
         "",
@@ -227,6 +391,7 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
         h = s["headline"]
         prov = report["provenance"]
         data = prov["dataset"]["config"]
+        measured = denoiser_label(prov.get("denoiser", mc["denoiser"]))
         lines += [
             f"## Measured on `{prov['dataset']['dir']}` ({data.get('name', '?')}: "
             f"{min(s['per_spp'], key=int)}..{s['max_spp']} spp)",
@@ -242,28 +407,34 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
             "| ratio | RMSE | RMSE (noise-corrected) | relMSE | FLIP |",
             "|---|---:|---:|---:|---:|",
         ]
-        rows = [("pd_over_denoiser", "PD(OIDN) / OIDN, all spp"),
-                ("pd_over_denoiser_paper_range", "PD(OIDN) / OIDN, spp >= 32 (paper's range)"),
-                ("mixed_over_denoiser", "PD w/o t-test / OIDN, all spp"),
-                ("pd_pc_over_denoiser", "PD(OIDN), per-channel t / OIDN, all spp"),
-                ("pd_shared_over_denoiser", "PD(OIDN), shared t (authors') / OIDN, all spp"),
-                ("oracle_over_denoiser", "oracle mix / OIDN, all spp"),
-                ("oracle_over_denoiser_paper_range", "oracle mix / OIDN, spp >= 32"),
-                ("pd_over_mc_at_max_spp", f"PD(OIDN) / MC at {s['max_spp']} spp")]
-        for key, label in rows:
+        pd, den = f"PD({measured})", measured
+        rows = [("pd_over_denoiser", f"{pd} / {den}, all spp"),
+                ("pd_over_denoiser_paper_range", f"{pd} / {den}, spp >= 32 (paper's range)"),
+                ("mixed_over_denoiser", f"PD w/o t-test / {den}, all spp"),
+                ("pd_pc_over_denoiser", f"{pd}, per-channel t / {den}, all spp"),
+                ("pd_shared_over_denoiser", f"{pd}, shared t (authors') / {den}, all spp"),
+                ("oracle_over_denoiser", f"oracle mix / {den}, all spp"),
+                ("oracle_over_denoiser_paper_range", f"oracle mix / {den}, spp >= 32"),
+                ("pd_over_mc_at_max_spp", f"{pd} / MC at {s['max_spp']} spp")]
+        for key, row_label in rows:
             if key not in h:
                 continue  # a report from before the row existed
             r = h[key]
-            lines.append(f"| {label} | {r['rmse']:.3f} | {r['rmse_nc']:.3f} | "
+            lines.append(f"| {row_label} | {r['rmse']:.3f} | {r['rmse_nc']:.3f} | "
                          f"{r['relmse']:.3f} | {r['flip']:.3f} |")
         lines += ["", f"Per spp: `{Path(path).with_suffix('.md')}`.", ""]
+    spp = train_data.get("spp")
+    low, high = (min(spp), max(spp)) if spp else ("?", "?")
+    scenes = (len(train_data["scenes"]) + train_data.get("procedural", {}).get("count", 0)
+              if "scenes" in train_data else "?")
     lines += [
         "## Limits",
-        "- Trained on 128^2 crops of 24 scenes at 2..1024 spp (not the paper's 11150 images at "
-        "up to 4096 spp); expect it to be less refined than the authors' weights. Above 1024 "
-        "spp it extrapolates; the reports above measure how far that holds.",
-        "- Trained for OIDN's output only; mixing another denoiser's output with it is possible "
-        "(the CLI warns) but not what it learned.",
+        f"- Trained on {train_data.get('crop_size', '?')}^2 crops of {scenes} scenes at "
+        f"{low}..{high} spp (not the paper's 11150 images at up to 4096 spp); expect it to be "
+        f"less refined than the authors' weights. Above {high} spp it extrapolates; the reports "
+        "above measure how far that holds.",
+        f"- Trained for {label}'s output only; mixing another denoiser's output with it is "
+        "possible (the CLI warns) but not what it learned.",
         "- The channel-summed t-statistic (authors' default) cannot detect a pure hue-shift bias; "
         "see docs/departures.md.",
     ]
@@ -277,22 +448,30 @@ def main(argv=None) -> int:
     source.add_argument("--reship", metavar="NAME",
                         help="re-export weights shipped as jaxden/weights/NAME.* (no run needed)")
     parser.add_argument("--name", default=None,
-                        help="weights name in jaxden/weights/ (default oidn-pd, or NAME)")
+                        help="weights name in jaxden/weights/ (default: NAME with --reship, "
+                             "else the base denoiser's name + '-pd', e.g. oidn-pd)")
     parser.add_argument("--report", action="append", default=[],
                         help="pd_report.py pd JSON for the card (repeatable)")
     parser.add_argument("--swap-average", action="store_true",
                         help="ship with MixerConfig.swap_average = true (inference option)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="ship with this MixerConfig field changed at inference (repeatable)")
-    parser.add_argument("--config", default="experiments/configs/mixer-oidn.toml",
+    parser.add_argument("--config", default=None,
                         help="the committed training config of the run (named in the card; "
-                             "the weights' tests compare the run's config with it)")
+                             "the weights' tests compare the run's config with it); default: "
+                             "with --reship the recorded one, else the committed "
+                             f"experiments/configs/mixer-*.toml with the run's model config, "
+                             f"seed and steps ({DEFAULT_TRAIN_CONFIG} for OIDN when none has)")
     parser.add_argument("--dataset-config", type=Path,
                         default=Path("experiments/configs/dataset-default.toml"),
                         help="with --reship of weights without training_facts: the dataset "
                              "config they were trained on")
+    parser.add_argument("--dataset-config-file", default=None,
+                        help="the dataset config the card's build commands name; default: "
+                             "experiments/configs/dataset-NAME.toml for the dataset's config "
+                             f"name NAME when committed (with --reship: the one the card "
+                             f"names), else {DEFAULT_DATASET_CONFIG}")
     args = parser.parse_args(argv)
-    name = args.name or args.reship or "oidn-pd"
 
     from jaxden.config import config_to_dict, load_config
     from jaxden.denoise.registry import WEIGHTS_DIR
@@ -301,31 +480,63 @@ def main(argv=None) -> int:
 
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
                             text=True, cwd=ROOT).stdout.strip()
-    oidn_version = pyoidn_version()
+    meta, card_text = {}, ""
     if args.reship:
         shipped = WEIGHTS_DIR / f"{args.reship}.msgpack"
         params, config = load_mixer(str(shipped))
         meta = json.loads(shipped.with_suffix(".json").read_text())
         card_text = shipped.with_suffix(".md").read_text()
         facts = facts_from_shipped(meta, card_text, args.dataset_config)
-        versions = {"jaxden_commit": meta["jaxden_commit"], "pyoidn_version": oidn_version,
-                    "reshipped_commit": commit}
-        trained_with = meta.get("pyoidn_version_trained", meta.get("pyoidn_version"))
-        if trained_with not in (None, "unknown", oidn_version):
-            versions["pyoidn_version_trained"] = trained_with
         if not args.set:  # a plain re-ship keeps the overrides it was shipped with
             args.set = list(meta.get("inference_overrides", []))
     else:
         params, config = load_mixer(Path(args.workdir))
         facts = _training_facts(Path(args.workdir))
-        versions = {"jaxden_commit": commit, "pyoidn_version": oidn_version}
+    oidn = config.denoiser == "oidn"
+    base = base_denoiser(config.denoiser)
+    name = args.name or args.reship
+    if name is None:
+        if "/" in config.denoiser or config.denoiser.endswith(".msgpack"):
+            raise SystemExit(f"--name: the base denoiser {config.denoiser} is a checkpoint, "
+                             "not a name to derive the mixer's from; name the weights")
+        name = f"{config.denoiser}-pd"
+    # pyoidn versions for OIDN alone; a JAX base's weights by their hash
+    versions = {"jaxden_commit": meta.get("jaxden_commit", commit)}
+    if oidn:
+        versions["pyoidn_version"] = pyoidn_version()
+    if args.reship:
+        versions["reshipped_commit"] = commit
+    if oidn and args.reship:
+        trained_with = meta.get("pyoidn_version_trained", meta.get("pyoidn_version"))
+        if trained_with not in (None, "unknown", versions["pyoidn_version"]):
+            versions["pyoidn_version_trained"] = trained_with
+    if not oidn and (meta.get("denoiser_weights_sha256") or base["shipped"] is not None):
+        versions["denoiser_weights_sha256"] = (meta.get("denoiser_weights_sha256")
+                                               or _sha256(base["shipped"]))
+    config_file = args.config or meta.get("train_config_file")
+    config_file = config_file or committed_train_config(facts["train_config"])
+    if config_file is None:
+        if not oidn:
+            raise SystemExit("--config: no committed experiments/configs/mixer-*.toml has the "
+                             "run's model config, seed and steps; name the run's config")
+        config_file = DEFAULT_TRAIN_CONFIG
+    data_config_file = args.dataset_config_file
+    if data_config_file is None and args.reship:
+        found = _DATASET_BUILD.search(card_text)
+        data_config_file = found.group(1) if found else None
+    if data_config_file is None and committed_dataset_config(facts["dataset_config"]) == \
+            DEFAULT_DATASET_CONFIG:
+        print(f"ship_mixer: note: no committed dataset config for the dataset's config name "
+              f"{(facts['dataset_config'] or {}).get('name')!r}: the card names "
+              f"{DEFAULT_DATASET_CONFIG} (--dataset-config-file to name another)",
+              file=sys.stderr)
     if args.swap_average:
         config = dataclasses.replace(config, swap_average=True)
     if args.set:
         config = load_config(config, MixerConfig, overrides=args.set)
     extra = {
         "name": name, "trained_steps": facts["steps"], "seed": facts["train_config"]["seed"],
-        "train_config": facts["train_config"], "train_config_file": args.config,
+        "train_config": facts["train_config"], "train_config_file": config_file,
         "dataset_manifest_sha256": facts["dataset_manifest_sha256"],
         "val_loss_final": facts["val_loss_final"], **versions,
         "training_facts": facts, "inference_overrides": list(args.set),
@@ -335,7 +546,7 @@ def main(argv=None) -> int:
     save_mixer(path, params, config, **extra)
     reports = [(p, json.loads(Path(p).read_text())) for p in args.report]
     card = _card(name, facts, config_to_dict(config), reports, path.stat().st_size,
-                 args.config, tuple(args.set), versions)
+                 config_file, tuple(args.set), versions, data_config_file)
     atomic_write_text(path.with_suffix(".md"), card)
     print(f"wrote {path} ({path.stat().st_size / 1024:.0f} KiB), {path.with_suffix('.json')} "
           f"and the model card {path.with_suffix('.md')}")

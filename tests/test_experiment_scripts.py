@@ -377,3 +377,130 @@ def test_sure_figure_curves_and_svg(tmp_path):
     dashed = [line for line in svg.iter("{http://www.w3.org/2000/svg}polyline")
               if line.get("stroke-dasharray")]
     assert len(dashed) == 4  # two estimates in each of two panels
+
+
+# ------------------------------------------------------- a mixer over another base denoiser
+def _fake_mixer_run(root: Path, workdir: Path, weights: Path) -> dict:
+    """A training workdir of a mixer over the shipped WSKP-6, as `jaxden train
+    experiments/configs/mixer-wskp6.toml` leaves it (config.json, metrics.jsonl, a checkpoint
+    of freshly initialised parameters), its dataset's manifest and a weights folder holding
+    wskp-6; returns the run's config."""
+    import shutil
+    import tomllib
+
+    import jax
+
+    from jaxden.checkpoint import Checkpointer
+    from jaxden.config import config_to_dict, load_config
+    from jaxden.progressive.mixer import MixerConfig, _mixer_meta, mixer_init
+    from jaxden.train.config import load_train_config
+
+    weights.mkdir()
+    for suffix in (".msgpack", ".json"):
+        shutil.copy(root / "jaxden" / "weights" / f"wskp-6{suffix}", weights)
+    dataset = workdir.parent / "data" / "pd-rt"
+    dataset.mkdir(parents=True)
+    data_config = tomllib.loads((root / "experiments/configs/dataset-pd-rt.toml").read_text())
+    (dataset / "manifest.json").write_text(json.dumps({"config": data_config, "items": []}))
+    config = config_to_dict(load_train_config(root / "experiments/configs/mixer-wskp6.toml",
+                                              [f"data.dataset={dataset}"]))
+    workdir.mkdir()
+    (workdir / "config.json").write_text(json.dumps(config))
+    steps = config["optim"]["steps"]
+    log = [{"step": 0, "val_loss": 0.03},  # the untrained mixer
+           {"step": steps // 2, "loss": 0.2, "grad_norm": 1.0, "lr": 1e-4, "seconds": 600.0},
+           {"step": steps, "loss": 0.1, "grad_norm": 1.0, "lr": 1e-5, "seconds": 600.0},
+           {"step": steps, "val_loss": 0.02, "val_baseline_loss": 0.025}]
+    (workdir / "metrics.jsonl").write_text("".join(json.dumps(e) + "\n" for e in log))
+    mixer = load_config(config["model_config"], MixerConfig)
+    checkpointer = Checkpointer(workdir)
+    checkpointer.save(steps, {"params": mixer_init(jax.random.PRNGKey(0), mixer)},
+                      _mixer_meta(mixer))
+    checkpointer.wait()
+    checkpointer.close()
+    return config
+
+
+def test_ship_mixer_card_of_a_mixer_over_wskp6_names_its_base(tmp_path, monkeypatch):
+    """A mixer trained over WSKP-6: the card says WSKP-6 wherever it said OIDN (title, use,
+    denoiser and SURE method, validation baseline, tables, limits) and no OIDN at all; its
+    .json carries no pyoidn version but the hash of the WSKP-6 weights."""
+    import hashlib
+
+    import ship_mixer
+
+    import jaxden.denoise.registry
+    from jaxden.progressive.pipeline import SHIPPED_MIXERS
+
+    root = Path(__file__).parent.parent
+    weights = tmp_path / "weights"
+    _fake_mixer_run(root, tmp_path / "run", weights)
+    monkeypatch.setattr(jaxden.denoise.registry, "WEIGHTS_DIR", weights)
+    monkeypatch.chdir(root)
+    ratios = {"rmse": 0.9, "rmse_nc": 0.8, "relmse": 0.7, "flip": 0.95}
+    report = {"summary": {"headline": {"pd_over_denoiser": ratios, "oracle_over_denoiser": ratios},
+                          "per_spp": {"2": {}, "1024": {}}, "max_spp": 1024, "crops": 4},
+              "provenance": {"dataset": {"dir": "data/pd-test", "config": {
+                  "name": "pd-test", "reference_spp": 4096}}, "command": "python pd_report.py",
+                  "commit": "0000000", "denoiser": "wskp-6"}}
+    (tmp_path / "report.json").write_text(json.dumps(report))
+    assert ship_mixer.main(["--workdir", str(tmp_path / "run"),
+                            "--report", str(tmp_path / "report.json")]) == 0
+    card = (weights / "wskp-6-pd.md").read_text()  # the name defaults to the base's + "-pd"
+    assert "oidn" not in card.lower()
+    use = next(line for line in card.splitlines() if line.startswith("Use:"))
+    assert use.startswith("Use: `jaxden progressive IN.exr --denoiser wskp-6 --mixer wskp-6-pd "
+                          "--out OUT.exr`")
+    assert "albedo (`albedo.R/G/B`), normal (`normal.X/Y/Z`) and depth (`depth.Z`) for " \
+           "WSKP-6." in use
+    # the library function only where it loads this mixer for that base
+    assert ("shipped_progressive_denoiser('wskp-6')" in use) == (
+        SHIPPED_MIXERS.get("wskp-6") == "wskp-6-pd")
+    sha = hashlib.sha256((weights / "wskp-6.msgpack").read_bytes()).hexdigest()
+    for needle in ("# Model card: `wskp-6-pd` (progressive-denoising mixer for WSKP-6)",
+                   "and WSKP-6's output y per pixel",
+                   "`jaxden dataset build experiments/configs/dataset-pd-rt.toml --out ",
+                   (f"- Denoiser: WSKP-6, the weights shipped as `wskp-6` (`jaxden/weights/"
+                    f"wskp-6.msgpack`, sha256 `{sha[:16]}...`; model `wskp`"),
+                   ("SURE of its output by jax.jvp (forward-mode derivative), 1 probe, probe "
+                    "seed 0"), "(WSKP-6 alone: 0.02500)",
+                   "Config: `experiments/configs/mixer-wskp6.toml`",
+                   "| PD(WSKP-6) / WSKP-6, all spp | 0.900 |", "| oracle mix / WSKP-6, all spp |",
+                   "crops of 24 scenes at 2..1024 spp", "Trained for WSKP-6's output only"):
+        assert needle in card
+    meta = json.loads((weights / "wskp-6-pd.json").read_text())
+    assert not [key for key in meta if "pyoidn" in key]
+    assert meta["denoiser_weights_sha256"] == sha
+    assert meta["train_config_file"] == "experiments/configs/mixer-wskp6.toml"
+    # A re-ship reads it all back: the same card.
+    assert ship_mixer.main(["--reship", "wskp-6-pd", "--report",
+                            str(tmp_path / "report.json")]) == 0
+    assert (weights / "wskp-6-pd.md").read_text() == card
+
+
+def test_ship_mixer_labels_base_denoisers():
+    import ship_mixer
+
+    assert ship_mixer.denoiser_label("oidn") == "OIDN"
+    assert ship_mixer.denoiser_label("wskp-6") == "WSKP-6"
+    assert ship_mixer.denoiser_label("/home/x/runs/pd-bases/unet-hdr/") == "unet-hdr"
+    assert ship_mixer.denoiser_label("weights/kp-5.msgpack") == "kp-5"
+
+
+def test_convergence_figure_names_the_reports_denoiser(tmp_path):
+    """The curves of a report over WSKP-6 are WSKP-6 and PD(WSKP-6); a report over OIDN (or
+    from before reports named other bases) keeps OIDN's."""
+    ns = "{http://www.w3.org/2000/svg}"
+    for denoiser, names in (("wskp-6", ["MC", "WSKP-6", "PD(WSKP-6)"]),
+                            ("oidn", ["MC", "OIDN", "PD(OIDN)"]), (None, ["OIDN", "PD(OIDN)"])):
+        provenance = {"dataset": {"config": {"name": "t"}}}
+        if denoiser is not None:
+            provenance["denoiser"] = denoiser
+        path = tmp_path / "r.json"
+        path.write_text(json.dumps({"rows": _rows(), "provenance": provenance}))
+        assert pd_figure.main(["convergence", "--report", str(path),
+                               "--out", str(tmp_path / "f")]) == 0
+        texts = [t.text for t in ET.fromstring((tmp_path / "f.svg").read_text()).iter(f"{ns}text")]
+        assert all(name in texts for name in names)
+        if denoiser == "wskp-6":
+            assert not [t for t in texts if t and "OIDN" in t]
