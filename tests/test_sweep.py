@@ -5,6 +5,7 @@ folder, a summary with the spread over seeds, and a rerun that skips finished ru
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from jaxden.cli import main
@@ -127,6 +128,11 @@ def test_tiny_mixer_sweep_end_to_end_and_resume(tmp_path, capsys):
         # here from the run folder and the dataset files (float32 pipeline, float64 errors).
         want = pd_over_denoiser_rmse(run_dir, dataset, "val", (8, 32))
         assert head["pd_over_denoiser"]["rmse"] == pytest.approx(want, rel=1e-4)
+        # Per spp too (the PD paper's Table 4 is per spp): the same ratio from the means.
+        per_spp = result["evaluations"][f"pd:{dataset}"]["per_spp"]
+        assert sorted(map(int, per_spp)) == [8, 32]
+        ratios = [m["pd_rmse"] / m["denoiser_rmse"] for m in per_spp.values()]
+        assert head["pd_over_denoiser"]["rmse"] == pytest.approx(np.mean(ratios), rel=1e-6)
     # Different seeds train different mixers.
     assert results[0]["train"]["val_loss"] != results[1]["train"]["val_loss"]
     summary = (workdir / "summary.md").read_text()
@@ -185,5 +191,21 @@ def test_shipped_sweep_files_plan_valid_runs(path):
             section, _, field = key.rpartition(".")
             holder = getattr(resolved, section) if section else resolved
             got = holder[field] if isinstance(holder, dict) else getattr(holder, field)
-            expected = None if value == "none" else value  # TOML has no null (jaxden.config)
+            # TOML has no null (jaxden.config): "none" is None once typed; a model_config
+            # table stays as written until the model's config class reads it (below)
+            expected = value if isinstance(holder, dict) or value != "none" else None
             assert (list(got) if isinstance(got, tuple) else got) == expected, (run.name, key)
+        if resolved.model == "mixer":
+            from jaxden.config import load_config
+            from jaxden.progressive.mixer import MixerConfig
+
+            mixer = load_config(resolved.model_config, MixerConfig)
+            for key, value in run.values.items():
+                if key.startswith("model_config."):
+                    got = getattr(mixer, key.removeprefix("model_config."))
+                    want = None if value == "none" else value
+                    if key == "model_config.denoiser":
+                        from jaxden.paths import expand_path
+
+                        want = expand_path(value)
+                    assert (list(got) if isinstance(got, tuple) else got) == want, (run.name, key)
