@@ -26,7 +26,6 @@ step data-rt-seq $J dataset sequences experiments/configs/sequences-rt-test.toml
 # The real-time sweeps (experiments/README.md), most wanted first; each resumes where it stopped.
 step sweep-rt-main $J sweep experiments/sweeps/rt-main.toml --workdir "$H/runs/sweeps/rt-main"
 step sweep-rt-noise2noise $J sweep experiments/sweeps/rt-noise2noise.toml --workdir "$H/runs/sweeps/rt-noise2noise"
-step sweep-rt-ablation $J sweep experiments/sweeps/rt-ablation.toml --workdir "$H/runs/sweeps/rt-ablation"
 # Progressive denoising over the real-time WSKP-6 (`wskp-6-pd`): its training set, its mixer
 # (jvp SURE, one probe, width 16), and the 1..4096-spp sequence it is measured on.
 step data-pd-rt $J dataset build experiments/configs/dataset-pd-rt.toml --out "$H/data/pd-rt"
@@ -36,6 +35,7 @@ step data-pd-sequence $J dataset build experiments/configs/dataset-pd-sequence.t
   --out "$H/data/pd-sequence"
 step data-pd-test-high $J dataset build experiments/configs/dataset-pd-test-high.toml \
   --out "$H/data/pd-test-high"
+step sweep-rt-ablation $J sweep experiments/sweeps/rt-ablation.toml --workdir "$H/runs/sweeps/rt-ablation"
 # The remaining real-time models (WSKP-3, KP-1, KP-2, WSKP-MR, U-Net, WSKP-6+1x1), about 3 h.
 step sweep-rt-variants $J sweep experiments/sweeps/rt-variants.toml --workdir "$H/runs/sweeps/rt-variants"
 # The progressive-denoising paper's Tables 1 and 2 on our data: bases trained on PD data
