@@ -219,7 +219,8 @@ def _run_one(task: tuple[str, str, tuple[str, ...], dict, dict[str, Any], bool])
             evaluations[f"pd:{dataset}"] = {"headline": summary["headline"],
                                             "max_spp": summary["max_spp"],
                                             "crops": summary["crops"],
-                                            "per_spp": summary["per_spp"]}
+                                            "per_spp": summary["per_spp"],
+                                            "per_crop": summary["per_crop"]}
     if evaluate.get("denoise") or evaluate.get("sequences"):
         if train_config.model == "mixer":
             raise ConfigError(f"[evaluate] denoise / sequences need denoiser runs; run "

@@ -504,3 +504,56 @@ def test_convergence_figure_names_the_reports_denoiser(tmp_path):
         assert all(name in texts for name in names)
         if denoiser == "wskp-6":
             assert not [t for t in texts if t and "OIDN" in t]
+
+
+def test_pd_bases_tables_ratios_targets_and_table4(tmp_path):
+    """Table 1's PD / den is the ratio of spp-averaged crop-mean errors (the paper's form) next
+    to the mean per-spp ratio; the 0.6 target and the top-spp check read the worst base and
+    crop; Table 4 rows come from the named runs and methods; unfinished runs say so."""
+    import pd_bases_tables as T
+
+    def evaluation(den, pd, top_crops):
+        levels = (32, 4096)
+        per_spp = {}
+        for i, s in enumerate(levels):
+            m = {}
+            for metric in ("rmse", "rmse_nc", "relmse", "flip"):
+                m |= {f"mc_{metric}": 0.1, f"denoiser_{metric}": den[i], f"pd_{metric}": pd[i],
+                      f"mixed_{metric}": pd[i] * 1.1}
+            per_spp[str(s)] = m
+        ratios = {metric: float(np.mean([pd[i] / den[i] for i in range(2)]))
+                  for metric in ("rmse", "rmse_nc", "relmse", "flip")}
+        return {"per_spp": per_spp, "crops": len(top_crops),
+                "headline": {"pd_over_denoiser": ratios,
+                             "pd_over_mc_at_max_spp": {"rmse": pd[1] / 0.1}},
+                "per_crop": {f"c{i}": {"pd_over_mc_rmse_at_max_spp": v}
+                             for i, v in enumerate(top_crops)}}
+
+    sweep = tmp_path / "runs" / "sweeps" / "pd-mixers"
+    runs = {"unet-hdr": evaluation((0.2, 0.02), (0.08, 0.01), (0.9, 0.95)),
+            "unet-hdr-var": evaluation((0.1, 0.01), (0.07, 0.009), (0.99, 1.02)),
+            "t4-full": evaluation((0.3, 0.03), (0.15, 0.02), (0.9,))}
+    for name, ev in runs.items():
+        (sweep / name).mkdir(parents=True)
+        (sweep / name / "result.json").write_text(json.dumps(
+            {"run": name, "evaluations": {"pd:/data/pd-test-high": ev}}))
+    out = tmp_path / "out"
+    assert T.main(["--home", str(tmp_path), "--out", str(out)]) == 0
+    data = json.loads((out / "pd-table1.json").read_text())
+    hdr = data["rows"]["unet-hdr"]["rmse"]
+    assert hdr["ratio_of_averages"] == pytest.approx(0.09 / 0.22)
+    assert hdr["mean_ratio"] == pytest.approx((0.4 + 0.5) / 2)
+    worst = 0.079 / 0.11  # unet-hdr-var's ratio of averages: over 0.6
+    assert any(f"worst {worst:.3f} over 2 of 4 feature sets: NOT met so far" in t
+               for t in data["targets"])
+    assert any("worst crop 1.020 (base unet-hdr-var): NOT met" in t for t in data["targets"])
+    assert set(data["missing"]) == {"unet-hdr-alb-nrm", "unet-hdr-alb-nrm-var", "kp5", "wskp6"}
+    table4 = (out / "pd-table4.md").read_text()
+    assert "| pro-den (f_act head, the paper's) | 0.15000 | 0.02000 |" in table4
+    assert "| w/o t-test (f_act head) | 0.16500 | 0.02200 |" in table4
+    assert "| w/o SURE (f_act head) | not run |" in table4
+    assert "| den (U-Net: HDR, ALB, NRM, VAR) | 0.30000 | 0.03000 |" in table4  # from t4-full
+    assert "| mc-render | 0.10000 | 0.10000 |" in table4
+    svg = (out / "pd-convergence-bases.svg").read_text()
+    ET.fromstring(svg)
+    assert "U-Net: HDR, VAR" in svg and "PD(base)" in svg

@@ -133,6 +133,8 @@ def test_tiny_mixer_sweep_end_to_end_and_resume(tmp_path, capsys):
         assert sorted(map(int, per_spp)) == [8, 32]
         ratios = [m["pd_rmse"] / m["denoiser_rmse"] for m in per_spp.values()]
         assert head["pd_over_denoiser"]["rmse"] == pytest.approx(np.mean(ratios), rel=1e-6)
+        per_crop = result["evaluations"][f"pd:{dataset}"]["per_crop"]
+        assert len(per_crop) == result["evaluations"][f"pd:{dataset}"]["crops"]
     # Different seeds train different mixers.
     assert results[0]["train"]["val_loss"] != results[1]["train"]["val_loss"]
     summary = (workdir / "summary.md").read_text()

@@ -1,0 +1,235 @@
+"""The progressive-denoising paper's Tables 1, 2 and 4 and its convergence plots on jaxden's
+data, from the PD-bases sweeps' results.
+
+    python experiments/pd_bases_tables.py [--home $JAXDEN_HOME] [--out experiments/results]
+
+Reads ``runs/sweeps/pd-mixers/*/result.json`` under ``$JAXDEN_HOME`` (whatever runs have
+finished; missing ones are listed as such): one mixer per base of
+``experiments/sweeps/pd-bases.toml`` and its PD report on ``data/pd-test-high`` (32..4096 spp,
+crop means per spp), and writes:
+
+- ``pd-table1.md`` / ``.json``: Table 1: each U-Net feature set, den against PD: RMSE,
+  noise-corrected RMSE, relMSE and FLIP averaged over spp, and PD / den in the paper's form
+  (the ratio of the spp-averaged errors) and as the mean of the per-spp ratios; KP (Table 2)
+  and WSKP-6 with the same columns; whether PD is at or below MC at the top spp on every crop;
+- ``pd-table4.md``: Table 4: RMSE per spp of the mixer of the full-feature U-Net with the
+  paper's f_act head, without SURE, without f_act, without the t-test, with our
+  closed_form_logit head, the denoiser alone and MC;
+- ``pd-convergence-bases.svg`` / ``.json``: RMSE against spp (log-log) of MC, each base and
+  PD over it.
+
+Targets (issue text): PD(U-Net) RMSE at most 0.6 of the U-Net's own averaged over 32..4096
+spp for every feature set (paper: 0.40-0.57), PD(KP) reported, PD at or below MC's RMSE at
+the top spp for every crop and base.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+SWEEP = "pd-mixers"
+#: (run name, inputs / base label, table) of the bases, in the paper's order.
+BASES = (("unet-hdr", "U-Net: HDR", 1), ("unet-hdr-var", "U-Net: HDR, VAR", 1),
+         ("unet-hdr-alb-nrm", "U-Net: HDR, ALB, NRM", 1),
+         ("unet-hdr-alb-nrm-var", "U-Net: HDR, ALB, NRM, VAR", 1),
+         ("kp5", "KP, 5 x 5 kernels (the paper's KPCN)", 2),
+         ("wskp6", "WSKP-6 (trained on PD data)", 2))
+#: Table 4's rows: (label, run, method key in the report).
+TABLE4 = (("w/o SURE (f_act head)", "t4-no-sure", "pd"),
+          ("w/o f_act (sigmoid alpha)", "t4-no-f_act", "pd"),
+          ("w/o t-test (f_act head)", "t4-full", "mixed"),
+          ("pro-den (f_act head, the paper's)", "t4-full", "pd"),
+          ("pro-den (closed_form_logit head, ours)", "unet-hdr-alb-nrm-var", "pd"),
+          ("den (U-Net: HDR, ALB, NRM, VAR)", "same-base", "denoiser"),
+          ("mc-render", "same-base", "mc"))
+#: The runs over Table 4's base: any of them gives its den and MC rows (same base, same data).
+SAME_BASE = ("unet-hdr-alb-nrm-var", "t4-full", "t4-no-sure", "t4-no-f_act")
+METRICS = (("rmse", "RMSE"), ("rmse_nc", "RMSE (noise-corr.)"), ("relmse", "relMSE"),
+           ("flip", "FLIP"))
+TARGET_RATIO = 0.6
+
+
+def load_results(home: Path) -> dict[str, dict]:
+    """``{run name: its PD evaluation}`` for every finished run of the pd-mixers sweep (the
+    first ``pd:`` evaluation of its result.json)."""
+    out = {}
+    for path in sorted((home / "runs" / "sweeps" / SWEEP).glob("*/result.json")):
+        result = json.loads(path.read_text())
+        for name, value in result.get("evaluations", {}).items():
+            if name.startswith("pd:"):
+                out[result["run"]] = {**value, "dataset": name[3:]}
+                break
+    return out
+
+
+def _levels(evaluation: dict) -> list[tuple[int, dict]]:
+    return sorted((int(level), means) for level, means in evaluation["per_spp"].items())
+
+
+def averaged(evaluation: dict, method: str, metric: str) -> float:
+    """The crop-mean error of ``method`` averaged over the spp levels (the paper's Table 1)."""
+    return float(np.mean([m[f"{method}_{metric}"] for _, m in _levels(evaluation)]))
+
+
+def base_row(evaluation: dict) -> dict:
+    """Table 1's numbers for one base: den and PD averaged over spp, the two ratio forms, and
+    the worst crop's PD / MC RMSE at the top spp."""
+    row = {}
+    for metric, _ in METRICS:
+        den, pd = averaged(evaluation, "denoiser", metric), averaged(evaluation, "pd", metric)
+        row[metric] = {"den": den, "pd": pd, "ratio_of_averages": pd / den,
+                       "mean_ratio": evaluation["headline"]["pd_over_denoiser"][metric]}
+    crops = evaluation.get("per_crop", {})
+    row["worst_crop_pd_over_mc_at_top"] = (
+        max(c["pd_over_mc_rmse_at_max_spp"] for c in crops.values()) if crops else None)
+    row["pd_over_mc_at_top"] = evaluation["headline"]["pd_over_mc_at_max_spp"]["rmse"]
+    row["spp"] = [level for level, _ in _levels(evaluation)]
+    row["crops"] = evaluation["crops"]
+    return row
+
+
+def _verdict(value: float, target: float, better: str = "<=") -> str:
+    ok = value <= target if better == "<=" else value >= target
+    return "met" if ok else "NOT met"
+
+
+def table1(results: dict[str, dict]) -> tuple[str, dict]:
+    lines = [f"<!-- generated by: python experiments/pd_bases_tables.py "
+             f"(from $JAXDEN_HOME/runs/sweeps/{SWEEP}/*/result.json) -->",
+             "# PD paper Tables 1 and 2 on our data: den against PD per base",
+             "",
+             "Each base is trained on `data/pd-rt` (2..1024 spp, 4000 steps, "
+             "`experiments/sweeps/pd-bases.toml`) and mixed by its own mixer (the `wskp-6-pd` "
+             "recipe: jvp SURE with one probe, width 16, closed_form_logit head; "
+             "`experiments/sweeps/pd-mixers.toml`). Errors on `data/pd-test-high` (8 held-out "
+             "procedural crops of 96 x 96, 32..4096 spp, 8192-spp references), crop means "
+             "averaged over spp. PD / den: the ratio of the spp-averaged errors (the paper's "
+             "table form) and, in brackets, the mean of the per-spp ratios.",
+             "",
+             "| table | base | model | " + " | ".join(label for _, label in METRICS)
+             + " | PD / MC, RMSE at the top spp (crop mean; worst crop) |",
+             "|---|---|---|" + "---:|" * len(METRICS) + "---:|"]
+    data, missing, targets = {}, [], []
+    for run, label, table in BASES:
+        if run not in results:
+            missing.append(run)
+            lines.append(f"| {table} | {label} | not run |" + " |" * len(METRICS) + " |")
+            continue
+        row = data[run] = base_row(results[run])
+        lines.append(f"| {table} | {label} | den | "
+                     + " | ".join(f"{row[m]['den']:.5f}" for m, _ in METRICS) + " | |")
+        worst = row["worst_crop_pd_over_mc_at_top"]
+        lines.append(
+            f"| {table} | | PD | "
+            + " | ".join(f"{row[m]['pd']:.5f} ({row[m]['ratio_of_averages']:.3f}x; "
+                         f"{row[m]['mean_ratio']:.3f}x)" for m, _ in METRICS)
+            + f" | {row['pd_over_mc_at_top']:.3f}; "
+            + ("-" if worst is None else f"{worst:.3f}") + " |")
+    lines += ["", "## Targets", ""]
+    unets = [run for run, _, table in BASES if table == 1]
+    done = [run for run in unets if run in data]
+    if done:
+        worst = max(data[run]["rmse"]["ratio_of_averages"] for run in done)
+        targets.append(f"- PD(U-Net) RMSE at most {TARGET_RATIO} of the U-Net's own, averaged "
+                       f"over 32..4096 spp, for every feature set (paper: 0.40-0.57): worst "
+                       f"{worst:.3f} over {len(done)} of {len(unets)} feature sets: "
+                       f"{_verdict(worst, TARGET_RATIO)}"
+                       + ("" if len(done) == len(unets) else " so far") + ".")
+    tops = [(run, data[run]["worst_crop_pd_over_mc_at_top"]) for run in data
+            if data[run]["worst_crop_pd_over_mc_at_top"] is not None]
+    if tops:
+        run, worst = max(tops, key=lambda t: t[1])
+        targets.append(f"- PD at or below MC's RMSE at the top spp for every crop and base: "
+                       f"worst crop {worst:.3f} (base {run}): {_verdict(worst, 1.0)}.")
+    if "kp5" in data:
+        targets.append(f"- PD(KP) reported: PD / den RMSE "
+                       f"{data['kp5']['rmse']['ratio_of_averages']:.3f}.")
+    lines += targets or ["- no run has finished yet"]
+    if missing:
+        lines += ["", "Not run yet: " + ", ".join(missing) + "."]
+    return "\n".join(lines) + "\n", {"rows": data, "missing": missing, "targets": targets}
+
+
+def table4(results: dict[str, dict]) -> str:
+    lines = [f"<!-- generated by: python experiments/pd_bases_tables.py "
+             f"(from $JAXDEN_HOME/runs/sweeps/{SWEEP}/*/result.json) -->",
+             "# PD paper Table 4 on our data: ablations per spp (RMSE, crop mean)",
+             "",
+             "The U-Net with HDR, ALB, NRM and VAR as the base (`pd-bases.toml`), mixers "
+             "trained with the paper's f_act head (t4-* rows of `pd-mixers.toml`; w/o SURE drops "
+             "SURE and its divergence from the inputs; w/o f_act predicts alpha through a "
+             "sigmoid); w/o t-test is the f_act mixer's output before the t-statistic scaling. "
+             "`data/pd-test-high`, 8 crops."]
+    done = [run for run in SAME_BASE if run in results]
+    if not done:
+        return "\n".join(lines + ["", "No run has finished yet."]) + "\n"
+    levels = [level for level, _ in _levels(results[done[0]])]
+    lines += ["", "| | " + " | ".join(str(s) for s in levels) + " |",
+              "|---|" + "---:|" * len(levels)]
+    for label, run, method in TABLE4:
+        run = done[0] if run == "same-base" else run
+        if run not in results:
+            lines.append(f"| {label} | not run |" + " |" * (len(levels) - 1))
+            continue
+        means = dict(_levels(results[run]))
+        lines.append(f"| {label} | " + " | ".join(f"{means[s][f'{method}_rmse']:.5f}"
+                                                 for s in levels) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def convergence(results: dict[str, dict]) -> tuple[str, dict]:
+    """One log-log RMSE panel per finished base: MC, the base, PD over it."""
+    sys.path.insert(0, str(REPO / "experiments"))
+    from pd_figure import svg_plot
+
+    curves, panels = {}, []
+    for run, label, _ in BASES:
+        if run not in results:
+            continue
+        levels = _levels(results[run])
+        curves[run] = {key: [(s, m[f"{key}_rmse"]) for s, m in levels]
+                       for key in ("mc", "denoiser", "pd")}
+        panels.append((run, label.split(" (")[0]))
+    methods = (("mc", "MC", "#7f7f7f"), ("denoiser", "den (the base)", "#1f77b4"),
+               ("pd", "PD(base)", "#d62728"))
+    if not panels:
+        return "", curves
+    return svg_plot(curves, "RMSE against spp on pd-test-high (crop means)", panels=panels,
+                    methods=methods, dashed=()), curves
+
+
+def main(argv=None) -> int:
+    from jaxden.fileio import atomic_write_text
+    from jaxden.paths import jaxden_home
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--home", type=Path, default=None, help="default $JAXDEN_HOME")
+    parser.add_argument("--out", type=Path, default=REPO / "experiments" / "results")
+    args = parser.parse_args(argv)
+    home = args.home or jaxden_home()
+    results = load_results(home)
+    args.out.mkdir(parents=True, exist_ok=True)
+    text, data = table1(results)
+    atomic_write_text(args.out / "pd-table1.md", text)
+    atomic_write_text(args.out / "pd-table1.json", json.dumps(
+        {**data, "source": f"$JAXDEN_HOME/runs/sweeps/{SWEEP}",
+         "datasets": sorted({r["dataset"] for r in results.values()})}, indent=1) + "\n")
+    atomic_write_text(args.out / "pd-table4.md", table4(results))
+    svg, curves = convergence(results)
+    if svg:
+        atomic_write_text(args.out / "pd-convergence-bases.svg", svg)
+        atomic_write_text(args.out / "pd-convergence-bases.json",
+                          json.dumps({"curves": curves}, indent=1) + "\n")
+    print(f"wrote pd-table1.md, pd-table4.md{', pd-convergence-bases.svg' if svg else ''} "
+          f"into {args.out} from {len(results)} finished runs")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
