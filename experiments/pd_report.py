@@ -47,8 +47,11 @@ def run_identity(argv: list[str] | None = None) -> dict:
     dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
                             ":(exclude)experiments/results"],
                            capture_output=True, text=True, cwd=ROOT).stdout.strip()
+    from jaxden.paths import portable
+
     argv = sys.argv[1:] if argv is None else argv
-    return {"command": f"python experiments/{Path(sys.argv[0]).name} " + shlex.join(argv),
+    return {"command": portable(f"python experiments/{Path(sys.argv[0]).name} "
+                                + shlex.join(argv)),
             "commit": commit + ("+dirty" if dirty else "")}
 
 

@@ -66,10 +66,9 @@ def ship(workdir: Path, name: str, sweep_file: str | None) -> Path:
     result = json.loads(result_file.read_text()) if result_file.is_file() else {}
     config = result.get("config") or json.loads((workdir / "config.json").read_text())
     train = result.get("train", {})
-    from jaxden.paths import jaxden_home
+    from jaxden.paths import portable
 
-    dataset = str(config.get("data", {}).get("dataset", "")).replace(str(jaxden_home()),
-                                                                      "$JAXDEN_HOME")
+    dataset = portable(str(config.get("data", {}).get("dataset", "")))
     if not train and (workdir / "metrics.jsonl").is_file():  # a plain `jaxden train` run
         for line in (workdir / "metrics.jsonl").read_text().splitlines():
             record = json.loads(line) if line.strip() else {}

@@ -545,9 +545,11 @@ def main(argv=None) -> int:
     WEIGHTS_DIR.mkdir(exist_ok=True)
     save_mixer(path, params, config, **extra)
     reports = [(p, json.loads(Path(p).read_text())) for p in args.report]
+    from jaxden.paths import portable
+
     card = _card(name, facts, config_to_dict(config), reports, path.stat().st_size,
                  config_file, tuple(args.set), versions, data_config_file)
-    atomic_write_text(path.with_suffix(".md"), card)
+    atomic_write_text(path.with_suffix(".md"), portable(card))
     print(f"wrote {path} ({path.stat().st_size / 1024:.0f} KiB), {path.with_suffix('.json')} "
           f"and the model card {path.with_suffix('.md')}")
     return 0

@@ -31,3 +31,10 @@ def expand_path(text: str) -> str:
         return os.environ.get(name, match.group(0))
 
     return os.path.expanduser(_VARIABLE.sub(value, text))
+
+
+def portable(text: str) -> str:
+    """``text`` with this machine's :func:`jaxden_home` written as ``$JAXDEN_HOME``: commands
+    and paths recorded in results and model cards then work on any machine."""
+    home = str(jaxden_home())
+    return text.replace(home, "$JAXDEN_HOME") if home not in ("", "/") else text
