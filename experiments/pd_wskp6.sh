@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# PD over the real-time WSKP-6, the consistent real-time denoiser: ship the trained mixer as
+# `wskp-6-pd`, measure it on the progressive sequence (one held-out frame at 2..4096 spp; at
+# 1 spp there is no variance, so no PD) and on the held-out pd-test-high set, plot the
+# sequence's convergence, and re-ship with both reports in the model card.
+#   experiments/pd_wskp6.sh
+# Needs (experiments/queue.sh): $JAXDEN_HOME/runs/mixer-wskp6 (mixer-wskp6.toml on data/pd-rt),
+# $JAXDEN_HOME/data/pd-sequence and $JAXDEN_HOME/data/pd-test-high. SURE probe seed 0, one probe
+# (the mixer's training probes).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+H="${JAXDEN_HOME:-$HOME/jaxden-work}"
+python=${PYTHON:-.venv/bin/python}
+R=experiments/results
+ship=("$python" experiments/ship_mixer.py --workdir "$H/runs/mixer-wskp6" --name wskp-6-pd
+      --config experiments/configs/mixer-wskp6.toml)
+"${ship[@]}"
+"$python" experiments/pd_report.py pd --data "$H/data/pd-sequence" --denoiser wskp-6 \
+  --mixer wskp-6-pd --spp 2 4 8 16 32 64 128 256 512 1024 2048 4096 --out "$R/pd-wskp6-sequence"
+"$python" experiments/pd_report.py pd --data "$H/data/pd-test-high" --denoiser wskp-6 \
+  --mixer wskp-6-pd --out "$R/pd-wskp6-test-high"
+"$python" experiments/pd_figure.py convergence --report "$R/pd-wskp6-sequence.json" \
+  --out "$R/fig-pd-wskp6-sequence"
+"${ship[@]}" --report "$R/pd-wskp6-sequence.json" --report "$R/pd-wskp6-test-high.json"
