@@ -2,7 +2,8 @@
 # PD over the real-time WSKP-6, the consistent real-time denoiser: ship the trained mixer as
 # `wskp-6-pd`, measure it on the progressive sequence (one held-out frame at 2..4096 spp; at
 # 1 spp there is no variance, so no PD) and on the held-out pd-test-high set, plot the
-# sequence's convergence, and re-ship with both reports in the model card.
+# sequence's convergence, measure it on the out-of-distribution scenes (data/ood-first-hit),
+# and re-ship with the reports in the model card.
 #   experiments/pd_wskp6.sh
 # Needs (experiments/queue.sh): $JAXDEN_HOME/runs/mixer-wskp6 (mixer-wskp6.toml on data/pd-rt),
 # $JAXDEN_HOME/data/pd-sequence and $JAXDEN_HOME/data/pd-test-high. SURE probe seed 0, one probe
@@ -19,6 +20,12 @@ ship=("$python" experiments/ship_mixer.py --workdir "$H/runs/mixer-wskp6" --name
   --mixer wskp-6-pd --spp 2 4 8 16 32 64 128 256 512 1024 2048 4096 --out "$R/pd-wskp6-sequence"
 "$python" experiments/pd_report.py pd --data "$H/data/pd-test-high" --denoiser wskp-6 \
   --mixer wskp-6-pd --out "$R/pd-wskp6-test-high"
+# outside the training distribution (the OOD scenes with WSKP-6's first-hit features)
+"$python" experiments/pd_report.py pd --data "$H/data/ood-first-hit" --denoiser wskp-6 \
+  --mixer wskp-6-pd --spp 16 32 64 128 256 512 1024 --out "$R/pd-wskp6-ood-first-hit"
+"$python" experiments/pd_ood.py "$R/pd-wskp6-ood-first-hit.json" \
+  --out "$R/pd-wskp6-ood-first-hit-diagnosis"
 "$python" experiments/pd_figure.py convergence --report "$R/pd-wskp6-sequence.json" \
   --out "$R/fig-pd-wskp6-sequence"
-"${ship[@]}" --report "$R/pd-wskp6-sequence.json" --report "$R/pd-wskp6-test-high.json"
+"${ship[@]}" --report "$R/pd-wskp6-sequence.json" --report "$R/pd-wskp6-test-high.json" \
+  --report "$R/pd-wskp6-ood-first-hit.json"
