@@ -127,6 +127,16 @@ def _plural(count: int, noun: str) -> str:
     return f"{count} {noun}{'' if count == 1 else 's'}"
 
 
+def _held_out_scenes(data: dict) -> str:
+    """What a measured set's crops show, from its dataset config: procedural scenes, or the
+    scene files it names (built-in scenes are in every training set, so a held-out set has
+    none)."""
+    files = [Path(scene).name for scene in data.get("scenes", [])]
+    if not files:
+        return "procedural scenes and render seeds"
+    return f"the scene files {', '.join(f'`{f}`' for f in files)}, scenes"
+
+
 def _use_text(name: str, base: dict) -> str:
     """The card's Use line: today's text for OIDN, else the CLI command naming both."""
     if base["spec"] == "oidn":
@@ -398,8 +408,8 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
             f"From `{path}` (`{prov['command']}`, commit {prov['commit']}"
             + (f"; the file was renamed from `{prov['renamed_from']}.json`"
                if prov.get("renamed_from") else "")
-            + f"): {s['crops']} crops "
-            f"of procedural scenes and render seeds never seen in training, errors against "
+            + f"): {_plural(s['crops'], 'crop')} "
+            f"of {_held_out_scenes(data)} never seen in training, errors against "
             f"{data['reference_spp']}-spp references, mean over crops, then the per-spp ratio "
             f"averaged over spp. The oracle mix fits one alpha per 8^2 tile and channel to the "
             f"reference: a bound for mixers of x and y, not a method.",
