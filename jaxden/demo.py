@@ -3,8 +3,9 @@
 Renders built-in scenes progressively (increasing spp) with colour, variance of the mean and
 features, plus an independent high-spp reference; denoises every level with OIDN, with the
 shipped real-time denoiser WSKP-6 (``wskp-6``: trained at 1 spp, so its error stops falling as
-the spp grow, where MC's and PD's keep falling) and, when a mixer for OIDN ships with the
-package, with progressive denoising PD(OIDN) (from 2 spp: it needs a variance); writes every frame
+the spp grow, where MC's and PD's keep falling) and, for each of them with a mixer shipped in
+the package, with progressive denoising: PD(OIDN) with ``oidn-pd``, PD(WSKP-6) with
+``wskp-6-pd`` (from 2 spp: PD needs a variance); writes every frame
 as EXR and prints a table of errors against the reference (linear HDR relMSE, SMAPE, RMSE and
 HDR-FLIP), also saved as ``summary.json`` and ``summary.md``.
 
@@ -63,13 +64,18 @@ def _metrics(image: np.ndarray, reference: np.ndarray, flip_maps: dict | None = 
     }
 
 
-def _progressive_denoiser():
-    """``frame -> (image, alpha)`` for PD(OIDN) if a shipped mixer exists, else None."""
-    try:
-        from jaxden.progressive.pipeline import shipped_progressive_denoiser
-    except ImportError:
-        return None
-    return shipped_progressive_denoiser("oidn")
+def _progressive_denoisers(realtime: tuple[str, ...]) -> dict:
+    """``{"pd_oidn": frame -> (image, alpha), "pd_wskp6": ...}``: PD over OIDN and over each
+    real-time denoiser of the demo for which a mixer ships in the package (``oidn-pd``,
+    ``wskp-6-pd``), each with its shipped mixer and SURE probes."""
+    from jaxden.progressive.pipeline import shipped_progressive_denoiser
+
+    found = {}
+    for name in ("oidn", *realtime):
+        run = shipped_progressive_denoiser(name)
+        if run is not None:
+            found[f"pd_{name.replace('-', '')}"] = run
+    return found
 
 
 def _write_preview(path: Path, image, stops: float) -> None:
@@ -127,7 +133,7 @@ def run_demo(out: Path, quick: bool = False, settings: DemoSettings | None = Non
     out.mkdir(parents=True, exist_ok=True)
     oidn = make_denoiser("oidn")
     realtime = {name.replace("-", ""): load_denoiser(name) for name in settings.realtime}
-    progressive = _progressive_denoiser()
+    progressive = _progressive_denoisers(tuple(settings.realtime))
     rows, flip_maps = [], {}
     started = time.perf_counter()
     renders = tqdm(total=len(settings.scenes) * (1 + len(settings.spp_levels)), unit="render",
@@ -158,8 +164,9 @@ def run_demo(out: Path, quick: bool = False, settings: DemoSettings | None = Non
             for method, denoiser in realtime.items():
                 results[method] = np.asarray(denoiser(frame))
             alphas = {}
-            if progressive is not None and frame.variance is not None:
-                results["pd_oidn"], alphas["pd_oidn"] = progressive(frame)
+            if frame.variance is not None:  # PD needs it: from 2 spp
+                for method, run in progressive.items():
+                    results[method], alphas[method] = run(frame)
             for method, image in results.items():
                 stem = f"spp{spp:05d}" if method == "mc" else f"spp{spp:05d}.{method}"
                 if method != "mc":
