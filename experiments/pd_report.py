@@ -146,7 +146,9 @@ def cmd_pd(args: argparse.Namespace) -> None:
                                              num_probes=args.probes, spp=args.spp, progress=True)
         denoiser = args.denoiser[0]
     summary = pdreport.summarize_progressive(rows)
-    name = "OIDN" if denoiser == "oidn" else denoiser
+    from ship_mixer import denoiser_label
+
+    name = denoiser_label(denoiser)
     result = {"summary": summary, "rows": rows, "provenance": source}
     write_report(Path(args.out), result, pdreport.markdown_progressive(summary, name))
 

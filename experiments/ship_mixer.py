@@ -446,7 +446,10 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
         f"- Trained for {label}'s output only; mixing another denoiser's output with it is "
         "possible (the CLI warns) but not what it learned.",
         "- The channel-summed t-statistic (authors' default) cannot detect a pure hue-shift bias; "
-        "see docs/departures.md.",
+        "see docs/departures.md." if not mc["tstat"]["per_channel"] else
+        "- The t-statistic is taken per colour channel (the paper's form; the authors' code sums "
+        "the channels, which cannot detect a pure hue-shift bias, see docs/departures.md); the "
+        "reports above hold the summed form's row too.",
     ]
     return "\n".join(lines) + "\n"
 

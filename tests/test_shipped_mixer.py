@@ -120,3 +120,40 @@ def test_progressive_bench_quick():
             "closed_form_over_oidn", "closed_form_stops_over_closed_form")
     assert all(np.isfinite(result[k]) and result[k] > 0 for k in keys)
     assert (result["width"], result["height"]) == (320, 180)
+
+
+def test_wskp6_mixer_ships_with_its_recipe_and_is_the_default_for_wskp6(tmp_path, capsys):
+    """`wskp-6-pd`: PD over the shipped real-time WSKP-6. Its recorded recipe is the committed
+    mixer-wskp6.toml (jvp SURE, one probe), `jaxden progressive --denoiser wskp-6` picks it by
+    default and gives what progressive_denoise gives with its probes, and the card names its
+    base, not OIDN."""
+    from pathlib import Path
+
+    from jaxden.train.config import load_train_config
+
+    path = P.shipped_mixer_path("wskp-6")
+    assert path == WEIGHTS_DIR / "wskp-6-pd.msgpack"
+    assert path.stat().st_size < 4 * 2**20
+    meta = json.loads(path.with_suffix(".json").read_text())
+    assert meta["kind"] == "mixer" and meta["model_config"]["denoiser"] == "wskp-6"
+    assert meta["train_config_file"] == "experiments/configs/mixer-wskp6.toml"
+    committed = load_train_config(Path(__file__).parent.parent / meta["train_config_file"])
+    assert meta["train_config"]["model_config"] == committed.model_config
+    assert meta["trained_steps"] == committed.optim.steps and meta["seed"] == committed.seed
+    params, config = P.load_mixer("wskp-6-pd")
+    assert config.sure_probes == 1 and config.sure_method == "auto" and config.width == 16
+    card = path.with_suffix(".md").read_text()
+    assert "OIDN" not in card and "--denoiser wskp-6 --mixer wskp-6-pd" in card
+    assert "jax.jvp" in card and "## Measured" in card
+
+    frame = synthetic_render("shipped", 16, seed=3, size=(24, 20)).numpy()
+    source, out = tmp_path / "in.exr", tmp_path / "out.exr"
+    write_frame(source, frame)
+    assert cli.main(["progressive", str(source), "--denoiser", "wskp-6", "--out", str(out),
+                     "--seed", "4"]) == 0
+    assert "trained on the output" not in capsys.readouterr().err
+    z, alpha, _ = P.progressive_denoise(frame, "wskp-6", params, config, jax.random.PRNGKey(4))
+    np.testing.assert_allclose(read_image(out), np.asarray(z), rtol=1e-5, atol=1e-5)
+    z2, alpha2 = P.shipped_progressive_denoiser("wskp-6", seed=4)(frame)
+    np.testing.assert_allclose(z2, np.asarray(z), rtol=1e-5, atol=1e-5)
+    assert np.all((alpha2 >= 0) & (alpha2 <= 1))

@@ -104,7 +104,7 @@ def progressive_denoise(
 
 
 #: Mixers shipped in ``jaxden/weights/`` per denoiser name: ``{denoiser: weights name}``.
-SHIPPED_MIXERS: dict[str, str] = {"oidn": "oidn-pd"}
+SHIPPED_MIXERS: dict[str, str] = {"oidn": "oidn-pd", "wskp-6": "wskp-6-pd"}
 
 
 def shipped_mixer_path(denoiser: str = "oidn"):
