@@ -38,7 +38,8 @@ def check_outputs(out, scene: str, spp_levels, size: int) -> dict:
     pd_levels = [spp for spp in spp_levels if spp > 1]  # PD needs a variance: 2 spp or more
     stems = ["reference"] + [f"spp{spp:05d}{suffix}" for spp in spp_levels
                              for suffix in ("", ".oidn", ".wskp6")] + [
-        f"spp{spp:05d}{suffix}" for spp in pd_levels for suffix in (".pd_oidn", ".pd_oidn.alpha")]
+        f"spp{spp:05d}{suffix}" for spp in pd_levels
+        for suffix in (".pd_oidn", ".pd_oidn.alpha", ".pd_wskp6", ".pd_wskp6.alpha")]
     for stem in stems:
         assert (folder / f"{stem}.exr").is_file(), stem
         assert png_size(folder / f"{stem}.png") == (size, size), stem
@@ -46,6 +47,7 @@ def check_outputs(out, scene: str, spp_levels, size: int) -> dict:
     from jaxden.io.exr import read_image
 
     assert not (folder / "spp00001.pd_oidn.exr").exists()
+    assert not (folder / "spp00001.pd_wskp6.exr").exists()
     alpha = read_image(folder / f"spp{pd_levels[0]:05d}.pd_oidn.alpha.exr")
     assert alpha.shape == (size, size, 3) and 0 <= alpha.min() and alpha.max() <= 1
     svg = (out / "convergence.svg").read_text()
@@ -58,7 +60,7 @@ def check_outputs(out, scene: str, spp_levels, size: int) -> dict:
     data = page_data(report)
     (page_scene,) = data["scenes"]
     assert page_scene["name"] == scene and page_scene["spp"] == list(spp_levels)
-    assert page_scene["methods"] == ["mc", "oidn", "pd_oidn", "wskp6"]
+    assert page_scene["methods"] == ["mc", "oidn", "pd_oidn", "pd_wskp6", "wskp6"]
     assert {"reference", f"{spp_levels[-1]}/pd_oidn", f"flip/{spp_levels[0]}/mc",
             f"relse/{spp_levels[0]}/oidn", f"alpha/{spp_levels[-1]}/pd_oidn"} <= set(
         page_scene["arrays"])
@@ -90,7 +92,7 @@ def test_demo_writes_previews_plots_and_report(tmp_path, capsys):
     assert lines[-1] == f"report: {tmp_path / 'report.html'}  (open it in a web browser)"
     table = "\n".join(line for line in lines if line.startswith("|"))
     assert table == (tmp_path / "summary.md").read_text().strip()
-    assert len(summary["rows"]) == 8  # mc, oidn, wskp6, pd_oidn at 4 and 16 spp
+    assert len(summary["rows"]) == 10  # mc, oidn, wskp6, pd_oidn, pd_wskp6 at 4 and 16 spp
     assert "demo" in captured.err and "render" in captured.err  # the tqdm bar
     assert "| cornell-box |" not in captured.err  # the table stays on stdout
 

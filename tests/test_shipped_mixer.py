@@ -95,7 +95,7 @@ def test_demo_writes_frames_and_oidn_beats_the_noisy_input(tmp_path):
     summary = run_demo(tmp_path, settings=settings)
     rows = summary["rows"]
     assert {(r["spp"], r["method"]) for r in rows} == {
-        (s, m) for s in (4, 16) for m in ("mc", "oidn", "wskp6", "pd_oidn")}
+        (s, m) for s in (4, 16) for m in ("mc", "oidn", "wskp6", "pd_oidn", "pd_wskp6")}
     assert json.loads((tmp_path / "summary.json").read_text())["rows"] == rows
     for name in ("reference.exr", "spp00004.exr", "spp00004.oidn.exr", "spp00016.pd_oidn.exr"):
         assert (tmp_path / "cornell-box" / name).is_file()
