@@ -66,6 +66,29 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(skip_slow)
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _release_mitsuba_scenes():
+    """After each test module, drop the Mitsuba scenes and integrators jaxden keeps cached.
+
+    Every live Mitsuba BSDF, shape, emitter and texture of the variant is in Dr.Jit's instance
+    registry, and a symbolic virtual call traces (and compiles into the kernel) the code of
+    *every* registered instance, not just the rendered scene's. Scenes held by jaxden's caches
+    (render.load: 8, render.core: 4, data.builder: 2) after earlier test files made each
+    later render trace ~350 instances instead of ~25 and compile kernels that the on-disk
+    cache had never seen: Mitsuba tests took 5-11 s each in the full suite, 0.1-2 s alone.
+    """
+    yield
+    import sys
+
+    caches = [getattr(sys.modules.get("jaxden.render.load"), "_loaded", None),
+              getattr(sys.modules.get("jaxden.render.core"), "_spec_scenes", None),
+              getattr(sys.modules.get("jaxden.render.core"), "_integrator_cache", None),
+              getattr(sys.modules.get("jaxden.data.builder"), "_SCENE_CACHE", None)]
+    for cache in caches:
+        if cache:
+            cache.clear()  # reference counting frees the objects (measured: 0 left per module)
+
+
 @pytest.fixture(scope="session")
 def key():
     """jax.random.PRNGKey(0), shared by the session (split it; never reuse it for two draws)."""
