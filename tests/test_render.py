@@ -285,7 +285,6 @@ def _mirror_scene(reflectance: float, behind: float):
     }
 
 
-@pytest.mark.slow  # 8-11 s inside the full suite (0.2-2 s alone; not yet traced)
 def test_specular_chain_takes_albedo_and_normal_behind_a_mirror():
     scene = load_scene(_mirror_scene(0.5, 0.6))
     first = render_frame(scene, spp=4, seed=1, aux="first-hit")
@@ -391,7 +390,6 @@ def test_crop_renders_only_the_crop_at_the_right_place(cornell, cornell_frame):
     {"fov": 35.0, "fov_axis": "y", "principal_point_offset_x": 0.08,
      "principal_point_offset_y": -0.05},
 ])
-@pytest.mark.slow  # 8-11 s inside the full suite (0.2-2 s alone; not yet traced)
 def test_crop_camera_equals_mitsuba_film_crop(cornell, camera):
     """The off-centre crop camera gives the same render as Mitsuba's film crop (same seed),
     to float round-off, and reuses one sensor (hence one set of kernels) across offsets."""
@@ -463,7 +461,6 @@ def test_max_depth_one_sees_only_emitters(cornell):
     assert np.median(frame.color) == 0.0 and frame.color.max() > 10.0
 
 
-@pytest.mark.slow  # 8-11 s inside the full suite (0.2-2 s alone; not yet traced)
 def test_foreign_mitsuba_scene_is_checked():
     scene_dict = {"type": "scene",
                   "sensor": {"type": "perspective",
@@ -520,7 +517,6 @@ def test_builtin_scene_loads_and_renders(name, library):
     assert frame.color.mean() > 0.01
 
 
-@pytest.mark.slow  # 8-11 s inside the full suite (0.2-2 s alone; not yet traced)
 def test_env_sun_has_sky_on_misses(library):
     _, frame = library("env-sun")
     miss = frame.depth[..., 0] == 0
@@ -529,7 +525,6 @@ def test_env_sun_has_sky_on_misses(library):
     assert frame.color[:4].mean() > 0.5  # the upper rows are all bright sky
 
 
-@pytest.mark.slow  # 8-11 s inside the full suite (0.2-2 s alone; not yet traced)
 def test_texture_bump_has_fine_albedo_and_bumped_normals():
     """Floor crop: neighbouring pixels' albedo differs strongly (fine texture); back wall: flat
     geometry (normal +z) but varying shading normals (bump map)."""
@@ -551,7 +546,6 @@ def test_glossy_glass_has_glossy_and_dielectric_materials():
     assert {"RoughConductor", "RoughPlastic", "SmoothDielectric"} <= kinds, kinds
 
 
-@pytest.mark.slow  # 8-11 s inside the full suite (0.2-2 s alone; not yet traced)
 def test_small_lights_are_tiny_and_bright(library):
     scene, frame = library("small-lights")
     areas = [shape.surface_area() for shape in scene.shapes() if shape.emitter() is not None]
@@ -630,7 +624,6 @@ def xml_scene(xml_path):
     return load_scene(xml_path)
 
 
-@pytest.mark.slow  # 8-11 s inside the full suite (0.2-2 s alone; not yet traced)
 def test_xml_scene_enforces_box_independent_and_defaults(xml_path, xml_scene):
     resolver = mi.file_resolver()
     resolver_before = [str(resolver[i]) for i in range(len(resolver))]
