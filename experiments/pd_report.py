@@ -44,8 +44,10 @@ def run_identity(argv: list[str] | None = None) -> dict:
     code changes make it "+dirty", finished results being rewritten do not."""
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
                             text=True, cwd=ROOT).stdout.strip()
+    # Shipped weights and their cards are not code: a report names the weights it used by
+    # their sha256 (and the inference settings it ran), so re-shipping them is not "dirty".
     dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
-                            ":(exclude)experiments/results"],
+                            ":(exclude)experiments/results", ":(exclude)jaxden/weights"],
                            capture_output=True, text=True, cwd=ROOT).stdout.strip()
     from jaxden.paths import portable
 
