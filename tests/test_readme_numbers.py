@@ -34,9 +34,9 @@ def _key(*path):
     return get
 
 
-def _pd(name: str, column: str):
-    """The headline ratios of experiments/results/pd-oidn-NAME.json quoted in one column."""
-    file = f"pd-oidn-{name}.json"
+def _pd(name: str, column: str, base: str = "oidn"):
+    """The headline ratios of experiments/results/pd-BASE-NAME.json quoted in one column."""
+    file = f"pd-{base}-{name}.json"
     headline = ("summary", "headline")
     if column == "oracle":
         return [(file, _key(*headline, "oracle_over_denoiser", "rmse")),
@@ -95,6 +95,10 @@ PD_ROWS = {
     ("test", "oracle (8 x 8 tiles)"): "test-shipped",
 }
 
+
+#: PD over WSKP-6: first cell of the row (the set) -> report name (pd-wskp6-NAME.json).
+PD_WSKP6_ROWS = {"progressive sequence": "sequence", "pd-test-high": "test-high",
+                 "out of distribution": "ood-first-hit"}
 
 #: The real-time tables: README section -> the file their rows quote (rows by method label).
 RT_FILE = "rt-table1.json"
@@ -162,6 +166,15 @@ def quotes(text: str | None = None) -> list[tuple[str, str, list]]:
             out.append((f"{current_set} / {row['mixer']} / {column}", row[column],
                         _pd(name, source)))
     assert seen == set(PD_ROWS), f"PD table rows missing: {set(PD_ROWS) - seen}"
+    (wskp6,) = tables_under("### Progressive denoising of WSKP-6", text)
+    columns = list(wskp6[0])
+    assert {row[columns[0]].split(" (")[0] for row in wskp6} == set(PD_WSKP6_ROWS), \
+        "PD(WSKP-6) table rows changed"
+    for row in wskp6:
+        name = PD_WSKP6_ROWS[row[columns[0]].split(" (")[0]]
+        for column, source in zip(columns[1:5], ("rmse", "relmse", "flip", "top spp")):
+            out.append((f"PD(WSKP-6) / {name} / {column}", row[column],
+                        _pd(name, source, base="wskp6")))
     per_frame, temporal = tables_under("### Weight-sharing kernel prediction", text)
     metrics = {"PSNR (dB)": "psnr", "SSIM": "ssim", "relMSE": "relmse", "FLIP": "flip"}
     for section, rows in (("per_frame", per_frame), ("temporal", temporal)):
