@@ -72,10 +72,11 @@ def _release_mitsuba_scenes():
 
     Every live Mitsuba BSDF, shape, emitter and texture of the variant is in Dr.Jit's instance
     registry, and a symbolic virtual call traces (and compiles into the kernel) the code of
-    *every* registered instance, not just the rendered scene's. Scenes held by jaxden's caches
-    (render.load: 8, render.core: 4, data.builder: 2) after earlier test files made each
-    later render trace ~350 instances instead of ~25 and compile kernels that the on-disk
-    cache had never seen: Mitsuba tests took 5-11 s each in the full suite, 0.1-2 s alone.
+    *every* registered instance, not just the rendered scene's. When jaxden's caches held up to
+    14 scenes, later test files' renders traced ~350 instances instead of ~25 and compiled
+    kernels that the on-disk cache had never seen (5-11 s per Mitsuba test in the full suite,
+    0.1-2 s alone). The caches now hold one scene each (render.core, data.builder) and
+    render.load holds sensors only; clearing them keeps test files independent all the same.
     """
     yield
     import sys

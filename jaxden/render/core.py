@@ -109,7 +109,8 @@ def _check_crop(crop, size: tuple[int, int]) -> tuple[int, int, int, int]:
     return top, left, height, width
 
 
-SPEC_MEMORY = 4
+# Only the last spec's scene: every other live scene would be traced into each render's kernels.
+SPEC_MEMORY = 1
 _spec_scenes: collections.OrderedDict = collections.OrderedDict()
 
 

@@ -17,8 +17,9 @@ the film size. The spp comes from the render call, never from the scene.
 
 :func:`load_scene` returns an ``mi.Scene`` and remembers how to rebuild its sensor at another
 size or with a film crop (for :func:`jaxden.render.render_frame`) for the most recent
-``SCENE_MEMORY`` scenes it loaded (Mitsuba scenes accept neither attributes nor weak
-references, so the memory holds them alive; it is bounded to keep memory bounded).
+``SCENE_MEMORY`` scenes it loaded. The memory holds each scene's first sensor, never the
+scene (a held scene would stay in Dr.Jit's instance registry and slow every later render; see
+``jaxden.render.load``), so a scene is freed as soon as its caller drops it.
 
 :func:`prepare_scene` is the dict-level step: the patched scene dict, not loaded, for every
 spec but XML files (those are patched as XML text and loaded by :func:`load_scene`).
@@ -43,7 +44,7 @@ from jaxden.limits import check_render_size
 DEFAULT_SIZE: tuple[int, int] = (256, 256)
 MAX_SIDE = 16384  # pixels; a larger film is a typo, not a render
 MAX_PIXELS = 1 << 27
-SCENE_MEMORY = 8
+SCENE_MEMORY = 16
 SENSOR_TYPES = frozenset({"perspective", "thinlens", "orthographic", "telecentric"})
 # Every Mitsuba sensor plugin: found as sensors, then rejected unless in SENSOR_TYPES.
 _ALL_SENSOR_PLUGINS = SENSOR_TYPES | {"batch", "radiancemeter", "irradiancemeter", "distant"}
