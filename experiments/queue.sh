@@ -37,8 +37,7 @@ step data-pd-test-high $J dataset build experiments/configs/dataset-pd-test-high
   --out "$H/data/pd-test-high"
 step sweep-rt-ablation $J sweep experiments/sweeps/rt-ablation.toml --workdir "$H/runs/sweeps/rt-ablation"
 # The remaining real-time models (WSKP-3, KP-1, KP-2, WSKP-MR, U-Net, WSKP-6+1x1), about 3 h.
-# Two XLA devices (the batch sharded; same steps and batch): ~1.8x for the U-Net (COMPUTE.md).
-step sweep-rt-variants env XLA_FLAGS=--xla_force_host_platform_device_count=2 $J sweep experiments/sweeps/rt-variants.toml --workdir "$H/runs/sweeps/rt-variants"
+step sweep-rt-variants $J sweep experiments/sweeps/rt-variants.toml --workdir "$H/runs/sweeps/rt-variants"
 # The progressive-denoising paper's Tables 1 and 2 on our data: bases trained on PD data
 # (U-Net x 4 feature sets, KP 5 x 5, WSKP-6), one mixer per base, PD reports on pd-test-high,
 # and SURE's accuracy for each base (experiments/README.md).
