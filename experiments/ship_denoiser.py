@@ -94,13 +94,27 @@ def ship(workdir: Path, name: str, sweep_file: str | None) -> Path:
                f"jaxden train experiments/configs/train-rt.toml model={denoiser.name} "
                f"seed={config.get('seed')} --workdir $JAXDEN_HOME/runs/{name}")
     quality = _quality(result)
+    words = {"color": "colour", "albedo": "albedo", "normal": "normal", "depth": "depth",
+             "variance": "variance"}
+    needed = [words.get(f, f) for f in denoiser.definition.required(denoiser.config)]
+    inputs = (", ".join(needed[:-1]) + " and " + needed[-1]) if len(needed) > 1 else needed[0]
+    form = ("shipped in its deployed form (RepVGG branches folded into single 5x5 convolutions; "
+            if hasattr(denoiser.config, "deploy") else "shipped as trained (")
+    kernel_predictor = hasattr(denoiser.config, "deploy")  # WSKP, WSKP-MR, KP: kernels filter x
+    bleed = (
+        "A bright emitter in view bleeds into its dark neighbours: a kernel "
+        "predictor filters across the emitter's edge, and the SMAPE loss (bounded per pixel) "
+        "hardly penalises it; on the demo's 64 x 64 Cornell box at 64 spp the 100 pixels beside the "
+        "light carry 95 % of WSKP-6's relMSE (`jaxden demo --quick`), while tone-mapped "
+        "metrics, which clip the light, do not see it. " if kernel_predictor else
+        "Its relMSE, a mean of per-pixel ratios, is ruled by a few dark pixels beside bright "
+        "ones; tone-mapped metrics clip bright values and do not see them. ")
     card = [
         f"# Model card: `{name}`",
         "",
         f"**What**: `{denoiser.name}` ({denoiser.definition.description}), trained by jaxden, "
-        f"shipped in its deployed form (RepVGG branches folded into single 5x5 convolutions; "
-        f"{size_kb:.0f} KB). Input: a 1-spp (or any spp) frame with colour, albedo, normal and "
-        f"depth (`jaxden denoise IN.exr --model {name} --out OUT.exr`); output: linear HDR "
+        f"{form}{size_kb:.0f} KB). Input: a 1-spp (or any spp) frame with {inputs} "
+        f"(`jaxden denoise IN.exr --model {name} --out OUT.exr`); output: linear HDR "
         f"radiance.",
         "",
         f"**Training data**: `{dataset}`, built by `jaxden "
@@ -127,11 +141,7 @@ def ship(workdir: Path, name: str, sweep_file: str | None) -> Path:
         "",
         "**Limits**: trained at a far smaller scale than the paper (steps, crop size, data; "
         "see experiments/results/rt-table1.md); scenes unlike jaxden's procedural ones may "
-        "denoise worse. A bright emitter in view bleeds into its dark neighbours: a kernel "
-        "predictor filters across the emitter's edge, and the SMAPE loss (bounded per pixel) "
-        "hardly penalises it; on the demo's 64 x 64 Cornell box at 64 spp the 100 pixels beside the "
-        "light carry 95 % of WSKP-6's relMSE (`jaxden demo --quick`), while tone-mapped "
-        "metrics, which clip the light, do not see it. It is a 1-spp denoiser: its error "
+        "denoise worse. " + bleed + "It is a 1-spp denoiser: its error "
         "stops falling as the spp grow (progressive denoising is the remedy). Shipped at "
         "commit "
         f"{meta['shipped_commit']} with jax {meta['versions']['jax']}, flax "
