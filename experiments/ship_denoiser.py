@@ -107,8 +107,8 @@ def ship(workdir: Path, name: str, sweep_file: str | None) -> Path:
         "hardly penalises it; on the demo's 64 x 64 Cornell box at 64 spp the 100 pixels beside the "
         "light carry 95 % of WSKP-6's relMSE (`jaxden demo --quick`), while tone-mapped "
         "metrics, which clip the light, do not see it. " if kernel_predictor else
-        "Its relMSE, a mean of per-pixel ratios, is ruled by a few dark pixels beside bright "
-        "ones; tone-mapped metrics clip bright values and do not see them. ")
+        "Tone-mapped PSNR and SSIM clip bright values; relMSE and FLIP (linear HDR) see "
+        "them. ")
     card = [
         f"# Model card: `{name}`",
         "",
