@@ -43,6 +43,13 @@ step sweep-rt-variants $J sweep experiments/sweeps/rt-variants.toml --workdir "$
 # and SURE's accuracy for each base (experiments/README.md).
 step sweep-pd-bases env XLA_FLAGS=--xla_force_host_platform_device_count=2 $J sweep \
   experiments/sweeps/pd-bases.toml --workdir "$H/runs/sweeps/pd-bases"
+# SURE by jvp against the true error of every JAX base on pd-test-high (into the checkout's
+# experiments/results: commit it). The shipped WSKP-6 first, then the pd-bases runs.
+B="$H/runs/sweeps/pd-bases"
+step sure-pd-bases .venv/bin/python experiments/pd_report.py sure --data "$H/data/pd-test-high" \
+  --denoiser wskp-6 --denoiser "$B/unet-hdr" --denoiser "$B/unet-hdr-var" \
+  --denoiser "$B/unet-hdr-alb-nrm" --denoiser "$B/unet-hdr-alb-nrm-var" --denoiser "$B/kp5" \
+  --denoiser "$B/wskp6" --out experiments/results/sure-pd-bases
 step sweep-pd-mixers env XLA_FLAGS=--xla_force_host_platform_device_count=2 $J sweep \
   experiments/sweeps/pd-mixers.toml --workdir "$H/runs/sweeps/pd-mixers"
 for extra in "$H"/queue.d/*.sh; do   # ad-hoc steps of this machine, outside the checkout
