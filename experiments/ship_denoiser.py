@@ -98,9 +98,9 @@ def ship(workdir: Path, name: str, sweep_file: str | None) -> Path:
              "variance": "variance"}
     needed = [words.get(f, f) for f in denoiser.definition.required(denoiser.config)]
     inputs = (", ".join(needed[:-1]) + " and " + needed[-1]) if len(needed) > 1 else needed[0]
+    kernel_predictor = hasattr(denoiser.config, "deploy")  # WSKP, WSKP-MR, KP: RepVGG, kernels
     form = ("shipped in its deployed form (RepVGG branches folded into single 5x5 convolutions; "
-            if hasattr(denoiser.config, "deploy") else "shipped as trained (")
-    kernel_predictor = hasattr(denoiser.config, "deploy")  # WSKP, WSKP-MR, KP: kernels filter x
+            if kernel_predictor else "shipped as trained (")
     bleed = (
         "A bright emitter in view bleeds into its dark neighbours: a kernel "
         "predictor filters across the emitter's edge, and the SMAPE loss (bounded per pixel) "
