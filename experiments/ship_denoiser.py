@@ -94,9 +94,7 @@ def ship(workdir: Path, name: str, sweep_file: str | None) -> Path:
                f"jaxden train experiments/configs/train-rt.toml model={denoiser.name} "
                f"seed={config.get('seed')} --workdir $JAXDEN_HOME/runs/{name}")
     quality = _quality(result)
-    words = {"color": "colour", "albedo": "albedo", "normal": "normal", "depth": "depth",
-             "variance": "variance"}
-    needed = [words.get(f, f) for f in denoiser.definition.required(denoiser.config)]
+    needed = [{"color": "colour"}.get(f, f) for f in denoiser.definition.required(denoiser.config)]
     inputs = (", ".join(needed[:-1]) + " and " + needed[-1]) if len(needed) > 1 else needed[0]
     kernel_predictor = hasattr(denoiser.config, "deploy")  # WSKP, WSKP-MR, KP: RepVGG, kernels
     form = ("shipped in its deployed form (RepVGG branches folded into single 5x5 convolutions; "
