@@ -616,6 +616,20 @@ def test_pd_report_rows_match_direct_computation(trained):
     # The row of the config's own form of t is PD itself (the other one is z_pc above).
     assert not config.tstat.per_channel
     assert row["pd_shared_rmse"] == pytest.approx(row["pd_rmse"], rel=1e-6)
+    # PD fed the true error of y in place of its SURE: the same pipeline with that map
+    assert config.uses_sure  # the swapped call below exchanges (x, var) with (y, SURE)
+    true_err = pdreport.true_error(extras["denoised"], reference)
+    alpha_true = P.mixer_alpha(params, config, frame.color, extras["denoised"], frame.variance,
+                               true_err)
+    if config.swap_average:
+        alpha_true = 0.5 * (alpha_true + 1 - P.mixer_alpha(
+            params, config, extras["denoised"], frame.color, true_err, frame.variance))
+    z_true = np.asarray(frame.color) + np.asarray(P.t_statistic_scaling(
+        alpha_true, frame.color, frame.color + alpha_true * (extras["denoised"] - frame.color),
+        frame.variance, config.tstat)) * (np.asarray(extras["denoised"]) - frame.color)
+    assert row["pd_true_sure_rmse"] == pytest.approx(
+        float(metrics.rmse(z_true, reference.color)), rel=1e-5)
+    assert row["pd_true_sure_rmse"] != pytest.approx(row["pd_rmse"], rel=1e-4)
 
     summary = pdreport.summarize_progressive(rows)
     top = summary["max_spp"]
@@ -689,6 +703,27 @@ def test_ratio_interval_is_a_crop_bootstrap():
     assert pdreport.ratio_interval(same, "sure") == [pytest.approx(1.0), pytest.approx(1.0)]
     summary = pdreport.summarize_sure([{**r, "spp": 64, "reference_var": 0.0} for r in rows])
     assert summary["per_spp"][64]["ratio_ci95"] == [low, high]
+
+
+def test_true_error_is_unbiased_for_the_squared_error_against_the_truth():
+    """true_error subtracts the reference's variance of the mean from the squared error
+    against it, so over reference renders it averages (y - truth)^2: with 4000 reference
+    draws of known variance the mean is within 4 standard errors of it (seed 0), while the
+    raw squared error is off by the variance."""
+    from types import SimpleNamespace
+
+    from jaxden.progressive.report import true_error
+
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0, 2, (4, 5, 3))
+    y = truth + rng.normal(0, 0.2, truth.shape)
+    var_r = rng.uniform(0.01, 0.05, truth.shape)
+    draws = np.stack([true_error(y, SimpleNamespace(
+        color=truth + rng.normal(0, np.sqrt(var_r)), variance=var_r)) for _ in range(4000)])
+    want = (y - truth) ** 2
+    se = draws.std(axis=0) / np.sqrt(len(draws))
+    assert np.all(np.abs(draws.mean(axis=0) - want) <= 4 * se + 1e-7)
+    assert np.mean(draws.mean(axis=0) + var_r - want) == pytest.approx(np.mean(var_r), rel=0.05)
 
 
 def test_oracle_mix_is_the_best_tile_alpha():

@@ -28,7 +28,9 @@ import numpy as np
 from jaxden.data.crops import iter_crops
 from jaxden.errors import ConfigError, DatasetError
 
-PD_METHODS = ("mc", "denoiser", "mixed", "pd", "pd_pc", "pd_shared", "oracle")
+PD_METHODS = ("mc", "denoiser", "mixed", "pd", "pd_pc", "pd_shared", "pd_true_sure", "oracle")
+#: The methods whose ratios to the denoiser the summaries report (the oracles included).
+RATIO_METHODS = ("pd", "pd_pc", "pd_shared", "mixed", "pd_true_sure", "oracle")
 ORACLE_BLOCK = 8
 PAPER_MIN_SPP = 32  # the paper averages its Table 3 over 32..8192 spp
 PD_METRICS = ("rmse", "rmse_nc", "relmse", "flip", "mse_nc")
@@ -65,6 +67,16 @@ def oracle_alpha(x, y, reference, block: int = ORACLE_BLOCK) -> np.ndarray:
     return out
 
 
+def true_error(y, reference) -> np.ndarray:
+    """What SURE estimates, read off the reference: the per-pixel squared error of ``y``
+    against the reference frame's colour less the variance of the reference's pixel mean
+    (unbiased for the squared error against the true image, as SURE is); (H, W, C) float32.
+    Fed to a mixer in place of SURE it measures what a perfect SURE would give."""
+    y = np.asarray(y, np.float64)
+    err = (y - np.asarray(reference.color, np.float64)) ** 2
+    return (err - np.asarray(reference.variance, np.float64)).astype(np.float32)
+
+
 def oracle_mix(x, y, reference, block: int = ORACLE_BLOCK) -> np.ndarray:
     """The best mix ``x + alpha (y - x)`` with one alpha in [0, 1] per channel and per
     ``block`` x ``block`` tile, fitted by least squares to the reference: an upper bound on
@@ -96,9 +108,10 @@ def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
     """One row per (crop, spp): errors of MC, the denoiser, the mixer without the t-test, PD,
     PD with the per-channel t-statistic (``pd_pc``: the mixer's config with
     ``tstat.per_channel = True``, same alpha) and with the shared one (``pd_shared``: the
-    authors' form, ``per_channel = False``; one of the two equals ``pd``), and the
-    reference-fitted :func:`oracle_mix`
-    bound, each as ``{method}_{metric}`` (metrics
+    authors' form, ``per_channel = False``; one of the two equals ``pd``), PD with SURE
+    replaced by the true error (``pd_true_sure``: the mixer and t-statistic fed
+    :func:`true_error` of y instead of its SURE, what a perfect SURE would give; an oracle,
+    since it reads the reference) and the reference-fitted :func:`oracle_mix` bound, each as ``{method}_{metric}`` (metrics
     :data:`PD_METRICS`), plus ``sure`` (image mean
     of y's SURE), ``alpha`` / ``alpha_prime`` (means) and ``swap_gap`` (mean |alpha(x, y) -
     (1 - alpha(y, x))|).
@@ -114,7 +127,7 @@ def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
 
     from jaxden.denoise.registry import load_denoiser
     from jaxden.progressive.heads import mix
-    from jaxden.progressive.mixer import load_mixer, swap_symmetry
+    from jaxden.progressive.mixer import _inference_alpha, load_mixer, swap_symmetry
     from jaxden.progressive.pipeline import progressive_denoise
     from jaxden.progressive.tstat import t_statistic_scaling
 
@@ -135,10 +148,17 @@ def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
             alpha_pc, alpha_shared = (
                 t_statistic_scaling(extras["alpha"], frame.color, extras["mixed"],
                                     frame.variance, tstat) for tstat in (per_channel, shared))
+            alpha_true = _inference_alpha(
+                params, frame.color, extras["denoised"], frame.variance,
+                true_error(extras["denoised"], reference), config, bool(config.swap_average))
+            alpha_true = t_statistic_scaling(alpha_true, frame.color,
+                                             mix(frame.color, extras["denoised"], alpha_true),
+                                             frame.variance, config.tstat)
             images = {"mc": frame.color, "denoiser": extras["denoised"],
                       "mixed": extras["mixed"], "pd": z,
                       "pd_pc": mix(frame.color, extras["denoised"], alpha_pc),
                       "pd_shared": mix(frame.color, extras["denoised"], alpha_shared),
+                      "pd_true_sure": mix(frame.color, extras["denoised"], alpha_true),
                       "oracle": oracle_mix(frame.color, extras["denoised"], reference.color)}
             row: dict[str, Any] = {"crop": crop.id, "scene": crop.scene, "spp": level}
             for method, image in images.items():
@@ -312,7 +332,7 @@ def summarize_progressive(rows) -> dict[str, Any]:
     ratios: dict[str, dict[str, float]] = defaultdict(dict)
     top = max(per_spp)
     for metric in ("rmse", "rmse_nc", "relmse", "flip"):
-        for method in ("pd", "pd_pc", "pd_shared", "mixed", "oracle"):
+        for method in RATIO_METHODS:
             if f"{method}_{metric}" not in per_spp[top]:
                 continue  # a report from before the row existed
             for suffix, low in (("", 0), ("_paper_range", PAPER_MIN_SPP)):
@@ -400,6 +420,7 @@ def markdown_progressive(summary: dict[str, Any], denoiser: str = "OIDN") -> str
     names = {"mc": "MC", "denoiser": denoiser, "mixed": "mix w/o t-test",
              "pd": f"PD({denoiser})", "pd_pc": f"PD({denoiser}), per-channel t",
              "pd_shared": f"PD({denoiser}), shared t (authors')",
+             "pd_true_sure": f"PD({denoiser}) fed the true error for SURE (oracle)",
              "oracle": f"oracle mix ({ORACLE_BLOCK}² tiles)"}
     lines = ["| spp | method | RMSE | RMSE (noise-corr.) | relMSE | FLIP |",
              "|---:|---|---:|---:|---:|---:|"]
@@ -414,7 +435,7 @@ def markdown_progressive(summary: dict[str, Any], denoiser: str = "OIDN") -> str
     lines.append("| ratio | RMSE | RMSE (noise-corr.) | relMSE | FLIP |")
     lines.append("|---|---:|---:|---:|---:|")
     labels = {}
-    for method in ("pd", "pd_pc", "pd_shared", "mixed", "oracle"):
+    for method in RATIO_METHODS:
         name = names[method]
         labels[f"{method}_over_denoiser"] = f"{name} / {denoiser}, mean over spp"
         labels[f"{method}_over_denoiser_paper_range"] = (
