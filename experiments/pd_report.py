@@ -142,7 +142,13 @@ def cmd_pd(args: argparse.Namespace) -> None:
                                    "mixer_overrides": args.mixer_set,
                                    "closed_form_stops": config.closed_form_stops,
                                    "tstat": config_to_dict(config.tstat),
+                                   "mixer_config": config_to_dict(config),
+                                   "spp": args.spp,
                                    "probes": args.probes or config.sure_probes})
+        if args.keep_current and report_is_current(Path(args.out), source):
+            print(f"pd_report: {args.out}.json is current (same data, denoiser, mixer and "
+                  f"options); kept")
+            return
         rows = pdreport.evaluate_progressive(args.data, args.denoiser[0], (params, config),
                                              split=args.split, seed=args.seed,
                                              num_probes=args.probes, spp=args.spp, progress=True)
@@ -153,6 +159,32 @@ def cmd_pd(args: argparse.Namespace) -> None:
     name = denoiser_label(denoiser)
     result = {"summary": summary, "rows": rows, "provenance": source}
     write_report(Path(args.out), result, pdreport.markdown_progressive(summary, name))
+
+
+#: What a PD report must share with a new run to stand for it (``--keep-current``).
+_SAME_RUN = ("denoiser", "mixer", "mixer_config", "seed", "probes", "spp")
+
+
+def report_is_current(out: Path, source: dict) -> bool:
+    """Whether OUT.json is what this run would write: made on the same build of the dataset
+    (manifest hash) and split, with the same denoiser, mixer weights, effective mixer config,
+    probe seed, probes and spp, and with a column for every method the report now has."""
+    from jaxden.progressive.report import PD_METHODS
+
+    try:
+        old = json.loads(out.with_suffix(".json").read_text())
+        made = old["provenance"]
+        columns = old["rows"][0] if old["rows"] else {}
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+    now = json.loads(json.dumps(source, sort_keys=True, default=float))  # as it would be saved
+    for entry in (made, now):  # weights by their content, wherever the file lies
+        if isinstance(entry.get("mixer"), dict):
+            entry["mixer"] = {k: entry["mixer"].get(k) for k in ("spec", "sha256")}
+    same_data = all(made.get("dataset", {}).get(k) == now["dataset"][k]
+                    for k in ("manifest_sha256", "split"))
+    return (same_data and all(made.get(k) == now.get(k) for k in _SAME_RUN)
+            and all(f"{m}_rmse" in columns for m in PD_METHODS))
 
 
 def _logit_bound(text: str) -> float:
@@ -274,6 +306,9 @@ def main(argv=None) -> int:
             p.add_argument("--logit-bound", default=None, type=_logit_bound, metavar="B|none",
                            help="override a closed_form_logit mixer's logit_bound at inference "
                                 "(an ablation: 'none' removes the bound it was trained with)")
+            p.add_argument("--keep-current", action="store_true",
+                           help="keep OUT.json when it was made on the same dataset build "
+                                "with the same denoiser, mixer, config and options")
             p.add_argument("--mixer-set", action="append", default=[], metavar="KEY=VALUE",
                            help="override a field of the mixer's config "
                                 "(jaxden.progressive.MixerConfig) at inference, e.g. "

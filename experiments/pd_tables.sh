@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
-# The progressive-denoising table of README.md and docs/results.md on both held-out sets, and
-# Figure 10 (convergence plots of the shipped mixer, image series of crop s002):
+# The progressive-denoising table of README.md and docs/results.md on both held-out sets,
+# Figure 10 (convergence plots of the shipped mixer, image series of crop s002), the shipped
+# mixer outside the training distribution (both OOD variants, with pd_ood.py's diagnosis) and
+# the model card of oidn-pd, which quotes the two held-out reports:
 #   experiments/pd_tables.sh [NAME MIXER]
 # Rows, each one pd_report.py report per set (experiments/results/pd-oidn-{test,test-high}-ROW):
 #   shipped              the shipped mixer oidn-pd as shipped
@@ -10,10 +12,12 @@
 #   NAME                 optional: another mixer (a run folder), swap-averaged, e.g.
 #                        retrained-stops1 "$JAXDEN_HOME/runs/mixer-oidn-cflogit-stops1"
 # Every report also holds MC, OIDN and the 8 x 8-tile oracle. All rows of a set must be on one
-# build of it: a report already made on the same build (same manifest hash) is kept, any other
-# is made again, so the script resumes after an interruption and refreshes everything after a
-# rebuild. Data: $JAXDEN_HOME/data/test-chain and test-high-chain (dataset-test.toml and
-# dataset-test-high.toml built with name=test-chain / name=test-high-chain).
+# build of it: a report already made on the same build (same manifest hash) with the same
+# mixer, config and options is kept (pd_report.py --keep-current), any other is made again, so
+# the script resumes after an interruption and refreshes everything after a rebuild or a
+# re-ship. Data: $JAXDEN_HOME/data/test-chain and test-high-chain (dataset-test.toml and
+# dataset-test-high.toml built with name=test-chain / name=test-high-chain), data/ood and
+# data/ood-first-hit (dataset-ood.toml; experiments/README.md).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 H="${JAXDEN_HOME:-$HOME/jaxden-work}"
@@ -37,8 +41,8 @@ PY
 
 report() {  # report DATA OUT ARGS...: pd_report.py pd unless OUT is current
   local data=$1 out=$2; shift 2
-  if current "$out" "$data"; then echo "pd_tables: $out is current"; return 0; fi
-  "$python" experiments/pd_report.py pd --data "$data" --denoiser oidn "$@" --out "$out"
+  "$python" experiments/pd_report.py pd --data "$data" --denoiser oidn "$@" --out "$out" \
+    --keep-current
 }
 
 for set in test test-high; do
@@ -53,6 +57,19 @@ for set in test test-high; do
     report "$data" "$out-$extra_name" --mixer "$extra_mixer" --swap-average
   fi
 done
+
+for set in ood ood-first-hit; do
+  data="$H/data/$set"
+  [ -f "$data/manifest.json" ] || { echo "pd_tables: no dataset at $data" >&2; exit 2; }
+  report "$data" "experiments/results/pd-oidn-$set-shipped" --mixer oidn-pd \
+    --spp 16 32 64 128 256 512 1024
+  "$python" experiments/pd_ood.py "experiments/results/pd-oidn-$set-shipped.json" \
+    --out "experiments/results/pd-oidn-$set-diagnosis"
+done
+
+"$python" experiments/ship_mixer.py --reship oidn-pd \
+  --report experiments/results/pd-oidn-test-shipped.json \
+  --report experiments/results/pd-oidn-test-high-shipped.json
 
 "$python" experiments/pd_figure.py convergence --report experiments/results/pd-oidn-test-high-shipped.json \
   --title "test-high (32..4096 spp, 16384-spp references): mean over 8 held-out crops" \

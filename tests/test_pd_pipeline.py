@@ -579,6 +579,46 @@ def test_pd_report_script_tstat_override(trained, tmp_path, capsys):
     assert [r["pd_rmse"] for r in by_set["rows"]] == [r["pd_rmse"] for r in by_spec["rows"]]
 
 
+def test_pd_report_keep_current_keeps_only_the_same_run(trained, tmp_path, capsys,
+                                                         monkeypatch):
+    """pd_report.py pd --keep-current keeps OUT.json only when it is what the run would write:
+    the same data build, mixer and effective config; a changed mixer field, another build of
+    the data or a report without a column the report now has (made before it existed) is made
+    again. After the first real run the evaluation is replayed (what is kept is the point)."""
+    sys.path.insert(0, str(ROOT / "experiments"))
+    import pd_report
+
+    from jaxden.progressive import report as pdreport
+
+    dataset, workdir = trained
+    spp = next(pdreport.iter_crops(dataset, "val"))[2][0][0]
+    out = tmp_path / "rep"
+    argv = ["pd", "--data", str(dataset), "--split", "val", "--denoiser", "oidn", "--mixer",
+            str(workdir), "--spp", str(spp), "--out", str(out), "--keep-current"]
+
+    def run(*extra) -> bool:  # True: it wrote the report
+        capsys.readouterr()
+        assert pd_report.main([*argv, *extra]) in (0, None)
+        return "is current" not in capsys.readouterr().out
+
+    assert run()
+    first = out.with_suffix(".json").read_text()
+    rows = json.loads(first)["rows"]
+    monkeypatch.setattr(pdreport, "evaluate_progressive", lambda *a, **k: rows)
+    assert not run() and out.with_suffix(".json").read_text() == first
+    assert run("--tstat", "c=3.0")  # another t-statistic: another report
+    assert run() and not run()  # back to the config's own
+    report = json.loads(out.with_suffix(".json").read_text())
+    for row in report["rows"]:
+        del row["pd_true_sure_rmse"]
+    out.with_suffix(".json").write_text(json.dumps(report))
+    assert run()  # a column missing: made again
+    report = json.loads(out.with_suffix(".json").read_text())
+    report["provenance"]["dataset"]["manifest_sha256"] = "0" * 64
+    out.with_suffix(".json").write_text(json.dumps(report))
+    assert run()  # another build of the data
+
+
 def test_pd_report_rows_match_direct_computation(trained):
     """jaxden.progressive.report on the tiny dataset: one row per (crop, spp); each row's numbers equal
     progressive_denoise / metrics computed directly with the same key; the summary's ratios
