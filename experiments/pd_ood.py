@@ -25,6 +25,9 @@ from collections import defaultdict
 from pathlib import Path
 
 BOUND = 1.01
+#: The t-statistic forms of a pd_report row, as :func:`markdown` names them.
+T_FORMS = {"pd": "PD as configured", "pd_pc": "PD with the per-channel t",
+           "pd_shared": "PD with the shared (channel-summed, authors') t"}
 
 
 def _gmean(values) -> float:
@@ -79,8 +82,18 @@ def diagnose(report: dict) -> dict:
         "cells": len(cells),
         "set_mean_worst": max(max(v["rmse"], v["relmse"]) for v in per_spp.values()),
     }
+    # The same count for each form of the t-statistic the report holds (pd_pc: per channel,
+    # pd_shared: the authors' channel-summed t; one of them is pd, the mixer's own).
+    t_forms = {}
+    for method in ("pd", "pd_pc", "pd_shared"):
+        if f"{method}_rmse" not in report["rows"][0]:
+            continue
+        worst = [max(r[f"{method}_rmse"] / r["denoiser_rmse"],
+                     r[f"{method}_relmse"] / r["denoiser_relmse"]) for r in report["rows"]]
+        t_forms[method] = {"cells_over_bound": sum(w > BOUND for w in worst),
+                           "worst": max(worst), "cells": len(worst)}
     return {"bound": BOUND, "cells": cells, "scenes": scenes, "per_spp": per_spp,
-            "overall": overall}
+            "overall": overall, "t_forms": t_forms}
 
 
 def markdown(result: dict, command: str) -> str:
@@ -99,6 +112,9 @@ def markdown(result: dict, command: str) -> str:
               f"{o['relmse_gmean']:.3f} in relMSE (geometric means), worst {o['worst']:.3f}; "
               f"{o['cells_over_bound']} of {o['cells']} cells over the bound. Set means per "
               f"spp (as pd_report's table): worst {o['set_mean_worst']:.3f}.", "",
+              *(f"- {T_FORMS[m]}: {f['cells_over_bound']} of {f['cells']} cells over the bound "
+                f"(worst {f['worst']:.3f})" for m, f in result.get("t_forms", {}).items()),
+              "",
               "| spp | set PD/den RMSE | set PD/den relMSE | set oracle/den RMSE |",
               "|---:|---:|---:|---:|"]
     for spp, v in result["per_spp"].items():
@@ -125,9 +141,11 @@ def main(argv=None) -> int:
     text = markdown(result, command)
     print(text)
     if args.out:
-        Path(args.out + ".md").write_text(text)
-        Path(args.out + ".json").write_text(json.dumps({"command": command, **result},
-                                                       indent=1) + "\n")
+        from jaxden.fileio import atomic_write_text
+
+        atomic_write_text(Path(args.out + ".md"), text)
+        atomic_write_text(Path(args.out + ".json"),
+                          json.dumps({"command": command, **result}, indent=1) + "\n")
     return 0
 
 

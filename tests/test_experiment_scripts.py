@@ -348,11 +348,21 @@ def test_pd_ood_ratios_bound_and_diagnosis(tmp_path):
     assert result["per_spp"][32]["rmse"] == pytest.approx(2.7 / 3.0)
     sure_errors = sorted(c["sure_error"] for c in result["cells"])
     assert sure_errors[-1] == pytest.approx(0.1)  # 4.4 / 2.0^2 - 1
+    assert result["t_forms"] == {"pd": {"cells_over_bound": 1, "worst": pytest.approx(1.1),
+                                        "cells": 4}}
+    # Each form of the t-statistic the rows hold is counted alike.
+    shared = [{**r, "pd_shared_rmse": 1.05 * r["denoiser_rmse"],
+               "pd_shared_relmse": r["denoiser_relmse"]} for r in rows]
+    forms = pd_ood.diagnose({"rows": shared})["t_forms"]
+    assert forms["pd_shared"] == {"cells_over_bound": 4, "worst": pytest.approx(1.05),
+                                  "cells": 4}
     out = tmp_path / "diag"
     report = tmp_path / "r.json"
     report.write_text(json.dumps({"rows": rows}))
     assert pd_ood.main([str(report), "--out", str(out)]) == 0
     assert "| a | 1.049 |" in (tmp_path / "diag.md").read_text()
+    assert "PD as configured: 1 of 4 cells over the bound (worst 1.100)" in (
+        tmp_path / "diag.md").read_text()
 
 
 def test_sure_figure_curves_and_svg(tmp_path):
