@@ -91,7 +91,38 @@ def base_row(evaluation: dict) -> dict:
     row["pd_over_mc_at_top"] = evaluation["headline"]["pd_over_mc_at_max_spp"]["rmse"]
     row["spp"] = [level for level, _ in _levels(evaluation)]
     row["crops"] = evaluation["crops"]
+    # Bounds, RMSE as mean per-spp ratios to den (reports from before a row existed lack it):
+    # PD fed the true error of den in place of SURE, and the 8 x 8-tile oracle mix.
+    headline = evaluation["headline"]
+    row["bounds"] = {key: headline[f"{key}_over_denoiser"]["rmse"]
+                     for key in ("pd", "pd_true_sure", "oracle")
+                     if f"{key}_over_denoiser" in headline}
     return row
+
+
+def bounds_lines(data: dict[str, dict]) -> list[str]:
+    """What a perfect SURE and the oracle would give, per base: RMSE over den (mean of the
+    per-spp ratios) and the share of the oracle's gain over den that PD reaches."""
+    rows = [(run, label, data[run]["bounds"]) for run, label, _ in BASES
+            if run in data and {"pd", "oracle"} <= set(data[run]["bounds"])]
+    if not rows:
+        return []
+    lines = ["", "## Against the bounds", "",
+             "RMSE over den, mean of the per-spp ratios. PD fed the true error: the same mixer "
+             "and t-statistic with the reference's per-pixel squared error of den (less the "
+             "reference's variance) in place of SURE, i.e. what a perfect SURE would give. "
+             "Oracle: one alpha per 8 x 8 tile and channel fitted to the reference. Both read "
+             "the reference: bounds, not methods.", "",
+             "| base | PD | PD fed the true error | oracle | PD's share of the oracle's gain |",
+             "|---|---:|---:|---:|---:|"]
+    for run, label, b in rows:
+        true = b.get("pd_true_sure")
+        gain = 1.0 - b["oracle"]
+        share = (1.0 - b["pd"]) / gain if gain > 0 else float("nan")
+        lines.append(f"| {label} | {b['pd']:.3f} | "
+                     + ("-" if true is None else f"{true:.3f}")
+                     + f" | {b['oracle']:.3f} | {share:.0%} |")
+    return lines
 
 
 def _verdict(value: float, target: float, better: str = "<=") -> str:
@@ -131,6 +162,7 @@ def table1(results: dict[str, dict]) -> tuple[str, dict]:
                          f"{row[m]['mean_ratio']:.3f}x)" for m, _ in METRICS)
             + f" | {row['pd_over_mc_at_top']:.3f}; "
             + ("-" if worst is None else f"{worst:.3f}") + " |")
+    lines += bounds_lines(data)
     lines += ["", "## Targets", ""]
     unets = [run for run, _, table in BASES if table == 1]
     done = [run for run in unets if run in data]

@@ -540,7 +540,10 @@ def test_pd_bases_tables_ratios_targets_and_table4(tmp_path):
                              for i, v in enumerate(top_crops)}}
 
     sweep = tmp_path / "runs" / "sweeps" / "pd-mixers"
-    runs = {"unet-hdr": evaluation((0.2, 0.02), (0.08, 0.01), (0.9, 0.95)),
+    bounded = evaluation((0.2, 0.02), (0.08, 0.01), (0.9, 0.95))
+    bounded["headline"] |= {"oracle_over_denoiser": {"rmse": 0.35},
+                            "pd_true_sure_over_denoiser": {"rmse": 0.42}}
+    runs = {"unet-hdr": bounded,
             "unet-hdr-var": evaluation((0.1, 0.01), (0.07, 0.009), (0.99, 1.02)),
             "t4-full": evaluation((0.3, 0.03), (0.15, 0.02), (0.9,))}
     for name, ev in runs.items():
@@ -558,6 +561,10 @@ def test_pd_bases_tables_ratios_targets_and_table4(tmp_path):
                for t in data["targets"])
     assert any("worst crop 1.020 (base unet-hdr-var): NOT met" in t for t in data["targets"])
     assert set(data["missing"]) == {"unet-hdr-alb-nrm", "unet-hdr-alb-nrm-var", "kp5", "wskp6"}
+    # PD's mean ratio 0.45 against the oracle's 0.35: (1 - 0.45) / (1 - 0.35) of its gain
+    assert "| U-Net: HDR | 0.450 | 0.420 | 0.350 | 85% |" in (out / "pd-table1.md").read_text()
+    assert "| U-Net: HDR, VAR |" not in (out / "pd-table1.md").read_text().split(
+        "## Against the bounds")[1]  # a report without the oracle has no row there
     table4 = (out / "pd-table4.md").read_text()
     assert "| pro-den (f_act head, the paper's) | 0.15000 | 0.02000 |" in table4
     assert "| w/o t-test (f_act head) | 0.16500 | 0.02200 |" in table4
