@@ -214,7 +214,7 @@ def test_readme_numbers_match_their_json():
 
 def test_an_edited_readme_number_is_caught():
     text = README.read_text()
-    edited = text.replace("| 0.875 | 0.919 | 0.906 |", "| 0.875 | 0.918 | 0.906 |", 1)
+    edited = text.replace("| 0.878 | 0.917 | 0.901 |", "| 0.878 | 0.918 | 0.901 |", 1)
     assert edited != text
     problems = check(edited)
     assert len(problems) == 1 and "README says 0.918" in problems[0]

@@ -49,10 +49,11 @@ def test_shipped_mixer_files_and_model_card():
     params, config = P.load_mixer("oidn-pd")
     assert config.features[:len(P.MIXER_FEATURES)] == P.MIXER_FEATURES
     assert config.head == "closed_form_logit" and config.logit_bound == 4.0  # the bounded head
-    # The closed form under the logit is range-aware, set at inference: the
-    # shipped config is the trained one with exactly the recorded overrides applied.
-    assert config.closed_form_stops == 1.0
-    assert meta["inference_overrides"] == ["closed_form_stops=1"]
+    # The closed form under the logit is range-aware and the t-statistic per channel, both
+    # set at inference: the shipped config is the trained one with exactly the recorded
+    # overrides applied.
+    assert config.closed_form_stops == 1.0 and config.tstat.per_channel
+    assert meta["inference_overrides"] == ["closed_form_stops=1", "tstat.per_channel=true"]
     trained = load_config(meta["train_config"]["model_config"], P.MixerConfig)
     assert trained.closed_form_stops is None
     assert config == load_config(trained, P.MixerConfig,
