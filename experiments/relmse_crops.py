@@ -5,6 +5,7 @@
         --model $JAXDEN_HOME/runs/sweeps/rt-main/wskp6-s1 \\
         --model $JAXDEN_HOME/runs/sweeps/rt-main/kp-s0 \\
         --model $JAXDEN_HOME/runs/sweeps/rt-main/kp-s1 \\
+        --model $JAXDEN_HOME/runs/sweeps/rt-variants/kp1 \\
         --out experiments/results/rt-relmse-crops.md
 
 relMSE is a mean of per-pixel ratios ``(x - r)^2 / (r^2 + 0.01)`` (linear HDR, as the sweep
