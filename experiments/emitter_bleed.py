@@ -3,6 +3,7 @@
     jaxden demo --quick --out /tmp/demo-quick
     python experiments/emitter_bleed.py --demo /tmp/demo-quick \\
         --model wskp-6 --model $JAXDEN_HOME/runs/sweeps/rt-main/kp-s0 \\
+        --model $JAXDEN_HOME/runs/sweeps/rt-variants/wskp6_id \\
         --out experiments/results/rt-emitter-bleed.md
 
 For each spp level of the demo's first scene and each model (a shipped name or a run folder),
