@@ -79,20 +79,11 @@ def progressive_denoise(
         denoiser, frame, key, num_probes=num_probes, method=method, eps=eps,
         probe_batch=probe_batch, nonfinite=nonfinite, where="progressive_denoise",
     )
-    x = jnp.asarray(frame.color, jnp.float32)
-    var = jnp.asarray(frame.variance, jnp.float32)
     y = jnp.asarray(result.denoised, jnp.float32)
     sure_map = jnp.asarray(result.sure, jnp.float32)
-    if swap_average is None:
-        swap_average = mixer_config.swap_average
-    alpha = _inference_alpha(mixer_params, x, y, var, sure_map, mixer_config, bool(swap_average))
-    mixed = _mix(x, y, alpha)
-    if tstat is None:
-        z_prime, alpha_prime = mixed, alpha
-    else:
-        t = _t_statistic(x, mixed, var, tstat)
-        alpha_prime = _scale_alpha(alpha, t, tstat)
-        z_prime = _mix(x, y, alpha_prime)
+    z_prime, alpha_prime, alpha, mixed = mix_given_sure(
+        frame.color, y, frame.variance, sure_map, mixer_params, mixer_config, tstat=tstat,
+        swap_average=swap_average)
     extras = {
         "denoised": y,
         "sure": sure_map,
@@ -101,6 +92,25 @@ def progressive_denoise(
         "mixed": mixed,
     }
     return z_prime, alpha_prime, extras
+
+
+def mix_given_sure(x, y, var, sure, mixer_params, mixer_config: MixerConfig, *,
+                   tstat=_FROM_CONFIG, swap_average: bool | None = None):
+    """The part of :func:`progressive_denoise` after SURE: alpha from the mixer (swap-averaged
+    per ``swap_average``, None: the config's), the t-statistic scaling (``tstat`` as there) and
+    the mix. ``sure`` may be any map in SURE's place (the PD report feeds the true error).
+    Returns ``(z_prime, alpha_prime, alpha, mixed)``, float32 JAX arrays."""
+    if tstat is _FROM_CONFIG:
+        tstat = mixer_config.tstat
+    if swap_average is None:
+        swap_average = mixer_config.swap_average
+    x, y, var, sure = (jnp.asarray(a, jnp.float32) for a in (x, y, var, sure))
+    alpha = _inference_alpha(mixer_params, x, y, var, sure, mixer_config, bool(swap_average))
+    mixed = _mix(x, y, alpha)
+    if tstat is None:
+        return mixed, alpha, alpha, mixed
+    alpha_prime = _scale_alpha(alpha, _t_statistic(x, mixed, var, tstat), tstat)
+    return _mix(x, y, alpha_prime), alpha_prime, alpha, mixed
 
 
 #: Mixers shipped in ``jaxden/weights/`` per denoiser name: ``{denoiser: weights name}``.

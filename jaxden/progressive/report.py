@@ -127,8 +127,8 @@ def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
 
     from jaxden.denoise.registry import load_denoiser
     from jaxden.progressive.heads import mix
-    from jaxden.progressive.mixer import _inference_alpha, load_mixer, swap_symmetry
-    from jaxden.progressive.pipeline import progressive_denoise
+    from jaxden.progressive.mixer import load_mixer, swap_symmetry
+    from jaxden.progressive.pipeline import mix_given_sure, progressive_denoise
     from jaxden.progressive.tstat import t_statistic_scaling
 
     model = load_denoiser(denoiser) if isinstance(denoiser, str) else denoiser
@@ -148,17 +148,14 @@ def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
             alpha_pc, alpha_shared = (
                 t_statistic_scaling(extras["alpha"], frame.color, extras["mixed"],
                                     frame.variance, tstat) for tstat in (per_channel, shared))
-            alpha_true = _inference_alpha(
-                params, frame.color, extras["denoised"], frame.variance,
-                true_error(extras["denoised"], reference), config, bool(config.swap_average))
-            alpha_true = t_statistic_scaling(alpha_true, frame.color,
-                                             mix(frame.color, extras["denoised"], alpha_true),
-                                             frame.variance, config.tstat)
+            z_true, *_ = mix_given_sure(frame.color, extras["denoised"], frame.variance,
+                                        true_error(extras["denoised"], reference), params,
+                                        config)
             images = {"mc": frame.color, "denoiser": extras["denoised"],
                       "mixed": extras["mixed"], "pd": z,
                       "pd_pc": mix(frame.color, extras["denoised"], alpha_pc),
                       "pd_shared": mix(frame.color, extras["denoised"], alpha_shared),
-                      "pd_true_sure": mix(frame.color, extras["denoised"], alpha_true),
+                      "pd_true_sure": z_true,
                       "oracle": oracle_mix(frame.color, extras["denoised"], reference.color)}
             row: dict[str, Any] = {"crop": crop.id, "scene": crop.scene, "spp": level}
             for method, image in images.items():
