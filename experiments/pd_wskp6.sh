@@ -6,7 +6,7 @@
 # and re-ship with the reports in the model card. A report made on the same data build with the
 # same mixer and options is kept (pd_report.py --keep-current).
 #   experiments/pd_wskp6.sh
-# Needs (experiments/queue.sh): $JAXDEN_HOME/runs/mixer-wskp6 (mixer-wskp6.toml on data/pd-rt),
+# Needs (experiments/queue.sh): $JAXDEN_HOME/runs/mixer-wskp6-4k (mixer-wskp6.toml on data/pd-rt4k),
 # $JAXDEN_HOME/data/pd-sequence and $JAXDEN_HOME/data/pd-test-high. SURE probe seed 0, one probe
 # (the mixer's training probes).
 set -euo pipefail
@@ -18,7 +18,7 @@ R=experiments/results
 # the out-of-distribution scenes the shared form made every PD(OIDN) cell that broke the 1 %
 # bound (experiments/results/pd-oidn-ood-diagnosis.md), and for WSKP-6 the per-channel form
 # is as good or better at every spp there (both rows are in every report).
-ship=("$python" experiments/ship_mixer.py --workdir "$H/runs/mixer-wskp6" --name wskp-6-pd
+ship=("$python" experiments/ship_mixer.py --workdir "$H/runs/mixer-wskp6-4k" --name wskp-6-pd
       --config experiments/configs/mixer-wskp6.toml --set tstat.per_channel=true)
 "${ship[@]}"
 "$python" experiments/pd_report.py pd --data "$H/data/pd-sequence" --denoiser wskp-6 \

@@ -26,11 +26,14 @@ step data-rt-seq $J dataset sequences experiments/configs/sequences-rt-test.toml
 # The real-time sweeps (experiments/README.md), most wanted first; each resumes where it stopped.
 step sweep-rt-main $J sweep experiments/sweeps/rt-main.toml --workdir "$H/runs/sweeps/rt-main"
 step sweep-rt-noise2noise $J sweep experiments/sweeps/rt-noise2noise.toml --workdir "$H/runs/sweeps/rt-noise2noise"
-# Progressive denoising over the real-time WSKP-6 (`wskp-6-pd`): its training set, its mixer
-# (jvp SURE, one probe, width 16), and the 1..4096-spp sequence it is measured on.
+# Progressive denoising over the real-time WSKP-6 (`wskp-6-pd`): the bases' training set, the
+# mixer's (jvp SURE, one probe, width 16), and the 1..4096-spp sequence it is measured on.
 step data-pd-rt $J dataset build experiments/configs/dataset-pd-rt.toml --out "$H/data/pd-rt"
-step mixer-wskp6 env XLA_FLAGS=--xla_force_host_platform_device_count=2 $J train \
-  experiments/configs/mixer-wskp6.toml data.dataset="$H/data/pd-rt" --workdir "$H/runs/mixer-wskp6"
+# Mixers train over the paper's whole range, 2..4096 spp (dataset-pd-rt4k.toml); pd-rt (to
+# 1024 spp) trains the bases.
+step data-pd-rt4k $J dataset build experiments/configs/dataset-pd-rt4k.toml --out "$H/data/pd-rt4k"
+step mixer-wskp6-4k env XLA_FLAGS=--xla_force_host_platform_device_count=2 $J train \
+  experiments/configs/mixer-wskp6.toml data.dataset="$H/data/pd-rt4k" --workdir "$H/runs/mixer-wskp6-4k"
 step data-pd-sequence $J dataset build experiments/configs/dataset-pd-sequence.toml \
   --out "$H/data/pd-sequence"
 step data-pd-test-high $J dataset build experiments/configs/dataset-pd-test-high.toml \
@@ -39,7 +42,7 @@ step sweep-rt-ablation $J sweep experiments/sweeps/rt-ablation.toml --workdir "$
 # The remaining real-time models (WSKP-3, KP-1, KP-2, WSKP-MR, U-Net, WSKP-6+1x1), about 3 h.
 step sweep-rt-variants $J sweep experiments/sweeps/rt-variants.toml --workdir "$H/runs/sweeps/rt-variants"
 # The progressive-denoising paper's Tables 1 and 2 on our data: bases trained on PD data
-# (U-Net x 4 feature sets, KP 5 x 5, WSKP-6), one mixer per base, PD reports on pd-test-high,
+# (U-Net x 4 feature sets, KP 5 x 5, WSKP-6), one mixer per base (on pd-rt4k), PD reports on pd-test-high,
 # and SURE's accuracy for each base (experiments/README.md).
 step sweep-pd-bases env XLA_FLAGS=--xla_force_host_platform_device_count=2 $J sweep \
   experiments/sweeps/pd-bases.toml --workdir "$H/runs/sweeps/pd-bases"
