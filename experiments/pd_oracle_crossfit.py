@@ -90,12 +90,11 @@ def evaluate(data, denoiser_spec: str, split: str) -> list[dict]:
             r = np.asarray(reference.color, np.float64)
             alphas = [oracle_alpha(px, py, r) for px, py in pair]
             row = {"crop": crop.id, "spp": n, "blend_weight": w}
+            def rmse(image, target=reference.color):
+                return float(metrics.rmse(image.astype(np.float32), target))
+
             for side, (px, py) in enumerate(pair):  # side 0: the dataset's render, 1: its twin
                 other = alphas[1 - side]
-
-                def rmse(image):
-                    return float(metrics.rmse(image.astype(np.float32), reference.color))
-
                 row[f"denoiser_rmse_{side}"] = rmse(py)
                 row[f"mc_rmse_{side}"] = rmse(px)
                 row[f"oracle_rmse_{side}"] = rmse(px + alphas[side] * (py - px))
@@ -133,8 +132,8 @@ def summarize(rows: list[dict], report: dict | None) -> dict:
 
 
 def markdown(summary: dict, denoiser: str) -> str:
-    lines = [f"RMSE over {denoiser}'s (mean over crops; the oracle and the cross-fitted oracle "
-             f"also over both renders of each pair):", "",
+    lines = [(f"RMSE over {denoiser}'s (mean over crops; the oracle and the cross-fitted oracle "
+              f"also over both renders of each pair):"), "",
              "| spp | 8 x 8 oracle | cross-fitted oracle | PD (shipped mixer) |",
              "|---:|---:|---:|---:|"]
     for n, e in summary["per_spp"].items():
@@ -143,8 +142,8 @@ def markdown(summary: dict, denoiser: str) -> str:
     m, s = summary["mean_over_spp"], summary["share_of_oracle_gain"]
     pd = f"{m['pd']:.3f}" if "pd" in m else ""
     lines.append(f"| mean | {m['oracle']:.3f} | {m['crossfit']:.3f} | {pd} |")
-    lines += ["", "Share of the 8 x 8 oracle's RMSE gain, (1 - ratio) / (1 - oracle ratio), "
-              "mean ratios over spp:", ""]
+    lines += ["", ("Share of the 8 x 8 oracle's RMSE gain, (1 - ratio) / (1 - oracle ratio), "
+                   "mean ratios over spp:"), ""]
     lines += [f"- {name}: {value:.0%}" for name, value in
               (("cross-fitted oracle", s["crossfit"]), ("PD", s.get("pd")))
               if value is not None]
