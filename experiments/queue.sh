@@ -42,8 +42,8 @@ step sweep-rt-ablation $J sweep experiments/sweeps/rt-ablation.toml --workdir "$
 # The remaining real-time models (WSKP-3, KP-1, KP-2, WSKP-MR, U-Net, WSKP-6+1x1), about 3 h.
 step sweep-rt-variants $J sweep experiments/sweeps/rt-variants.toml --workdir "$H/runs/sweeps/rt-variants"
 # The progressive-denoising paper's Tables 1 and 2 on our data: bases trained on PD data
-# (U-Net x 4 feature sets, KP 5 x 5, WSKP-6), one mixer per base (on pd-rt4k), PD reports on pd-test-high,
-# and SURE's accuracy for each base (experiments/README.md).
+# (U-Net x 4 feature sets, KP 5 x 5, WSKP-6), one mixer per base (on pd-rt4k), PD reports on
+# pd-test-high, and SURE's accuracy for each base (experiments/README.md).
 step sweep-pd-bases env XLA_FLAGS=--xla_force_host_platform_device_count=2 $J sweep \
   experiments/sweeps/pd-bases.toml --workdir "$H/runs/sweeps/pd-bases"
 # SURE by jvp against the true error of every JAX base on pd-test-high (into the checkout's
