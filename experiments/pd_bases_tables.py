@@ -136,17 +136,25 @@ def table1(results: dict[str, dict]) -> tuple[str, dict]:
              "# PD paper Tables 1 and 2 on our data: den against PD per base",
              "",
              "Each base is trained on `data/pd-rt` (2..1024 spp, 4000 steps, "
-             "`experiments/sweeps/pd-bases.toml`) and mixed by its own mixer (the `wskp-6-pd` "
-             "recipe: jvp SURE with one probe, width 16, closed_form_logit head; "
-             "`experiments/sweeps/pd-mixers.toml`). Errors on `data/pd-test-high` (8 held-out "
-             "procedural crops of 96 x 96, 32..4096 spp, 8192-spp references), crop means "
-             "averaged over spp. PD / den: the ratio of the spp-averaged errors (the paper's "
-             "table form) and, in brackets, the mean of the per-spp ratios.",
+             "`experiments/sweeps/pd-bases.toml`) and mixed by its own mixer, trained on "
+             "`data/pd-rt4k` (2..4096 spp) with the `wskp-6-pd` recipe (jvp SURE with one "
+             "probe, width 16, closed_form_logit head; `experiments/sweeps/pd-mixers.toml`). "
+             "Errors on `data/pd-test-high` (8 held-out procedural crops of 96 x 96, 32..4096 "
+             "spp, 8192-spp references), crop means averaged over spp. PD / den: the ratio of "
+             "the spp-averaged errors (the paper's table form) and, in brackets, the mean of "
+             "the per-spp ratios. The MC row (the noisy input, the same for every base) tells "
+             "how much each base gains before mixing: a base near MC leaves PD little to do "
+             "but also makes PD / den easy.",
              "",
              "| table | base | model | " + " | ".join(label for _, label in METRICS)
              + " | PD / MC, RMSE at the top spp (crop mean; worst crop) |",
              "|---|---|---|" + "---:|" * len(METRICS) + "---:|"]
     data, missing, targets = {}, [], []
+    if results:  # MC is the same input for every base: any finished run gives it
+        first = next(iter(results.values()))
+        lines.append("| | MC (the input) | MC | "
+                     + " | ".join(f"{averaged(first, 'mc', m):.5f}" for m, _ in METRICS)
+                     + " | 1 |")
     for run, label, table in BASES:
         if run not in results:
             missing.append(run)

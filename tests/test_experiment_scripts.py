@@ -563,6 +563,8 @@ def test_pd_bases_tables_ratios_targets_and_table4(tmp_path):
     assert set(data["missing"]) == {"unet-hdr-alb-nrm", "unet-hdr-alb-nrm-var", "kp5", "wskp6"}
     # PD's mean ratio 0.45 against the oracle's 0.35: (1 - 0.45) / (1 - 0.35) of its gain
     assert "| U-Net: HDR | 0.450 | 0.420 | 0.350 | 85% |" in (out / "pd-table1.md").read_text()
+    assert "| | MC (the input) | MC | 0.10000 | 0.10000 | 0.10000 | 0.10000 | 1 |" in (
+        out / "pd-table1.md").read_text()
     assert "| U-Net: HDR, VAR |" not in (out / "pd-table1.md").read_text().split(
         "## Against the bounds")[1]  # a report without the oracle has no row there
     table4 = (out / "pd-table4.md").read_text()
