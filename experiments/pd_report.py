@@ -213,8 +213,41 @@ def cmd_sure(args: argparse.Namespace) -> None:
                                              progress=True)
                 for spec in args.denoiser}
     summaries = {spec: pdreport.summarize_sure(r) for spec, r in rows.items()}
-    result = {"summary": summaries, "rows": rows, "provenance": source}
-    write_report(Path(args.out), result, pdreport.markdown_sure(summaries))
+    checks = median_crop_checks(summaries)
+    result = {"summary": summaries, "rows": rows, "provenance": source, "checks": checks}
+    write_report(Path(args.out), result,
+                 pdreport.markdown_sure(summaries) + "\n" + markdown_checks(checks))
+
+
+#: The issue's accuracy target for SURE: the median crop's SURE / noise-corrected true MSE
+#: within this tolerance at every spp level from MIN_SPP on.
+MEDIAN_CROP_TOLERANCE, MIN_SPP = 0.05, 64
+
+
+def median_crop_checks(summaries: dict, tolerance: float = MEDIAN_CROP_TOLERANCE,
+                       min_spp: int = MIN_SPP) -> dict:
+    """Per denoiser: the spp level (>= ``min_spp``) where the median crop's ratio is farthest
+    from 1, that ratio, and whether every level is within ``tolerance``."""
+    checks = {}
+    for name, summary in summaries.items():
+        levels = {int(level): m["median_crop_ratio"] for level, m in summary["per_spp"].items()
+                  if int(level) >= min_spp}
+        if not levels:
+            continue
+        worst = max(levels, key=lambda level: abs(levels[level] - 1.0))
+        checks[name] = {"worst_spp": worst, "worst_ratio": levels[worst],
+                        "within": all(abs(r - 1.0) <= tolerance for r in levels.values()),
+                        "tolerance": tolerance, "min_spp": min_spp}
+    return checks
+
+
+def markdown_checks(checks: dict) -> str:
+    lines = [f"\nMedian crop's SURE / true MSE within ±{MEDIAN_CROP_TOLERANCE:.0%} at every spp "
+             f">= {MIN_SPP}:\n"]
+    for name, c in checks.items():
+        lines.append(f"- {name}: {'yes' if c['within'] else 'NO'} (farthest from 1: "
+                     f"{c['worst_ratio']:.3f} at {c['worst_spp']} spp)")
+    return "\n".join(lines) + "\n"
 
 
 def cmd_sure_buffers(args: argparse.Namespace) -> None:

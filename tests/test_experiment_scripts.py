@@ -201,6 +201,24 @@ def test_pd_report_provenance_records_package_versions():
     assert pd_report.package_version("no-such-package-jaxden") == "not installed"
 
 
+def test_sure_median_crop_check_reads_only_levels_from_64_spp():
+    """The SURE target: the median crop's ratio within 5 % at every spp >= 64; a level below
+    64 spp never decides it, and the farthest level is the one named."""
+    import pd_report
+
+    def summary(ratios):
+        return {"per_spp": {str(s): {"median_crop_ratio": r} for s, r in ratios.items()}}
+
+    checks = pd_report.median_crop_checks({"a": summary({32: 0.5, 64: 1.04, 128: 0.97}),
+                                           "b": summary({32: 1.0, 64: 1.01, 4096: 0.94})})
+    assert checks["a"]["within"] and checks["a"]["worst_spp"] == 64
+    assert not checks["b"]["within"] and checks["b"]["worst_spp"] == 4096
+    assert checks["b"]["worst_ratio"] == pytest.approx(0.94)
+    text = pd_report.markdown_checks(checks)
+    assert "- a: yes (farthest from 1: 1.040 at 64 spp)" in text
+    assert "- b: NO (farthest from 1: 0.940 at 4096 spp)" in text
+
+
 def test_pd_tables_keeps_reports_of_the_same_build_only(tmp_path):
     """pd_tables.sh remakes a report unless it was made on the dataset's current build."""
     import hashlib
