@@ -18,7 +18,7 @@ import os
 import jax
 import numpy as np
 
-from jaxden.errors import ConfigError, FrameError
+from jaxden.errors import ConfigError
 from jaxden.frame import Frame
 
 #: Finite-difference steps chosen from measurements (module docstring).
@@ -102,16 +102,10 @@ def denoise_with_sure(
     Raises FrameError when the frame has no variance (naming SURE and the variance), bad
     values, or lacks a feature the denoiser needs.
     """
-    from jaxden.sure.stein import sure, sure_blackbox
+    from jaxden.sure.stein import require_variance, sure, sure_blackbox
 
     denoiser = resolve_denoiser(denoiser)
-    if not isinstance(frame, Frame):
-        raise FrameError(f"{where}: expected a jaxden Frame, got {type(frame).__name__}")
-    if frame.variance is None:
-        raise FrameError(
-            f"{where}: SURE needs the variance of the pixel mean (EXR channels variance.R/G/B: "
-            f"sample variance / spp), but the frame has only {', '.join(frame.features())}"
-        )
+    require_variance(frame, where, held_in="EXR channels variance.R/G/B")
     if nonfinite not in ("error", "zero"):
         raise ConfigError(f"{where}: nonfinite must be 'error' or 'zero', got {nonfinite!r}")
     frame = frame.numpy().validated(where=where, nonfinite=nonfinite)

@@ -159,15 +159,21 @@ def _check_options(num_probes, method, eps, fd_scheme, probe_batch) -> int:
     return int(min(probe_batch, num_probes))
 
 
-def _checked_frame(frame, where: str, nonfinite: NonFinitePolicy) -> Frame:
-    """Structural checks always; value checks (NaN, negative variance) on concrete arrays."""
+def require_variance(frame, where: str, held_in: str = "Frame.variance") -> None:
+    """FrameError unless ``frame`` is a Frame with the variance of the pixel mean, which SURE
+    needs; ``held_in`` names where the caller's user keeps it (a Frame field, EXR channels)."""
     if not isinstance(frame, Frame):
         raise FrameError(f"{where}: expected a jaxden Frame, got {type(frame).__name__}")
     if frame.variance is None:
         raise FrameError(
-            f"{where}: SURE needs the variance of the pixel mean (Frame.variance, sample "
+            f"{where}: SURE needs the variance of the pixel mean ({held_in}: sample "
             f"variance / spp), but the frame has only {', '.join(frame.features())}"
         )
+
+
+def _checked_frame(frame, where: str, nonfinite: NonFinitePolicy) -> Frame:
+    """Structural checks always; value checks (NaN, negative variance) on concrete arrays."""
+    require_variance(frame, where)
     leaves = jax.tree_util.tree_leaves(frame)
     if _is_concrete(*leaves):
         return frame.validated(where=where, nonfinite=nonfinite)
