@@ -43,12 +43,12 @@ def run_identity(argv: list[str] | None = None) -> dict:
     """The command line (``argv``: default sys.argv[1:]) and the git commit a run started at;
     code changes make it "+dirty", finished results being rewritten do not."""
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                            text=True, cwd=ROOT).stdout.strip()
+                            text=True, cwd=ROOT, check=False).stdout.strip()
     # Shipped weights and their cards are not code: a report names the weights it used by
     # their sha256 (and the inference settings it ran), so re-shipping them is not "dirty".
     dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
                             ":(exclude)experiments/results", ":(exclude)jaxden/weights"],
-                           capture_output=True, text=True, cwd=ROOT).stdout.strip()
+                           capture_output=True, text=True, cwd=ROOT, check=False).stdout.strip()
     from jaxden.paths import portable
 
     argv = sys.argv[1:] if argv is None else argv
@@ -242,8 +242,8 @@ def median_crop_checks(summaries: dict, tolerance: float = MEDIAN_CROP_TOLERANCE
 
 
 def markdown_checks(checks: dict) -> str:
-    lines = [f"\nMedian crop's SURE / true MSE within ±{MEDIAN_CROP_TOLERANCE:.0%} at every spp "
-             f">= {MIN_SPP}:\n"]
+    lines = [(f"\nMedian crop's SURE / true MSE within ±{MEDIAN_CROP_TOLERANCE:.0%} at every spp "
+              f">= {MIN_SPP}:\n")]
     for name, c in checks.items():
         lines.append(f"- {name}: {'yes' if c['within'] else 'NO'} (farthest from 1: "
                      f"{c['worst_ratio']:.3f} at {c['worst_spp']} spp)")
@@ -273,14 +273,14 @@ def cmd_sure_buffers(args: argparse.Namespace) -> None:
                  for name, r in rows.items()}
     names = " / ".join({"stein": "Stein (probes)", "buffers": "sub-buffers",
                         "extrapolated": "sub-buffers extrapolated in 1/K"}[k] for k in keys)
-    lines = [f"{renders} fresh render(s) per crop and spp, each the mean of {buffers} "
-             "independent sub-buffers. Estimate / noise-corrected true MSE: of the means over "
-             "all crop-renders, of the median crop-render, and the share of crop-renders "
-             f"within ±10 % ({names}); the 95 % interval of the ratio of means is a crop "
-             f"bootstrap ({pdreport.BOOTSTRAP_RESAMPLES} resamples of the crops with all their "
-             "renders, seed 0).", "",
-             "| denoiser | spp | true MSE | ratio of means | 95 % interval | median | "
-             "within ±10 % |",
+    lines = [(f"{renders} fresh render(s) per crop and spp, each the mean of {buffers} "
+              "independent sub-buffers. Estimate / noise-corrected true MSE: of the means over "
+              "all crop-renders, of the median crop-render, and the share of crop-renders "
+              f"within ±10 % ({names}); the 95 % interval of the ratio of means is a crop "
+              f"bootstrap ({pdreport.BOOTSTRAP_RESAMPLES} resamples of the crops with all their "
+              "renders, seed 0)."), "",
+             ("| denoiser | spp | true MSE | ratio of means | 95 % interval | median | "
+              "within ±10 % |"),
              "|---|---:|---:|---:|---:|---:|---:|"]
 
     def cells(per, field, fmt):
