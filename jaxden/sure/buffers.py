@@ -5,7 +5,8 @@ render, without Stein's Gaussian assumption and without derivatives.
 from __future__ import annotations
 
 import hashlib
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
