@@ -213,6 +213,11 @@ def cmd_sure(args: argparse.Namespace) -> None:
                                              progress=True)
                 for spec in args.denoiser}
     summaries = {spec: pdreport.summarize_sure(r) for spec, r in rows.items()}
+    # Frames with a colour covariance: SURE from it, and the paper's per-channel form beside
+    for spec, r in rows.items():
+        if r and all("sure_diag" in row for row in r):
+            summaries[f"{spec} (per-channel, the paper's)"] = pdreport.summarize_sure(
+                r, key="sure_diag")
     checks = median_crop_checks(summaries)
     result = {"summary": summaries, "rows": rows, "provenance": source, "checks": checks}
     write_report(Path(args.out), result,

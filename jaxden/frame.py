@@ -14,8 +14,14 @@ depth      (..., H, W, 1)  distance along the ray to the first hit (0 on misses)
 position   (..., H, W, 3)  world-space position of the first hit (0 on misses)
 motion     (..., H, W, 2)  pixel offset (dx, dy) from this pixel to where its surface point was
                            in the previous frame: prev_xy = xy + motion
+covariance (..., H, W, 3)  covariance of the pixel *mean* between channels (R, G), (G, B),
+                           (B, R): the off-diagonal of its 3 x 3 covariance (needs variance)
 spp        (...)           samples per pixel (a float array so batches can mix spp levels)
 =========  ============  =====================================================================
+
+Monte Carlo noise is strongly correlated across R, G and B (one path carries all three), so a
+frame may carry the covariance as well as the variance: SURE then draws its probes from the
+full 3 x 3 covariance (``jaxden.sure``), which a denoiser that mixes channels needs.
 
 Every field but ``color`` is optional (None). Frames are registered as JAX pytrees, so they pass
 through ``jit``, ``vmap`` and ``jvp`` unchanged; construction does no checking (it must work on
@@ -41,6 +47,7 @@ CHANNELS: dict[str, tuple[str, ...]] = {
     "depth": ("depth.Z",),
     "position": ("position.X", "position.Y", "position.Z"),
     "motion": ("motion.X", "motion.Y"),
+    "covariance": ("covariance.RG", "covariance.GB", "covariance.BR"),
 }
 IMAGE_FIELDS: tuple[str, ...] = tuple(CHANNELS)
 NonFinitePolicy = Literal["error", "zero"]
@@ -59,6 +66,7 @@ class Frame:
     position: Any = None
     motion: Any = None
     spp: Any = None
+    covariance: Any = None
 
     # ------------------------------------------------------------------ accessors
     @property
@@ -178,11 +186,50 @@ class Frame:
                            if nonfinite == "error" else "")
                     )
                 repaired["variance"] = np.maximum(variance, 0.0).astype(variance.dtype)
+        if "covariance" in arrays:
+            repaired.update(_checked_covariance(
+                repaired.get("covariance", arrays["covariance"]),
+                repaired.get("variance", arrays.get("variance")), where, nonfinite))
         if self.spp is not None:
             spp = np.asarray(self.spp)
             if not np.all(np.isfinite(spp)) or np.any(spp <= 0):
                 raise FrameError(f"{where}: spp must be > 0, got {spp}")
         return self.replace(**repaired) if repaired else self
+
+
+#: Relative slack of the Cauchy-Schwarz check |cov_ab| <= sqrt(var_a var_b): float32 files
+#: and the clipping of round-off in the variance make a bound met to this much still valid.
+COVARIANCE_SLACK = 1e-3
+
+
+def covariance_bound(variance) -> np.ndarray:
+    """sqrt(var_a var_b) for the channel pairs of ``Frame.covariance``: (R, G), (G, B), (B, R)."""
+    variance = np.maximum(np.asarray(variance, np.float64), 0.0)
+    return np.sqrt(variance * np.roll(variance, -1, axis=-1))
+
+
+def _checked_covariance(covariance, variance, where: str, nonfinite: str) -> dict:
+    """The covariance checked against the variance (Cauchy-Schwarz): {} when it holds, the
+    clipped covariance when it fails by round-off only and ``nonfinite='zero'``."""
+    if variance is None:
+        raise FrameError(f"{where}: field 'covariance' needs the variance (the 3 x 3 covariance "
+                         f"of the pixel mean has the variance on its diagonal)")
+    bound = covariance_bound(variance)
+    excess = np.abs(np.asarray(covariance, np.float64)) - bound
+    slack = COVARIANCE_SLACK * bound + 1e-12
+    over = excess > slack
+    if over.any():
+        index = tuple(int(i) for i in np.argwhere(over)[0])
+        pair = ("R, G", "G, B", "B, R")[index[-1]]
+        raise FrameError(
+            f"{where}: covariance is not a covariance of the variance given: |cov({pair})| > "
+            f"sqrt(var var) at {int(over.sum())} value(s) (first at index {index}: "
+            f"{float(np.asarray(covariance)[index]):.6g}, bound {bound[index]:.6g}); are "
+            f"covariance.RG/GB/BR and variance.R/G/B of the same render and both of the mean?")
+    if nonfinite == "zero" and (excess > 0).any():
+        dtype = np.asarray(covariance).dtype
+        return {"covariance": np.clip(covariance, -bound, bound).astype(dtype)}
+    return {}
 
 
 def stack(frames: list[Frame]) -> Frame:

@@ -25,6 +25,9 @@ def make_frame(h=6, w=7, seed=0, full=True):
             position=rng.normal(size=(h, w, 3)).astype(np.float32),
             motion=rng.normal(size=(h, w, 2)).astype(np.float32),
         )
+        var = fields["variance"]
+        fields["covariance"] = (rng.uniform(-0.9, 0.9, (h, w, 3))
+                                * np.sqrt(var * np.roll(var, -1, axis=-1))).astype(np.float32)
     return Frame(**fields, spp=np.float32(16))
 
 
@@ -222,3 +225,30 @@ def test_reading_from_a_worker_thread_works(tmp_path):
             pool.submit(exr.read_frame, bad).result()
     for colour in colours:
         np.testing.assert_array_equal(colour, exr.read_frame(path).color)
+
+
+def test_covariance_must_be_a_covariance_of_the_variance(tmp_path):
+    """Frame.covariance (R G, G B, B R of the mean) needs the variance and must meet
+    |cov_ab| <= sqrt(var_a var_b): a covariance from another render or per sample while the
+    variance is of the mean is refused, naming the pair; round-off within the slack passes."""
+    frame = make_frame()
+    var = np.asarray(frame.variance, np.float64)
+    bound = np.sqrt(var * np.roll(var, -1, axis=-1))
+    at_bound = frame.replace(covariance=(bound * (1 + 1e-4)).astype(np.float32))
+    at_bound.validated()  # within the relative slack (float32 files, clipped round-off)
+    clipped = at_bound.validated(nonfinite="zero").covariance
+    assert (np.abs(clipped) <= bound.astype(np.float32) * (1 + 1e-6)).all()
+    cov = np.array(frame.covariance)
+    cov[2, 3, 1] = 2.0 * bound[2, 3, 1]
+    with pytest.raises(FrameError, match=r"cov\(G, B\)\| > sqrt\(var var\) at 1 value\(s\) "
+                                         r"\(first at index \(2, 3, 1\)"):
+        frame.replace(covariance=cov).validated(where="f.exr")
+    with pytest.raises(FrameError, match="'covariance' needs the variance"):
+        frame.replace(variance=None).validated()
+    # a file storing the per-sample (co)variance: both are divided by spp on reading
+    path = tmp_path / "per-sample.exr"
+    exr.write_frame(path, frame.replace(variance=frame.variance * 16,
+                                        covariance=frame.covariance * 16))
+    back = exr.read_frame(path, variance_is_sample_variance=True)
+    np.testing.assert_allclose(back.covariance, frame.covariance, rtol=1e-6)
+    np.testing.assert_allclose(back.variance, frame.variance, rtol=1e-6)

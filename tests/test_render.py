@@ -130,7 +130,7 @@ def test_scalar_variant_override_renders_in_subprocess(tmp_path):
 def test_moment_colour_equals_plain_path_render(cornell):
     """Same seed and spp: the wrapper's colour equals plain `path` to float32 round-off.
 
-    Not bit for bit: a film with 3 extra channels accumulates in a different order (measured:
+    Not bit for bit: a film with extra channels accumulates in a different order (measured:
     at most ~3 ulp). A different seed differs by orders of magnitude more, so the wrapper
     draws the same random numbers.
     """
@@ -140,18 +140,25 @@ def test_moment_colour_equals_plain_path_render(cornell):
     plain = np.array(mi.render(cornell, sensor=sensor, integrator=path, seed=7, spp=8))
     both = np.array(mi.render(cornell, sensor=sensor, integrator=moment, seed=7, spp=8))
     other = np.array(mi.render(cornell, sensor=sensor, integrator=path, seed=8, spp=8))
-    assert both.shape == plain.shape[:2] + (6,)
+    assert both.shape == plain.shape[:2] + (9,)
     np.testing.assert_allclose(both[..., :3], plain, rtol=1e-6, atol=1e-7)
     assert np.abs(other - plain).max() > 1e-2
-    # Second moments: m2 >= m1^2 (Cauchy-Schwarz) up to round-off.
-    assert (both[..., 3:] >= both[..., :3] ** 2 * (1 - 1e-5) - 1e-7).all()
+    # Second moments: m2 >= m1^2 (Cauchy-Schwarz) up to round-off, and the cross moments
+    # mean(L_a L_b) <= sqrt(m2_a m2_b).
+    assert (both[..., 3:6] >= both[..., :3] ** 2 * (1 - 1e-5) - 1e-7).all()
+    m2 = both[..., 3:6].astype(np.float64)
+    assert (np.abs(both[..., 6:9]) <= np.sqrt(m2 * np.roll(m2, -1, axis=-1)) * (1 + 1e-5)
+            + 1e-7).all()
 
 
 def test_moment_at_one_spp_is_the_square_of_the_sample(cornell):
-    """With one sample per pixel m2 = L^2 exactly, so the AOV is the square of that sample."""
+    """With one sample per pixel m2 = L^2 and m11 = L_a L_b exactly: the AOVs are the squares
+    and the cross products (R G, G B, B R) of that sample."""
     moment = integrators.moment_integrator(max_depth=8)
     image = np.array(mi.render(cornell, integrator=moment, seed=3, spp=1))
-    np.testing.assert_allclose(image[..., 3:], image[..., :3] ** 2, rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(image[..., 3:6], image[..., :3] ** 2, rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(image[..., 6:9], image[..., :3] * np.roll(image[..., :3], -1, -1),
+                               rtol=1e-6, atol=1e-8)
 
 
 def test_variance_of_mean_formula_against_numpy():
@@ -161,6 +168,25 @@ def test_variance_of_mean_formula_against_numpy():
     expected = samples.var(0, ddof=1) / 16
     np.testing.assert_allclose(integrators.variance_of_mean(m1, m2, 16), expected, rtol=1e-12)
     assert (integrators.variance_of_mean(m1, m1**2 - 1e-9, 16) == 0).all()  # clipped at 0
+
+
+def test_covariance_of_mean_formula_against_numpy():
+    """The covariance of the mean between channel pairs (R, G), (G, B), (B, R) equals NumPy's
+    sample covariance / n, and is clipped to Cauchy-Schwarz when round-off breaks it."""
+    rng = np.random.default_rng(1)
+    light = rng.gamma(2.0, 1.0, size=(16, 5, 1))  # one path brightness shared by R, G, B
+    samples = light * rng.uniform(0.2, 1.0, size=(16, 5, 3)) + rng.gamma(1.0, 0.1, (16, 5, 3))
+    m1, m2 = samples.mean(0), (samples**2).mean(0)
+    m11 = (samples * np.roll(samples, -1, axis=-1)).mean(0)
+    variance = integrators.variance_of_mean(m1, m2, 16)
+    expected = np.stack([np.cov(samples[:, p, a], samples[:, p, (a + 1) % 3])[0, 1] / 16
+                         for p in range(5) for a in range(3)]).reshape(5, 3)
+    np.testing.assert_allclose(integrators.covariance_of_mean(m1, m11, variance, 16), expected,
+                               rtol=1e-10)
+    assert (expected > 0).all()  # the shared brightness correlates the channels
+    bound = np.sqrt(variance * np.roll(variance, -1, axis=-1))
+    clipped = integrators.covariance_of_mean(m1, m11 + 1.0, variance, 16)
+    np.testing.assert_allclose(clipped, bound, rtol=1e-12)
 
 
 def test_render_frame_colour_equals_plain_path_with_derived_seed(cornell, cornell_frame):
@@ -207,10 +233,15 @@ def test_passes_combine_moments_exactly(cornell):
     images = [np.array(mi.render(cornell, integrator=moment, seed=core.derive_seed(11, "color", i),
                                  spp=4), dtype=np.float64) for i in range(2)]
     m1 = (images[0][..., :3] + images[1][..., :3]) / 2
-    m2 = (images[0][..., 3:] + images[1][..., 3:]) / 2
+    m2 = (images[0][..., 3:6] + images[1][..., 3:6]) / 2
+    m11 = (images[0][..., 6:9] + images[1][..., 6:9]) / 2
     np.testing.assert_allclose(frame.color, m1, rtol=1e-6, atol=1e-7)
-    np.testing.assert_allclose(frame.variance, np.maximum(m2 - m1**2, 0) / 7, rtol=1e-5,
-                               atol=1e-9)
+    variance = np.maximum(m2 - m1**2, 0) / 7
+    np.testing.assert_allclose(frame.variance, variance, rtol=1e-5, atol=1e-9)
+    bound = np.sqrt(variance * np.roll(variance, -1, -1))
+    np.testing.assert_allclose(frame.covariance,
+                               np.clip((m11 - m1 * np.roll(m1, -1, -1)) / 7, -bound, bound),
+                               rtol=1e-4, atol=1e-9)
 
 
 # ---------------------------------------------------------------------------- render_frame
@@ -403,7 +434,7 @@ def test_crop_camera_equals_mitsuba_film_crop(cornell, camera):
         mine = np.array(mi.render(cornell, sensor=emulated, integrator=moment, seed=4, spp=4))
         film_crop = load.build_sensor(sensor_dict, (40, 30), crop, "test")
         theirs = np.array(mi.render(cornell, sensor=film_crop, integrator=moment, seed=4, spp=4))
-        assert mine.shape == theirs.shape == (crop[2], crop[3], 6)
+        assert mine.shape == theirs.shape == (crop[2], crop[3], 9)
         close = np.abs(mine - theirs) <= 1e-4 * (1 + np.abs(theirs))
         assert close.all(-1).mean() > 0.97, crop  # a grazing ray may flip at an edge
     assert sensors[0] is sensors[1]
@@ -814,7 +845,7 @@ def test_bench_frame_is_rendered_or_read_from_the_environment(tmp_path, monkeypa
     with pytest.raises(JaxdenError, match=r"frame.exr: the frame is 24x16, the benchmark needs "
                                           r"1280x720"):
         bench_frame((1280, 720))
-    write_frame(path, rendered.replace(variance=None))
+    write_frame(path, rendered.replace(variance=None, covariance=None))
     with pytest.raises(JaxdenError, match="variance"):
         bench_frame((24, 16))
 

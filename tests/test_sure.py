@@ -302,3 +302,71 @@ def test_jvp_sure_of_wskp_is_finite_on_black_pixels_with_zero_variance(tonemap):
     assert np.all(np.isfinite(sure_map))
     residual = (np.asarray(result.denoised) - color) ** 2
     np.testing.assert_allclose(sure_map[4:8, 4:8], residual[4:8, 4:8], rtol=1e-5, atol=1e-9)
+
+
+# ------------------------------------------------------------------ colour covariance
+
+
+def _random_covariance(rng, shape, correlation=0.9):
+    """Per-pixel PSD 3 x 3 covariances: a shared brightness term plus independent noise, as
+    Monte Carlo colour has; returns (variance, covariance (RG, GB, BR))."""
+    scale = rng.uniform(0.05, 0.3, shape + (3,))
+    shared = np.sqrt(correlation) * scale
+    own = np.sqrt(1 - correlation) * scale
+    sigma = shared[..., :, None] * shared[..., None, :] + np.eye(3) * own[..., None, :] ** 2
+    variance = np.stack([sigma[..., i, i] for i in range(3)], axis=-1)
+    covariance = np.stack([sigma[..., 0, 1], sigma[..., 1, 2], sigma[..., 2, 0]], axis=-1)
+    return variance, covariance, sigma
+
+
+def test_colour_factor_reproduces_the_covariance_and_tolerates_singular_pixels():
+    """L L^T = Sigma per pixel; a channel without variance gets a zero column (no NaN); zero
+    covariance gives diag(sqrt(var)), so the probes equal the per-channel ones exactly."""
+    from jaxden.sure.stein import colour_factor
+
+    rng = np.random.default_rng(0)
+    variance, covariance, sigma = _random_covariance(rng, (5, 4))
+    variance[0, 0, 1] = 0.0  # a black channel: its row and column of Sigma vanish
+    covariance[0, 0, 0] = covariance[0, 0, 1] = 0.0
+    sigma[0, 0, 1, :] = sigma[0, 0, :, 1] = 0.0
+    l00, l10, l11, l20, l21, l22 = colour_factor(variance, covariance, xp=np)
+    zero = np.zeros_like(l00)
+    factor = np.stack([np.stack([l00, zero, zero], -1), np.stack([l10, l11, zero], -1),
+                       np.stack([l20, l21, l22], -1)], axis=-2)
+    assert np.isfinite(factor).all()
+    np.testing.assert_allclose(factor @ np.swapaxes(factor, -1, -2), sigma, rtol=1e-10,
+                               atol=1e-15)
+    var32 = jnp.asarray(variance, jnp.float32)
+    plain = draw_probes(key(2), var32, 4)
+    assert np.array_equal(np.asarray(draw_probes(key(2), var32, 4, jnp.zeros_like(var32))),
+                          np.asarray(plain))
+
+
+def test_covariance_probes_make_sure_unbiased_for_a_channel_mixing_denoiser():
+    """F(x) = A x per pixel with A mixing the channels, correlated colour noise: the
+    divergence term estimates (A Sigma)_ii with covariance probes. Pixel-and-probe means over
+    64 x 64 pixels and 64 probes (seed 3) are within 2 % of the analytic value (standard error
+    about 0.3 %); the per-channel probes miss sum_{j != i} A_ij Sigma_ji, here over 30 % of
+    it, and are rejected by the same check."""
+    rng = np.random.default_rng(3)
+    variance, covariance, sigma = _random_covariance(rng, (64, 64))
+    mix = jnp.asarray([[0.5, 0.3, 0.2], [0.25, 0.5, 0.25], [0.2, 0.3, 0.5]], jnp.float32)
+
+    def denoise(frame):
+        return jnp.einsum("ij,...j->...i", mix, frame.color)
+
+    color = rng.uniform(0.5, 2.0, (64, 64, 3)).astype(np.float32)
+    expected = np.einsum("ij,...ji->...i", np.asarray(mix, np.float64), sigma).mean(axis=(0, 1))
+    frame = Frame(color=color, variance=variance.astype(np.float32),
+                  covariance=covariance.astype(np.float32))
+    full = sure(denoise, frame, key(4), num_probes=64).divergence_term
+    diag = sure(denoise, frame.replace(covariance=None), key(4), num_probes=64).divergence_term
+    full_mean = np.asarray(full, np.float64).mean(axis=(0, 1))
+    diag_mean = np.asarray(diag, np.float64).mean(axis=(0, 1))
+    np.testing.assert_allclose(full_mean, expected, rtol=0.02)
+    assert (np.abs(diag_mean / expected - 1) > 0.3).all()
+    # the black-box path draws its probes from the same factor (float64, NumPy generator)
+    box = sure_blackbox(lambda f: np.einsum("ij,...j->...i", np.asarray(mix), f.color), frame,
+                        num_probes=64, rng=5, eps=1e-2).divergence_term
+    np.testing.assert_allclose(np.asarray(box, np.float64).mean(axis=(0, 1)), expected,
+                               rtol=0.02)

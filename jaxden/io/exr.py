@@ -311,8 +311,8 @@ def read_frame(
     ``nonfinite``: see :meth:`Frame.validated` ('error' or 'zero').
     ``channel_map``: override channel names per field for files from other renderers, e.g.
     ``{"variance": ("color_var.R", "color_var.G", "color_var.B")}``.
-    ``variance_is_sample_variance``: the file stores the per-sample variance, not the variance
-    of the pixel mean; it is divided by spp (from ``spp`` or the header) on reading.
+    ``variance_is_sample_variance``: the file stores the per-sample variance (and covariance),
+    not that of the pixel mean; it is divided by spp (from ``spp`` or the header) on reading.
     ``spp``: overrides/supplies the sample count when the header has none.
     """
     path = Path(path)
@@ -371,6 +371,8 @@ def read_frame(
                 f"jaxden.spp; pass spp= (CLI: --spp N)"
             )
         fields["variance"] = fields["variance"] / np.float32(sample_count)
+        if "covariance" in fields:  # stored alike: per sample
+            fields["covariance"] = fields["covariance"] / np.float32(sample_count)
     frame = Frame(
         **fields, spp=None if sample_count is None else np.float32(sample_count)
     )

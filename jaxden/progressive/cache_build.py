@@ -80,6 +80,7 @@ def build_sure_cache(
     probe_batch: int | None = None,
     half: bool = False,
     progress: bool = True,
+    covariance: bool = False,
 ) -> SureCache:
     """Compute (or finish) the SURE cache of ``denoiser_spec`` over a built dataset.
 
@@ -98,6 +99,8 @@ def build_sure_cache(
       half: store float16 channels (the authors' choice; float32 by default so the cache
         equals a direct computation bit for bit).
       progress: show a tqdm bar.
+      covariance: draw the probes from the colour covariance of items that have one
+        (``MixerConfig.sure_covariance``); off: the per-channel form, as before it existed.
 
     Returns the opened :class:`SureCache`. Raises DatasetError when the dataset is incomplete,
     the folder holds a cache of another dataset / denoiser / setting (naming the
@@ -134,6 +137,8 @@ def build_sure_cache(
         "seed": int(seed),
         "half": bool(half),
     }
+    if covariance:  # absent when off: caches built before the option keep their key
+        settings["covariance"] = True
     identity = {
         "dataset": _dataset_identity(manifest),
         "denoiser": denoiser_identity(denoiser),
@@ -215,6 +220,8 @@ def build_sure_cache(
             for item in pending:
                 start = time.perf_counter()
                 frame = read_frame(dataset_dir / item.path, require=("color", "variance"))
+                if not covariance:
+                    frame = frame.replace(covariance=None)
                 seed_i = item_seed(seed, item.id)
                 result, _ = denoise_with_sure(
                     denoiser, frame, jax.random.PRNGKey(seed_i), num_probes=num_probes,
@@ -278,7 +285,7 @@ def open_training_cache(dataset_dir, config) -> SureCache:
     denoiser = resolve_denoiser(config.denoiser)
     directory = Path(config.cache) if config.cache else default_cache_dir(dataset_dir, denoiser)
     options = dict(num_probes=config.sure_probes, method=config.sure_method, eps=config.sure_eps,
-                   seed=config.sure_seed)
+                   seed=config.sure_seed, covariance=config.sure_covariance)
     if config.build_cache:
         return build_sure_cache(dataset_dir, denoiser, directory, **options)
     cache = SureCache(dataset_dir, directory)
@@ -287,10 +294,12 @@ def open_training_cache(dataset_dir, config) -> SureCache:
     if eps is None:
         eps = default_eps(method, denoiser.differentiable)
     wanted = {"denoiser": denoiser_identity(denoiser), "num_probes": config.sure_probes,
-              "method": method, "eps": None if method == "jvp" else eps, "seed": config.sure_seed}
+              "method": method, "eps": None if method == "jvp" else eps, "seed": config.sure_seed,
+              "covariance": config.sure_covariance}
+    settings = cache.identity.get("settings", {})
     stored = {"denoiser": cache.identity.get("denoiser"),
-              **{k: cache.identity.get("settings", {}).get(k) for k in
-                 ("num_probes", "method", "eps", "seed")}}
+              **{k: settings.get(k) for k in ("num_probes", "method", "eps", "seed")},
+              "covariance": settings.get("covariance", False)}
     if stored != wanted:
         from jaxden.config import config_diff
 

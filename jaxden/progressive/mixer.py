@@ -180,6 +180,10 @@ class MixerConfig:
         :func:`jaxden.progressive.cache.default_cache_dir`).
       sure_probes, sure_method (``auto``: jvp for JAX denoisers, fd for black boxes),
       sure_eps (None: the measured default of :func:`jaxden.sure.denoiser.default_eps`), sure_seed.
+      sure_covariance: draw SURE's probes from the colour covariance of frames that carry one
+        (``Frame.covariance``; :mod:`jaxden.sure.stein`), in training and at inference. Off by
+        default: a mixer learns the SURE it was trained with, and mixers trained before
+        frames had a covariance saw the per-channel form, which inference then keeps.
       build_cache: build (or finish) the cache when training starts if it is missing or
         incomplete; else a missing cache is an error.
     """
@@ -206,6 +210,7 @@ class MixerConfig:
     sure_method: Literal["auto", "jvp", "fd"] = "auto"
     sure_eps: float | None = bounded(None, low=0, low_open=True, high=1)
     sure_seed: int = bounded(0, low=0, high=4294967295)
+    sure_covariance: bool = False
     build_cache: bool = True
 
     def __post_init__(self):

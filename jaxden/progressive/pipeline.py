@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxden.errors import ConfigError
+from jaxden.frame import Frame
 from jaxden.progressive.heads import _mix
 from jaxden.progressive.mixer import MixerConfig, _inference_alpha, load_mixer
 from jaxden.progressive.tstat import TStatConfig, _scale_alpha, _t_statistic
@@ -75,6 +76,8 @@ def progressive_denoise(
         raise ConfigError(
             f"progressive_denoise: tstat must be a TStatConfig or None, got {tstat!r}"
         )
+    if not mixer_config.sure_covariance and isinstance(frame, Frame):
+        frame = frame.replace(covariance=None)  # the per-channel SURE the mixer learned
     result, frame = denoise_with_sure(
         denoiser, frame, key, num_probes=num_probes, method=method, eps=eps,
         probe_batch=probe_batch, nonfinite=nonfinite, where="progressive_denoise",

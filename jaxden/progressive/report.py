@@ -176,7 +176,9 @@ def sure_accuracy(dataset_dir, denoiser, *, split: str = "test", seed: int = 0,
     output), ``mse_nc`` (its noise-corrected true MSE against the reference), ``mse_raw``
     (uncorrected), ``reference_var`` (mean variance of the reference's pixel mean), and the
     same for the input: ``input_var`` (the mean variance of its pixel mean, the unbiased
-    estimate of its MSE) and ``input_mse_nc`` (its noise-corrected true MSE)."""
+    estimate of its MSE) and ``input_mse_nc`` (its noise-corrected true MSE). On frames with
+    a colour covariance ``sure`` draws its probes from it and ``sure_diag`` is the paper's
+    per-channel form on the same normals (:mod:`jaxden.sure.stein`)."""
     import jax
 
     from jaxden import metrics
@@ -190,12 +192,18 @@ def sure_accuracy(dataset_dir, denoiser, *, split: str = "test", seed: int = 0,
     for crop, reference, inputs in _progress(crops, _crop_count(dataset_dir, split), progress,
                                              f"SURE accuracy ({model.name})"):
         for level, frame in inputs:
-            result, _ = denoise_with_sure(model, frame, jax.random.fold_in(base, index),
-                                          num_probes=num_probes, method=method)
+            key = jax.random.fold_in(base, index)
+            result, _ = denoise_with_sure(model, frame, key, num_probes=num_probes,
+                                          method=method)
             index += 1
             y = np.asarray(result.denoised, np.float32)
+            extra = {}
+            if frame.covariance is not None:
+                diag, _ = denoise_with_sure(model, frame.replace(covariance=None), key,
+                                            num_probes=num_probes, method=method)
+                extra["sure_diag"] = float(np.mean(np.asarray(diag.sure)))
             rows.append({
-                "crop": crop.id, "scene": crop.scene, "spp": level,
+                "crop": crop.id, "scene": crop.scene, "spp": level, **extra,
                 "sure": float(np.mean(np.asarray(result.sure))),
                 "mse_nc": float(metrics.noise_corrected_mse(y, reference.color,
                                                             reference.variance)),

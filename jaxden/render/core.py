@@ -256,22 +256,25 @@ def _render(scene, sensor, integrator, seed: int, spp: int, channels: int) -> np
 
 def _render_colour(mi_scene, mi_sensor, max_depth, seed: int, spp: int,
                    shape: tuple[int, int], budget: int):
-    """Colour passes: (pixel mean, variance of the mean or None at 1 spp), float32."""
+    """Colour passes: (pixel mean, variance of the mean, covariance of the mean between
+    channels), float32; the last two None at 1 spp."""
     _, moment = _integrators(mi_scene, max_depth)
-    sum1 = np.zeros(shape + (3,), np.float64)
-    sum2 = np.zeros(shape + (3,), np.float64)
+    sums = np.zeros(shape + (9,), np.float64)
     for index, pass_spp in enumerate(split_passes(spp, shape[0] * shape[1], budget)):
-        image = _render(mi_scene, mi_sensor, moment, derive_seed(seed, "color", index), pass_spp,
-                        6).astype(np.float64)
-        sum1 += pass_spp * image[..., 0:3]
-        sum2 += pass_spp * image[..., 3:6]
-    m1, m2 = sum1 / spp, sum2 / spp
-    variance = None if spp == 1 else integrators.variance_of_mean(m1, m2, spp).astype(np.float32)
-    return m1.astype(np.float32), variance
+        sums += pass_spp * _render(mi_scene, mi_sensor, moment, derive_seed(seed, "color", index),
+                                   pass_spp, 9).astype(np.float64)
+    moments = sums / spp
+    m1 = moments[..., 0:3]
+    if spp == 1:
+        return m1.astype(np.float32), None, None
+    variance = integrators.variance_of_mean(m1, moments[..., 3:6], spp)
+    covariance = integrators.covariance_of_mean(m1, moments[..., 6:9], variance, spp)
+    return m1.astype(np.float32), variance.astype(np.float32), covariance.astype(np.float32)
 
 
 def _check_colour(colour: Frame, spp: int, shape: tuple[int, int]):
-    """The colour and variance of a given render, checked against the frame to be made."""
+    """The colour, variance and covariance of a given render, checked against the frame to
+    be made."""
     color = np.asarray(colour.color, np.float32)
     if color.shape != shape + (3,):
         raise SceneError(f"render_frame: colour= has shape {color.shape}, the render is "
@@ -282,7 +285,8 @@ def _check_colour(colour: Frame, spp: int, shape: tuple[int, int]):
     variance = None if colour.variance is None else np.asarray(colour.variance, np.float32)
     if variance is None and spp > 1:
         raise SceneError("render_frame: colour= has no variance")
-    return color, variance
+    covariance = None if colour.covariance is None else np.asarray(colour.covariance, np.float32)
+    return color, variance, covariance
 
 
 def _render_features(scene, sensor, integrator, seed: int, spp: int, pixels: int,
@@ -342,7 +346,7 @@ def render_frame(
         (default 1024). The 16 of older datasets leaves sampling noise in textured albedo and
         at edges, which OIDN keeps when told its features are clean: 10-25 % more RMSE at
         256-4096 spp (docs/results.md, "OIDN's auxiliary features").
-      colour: a Frame whose colour and variance to keep instead of rendering them (only the
+      colour: a Frame whose colour, variance and covariance to keep instead of rendering them (only the
         feature pass runs): a render of the same scene, crop and spp, e.g. a dataset item
         whose features are re-rendered (``jaxden dataset refeature``). With the seed it was
         rendered with, the result equals a full render_frame call.
@@ -350,8 +354,9 @@ def render_frame(
 
     Returns:
       A Frame of float32 NumPy arrays without batch dimension: color (H, W, 3) (linear
-      radiance, mean of spp samples), variance (H, W, 3) variance of that mean, or None when
-      spp == 1; albedo (H, W, 3); normal (H, W, 3), unit length, 0 where no feature sample hit;
+      radiance, mean of spp samples), variance (H, W, 3) variance of that mean and
+      covariance (H, W, 3) its covariance between channels (R, G), (G, B), (B, R), both None
+      when spp == 1; albedo (H, W, 3); normal (H, W, 3), unit length, 0 where no feature sample hit;
       depth (H, W, 1) distance along the camera ray, 0 on misses; position (H, W, 3) world
       space, 0 on misses; spp = np.float32(spp). Features average min(spp, feature_spp)
       samples.
@@ -374,10 +379,10 @@ def render_frame(
     mi_scene, mi_sensor, (height, width) = _scene_and_sensor(scene, size, crop, sensor,
                                                              parameters)
     if colour is None:
-        color, variance = _render_colour(mi_scene, mi_sensor, max_depth, seed, spp,
-                                         (height, width), budget)
+        color, variance, covariance = _render_colour(mi_scene, mi_sensor, max_depth, seed, spp,
+                                                     (height, width), budget)
     else:
-        color, variance = _check_colour(colour, spp, (height, width))
+        color, variance, covariance = _check_colour(colour, spp, (height, width))
 
     features = _render_features(mi_scene, mi_sensor, _features_integrator(aux),
                                 derive_seed(seed, "aov"), min(spp, feature_spp), height * width,
@@ -396,4 +401,5 @@ def render_frame(
         depth=np.ascontiguousarray(features[..., channels["depth"]]),
         position=np.ascontiguousarray(features[..., channels["position"]]),
         spp=np.float32(spp),
+        covariance=covariance,
     )

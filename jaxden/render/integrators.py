@@ -1,15 +1,17 @@
 """Mitsuba integrators for denoising data: RGB moments in one render, and feature AOVs.
 
 ``jaxden_moment`` (:func:`moment_integrator`) wraps an inner sampling integrator (``path`` by
-default) and returns its radiance L as the colour plus L_R^2, L_G^2, L_B^2 as three AOVs. With a
-box pixel filter every sample lands in exactly one pixel with weight 1, so the film's averages
-are the exact per-pixel, per-channel first and second moments m1 = mean(L), m2 = mean(L^2) of
-the n = spp samples, and
+default) and returns its radiance L as the colour plus L_R^2, L_G^2, L_B^2 and the cross
+products L_R L_G, L_G L_B, L_B L_R as six AOVs. With a box pixel filter every sample lands in
+exactly one pixel with weight 1, so the film's averages are the exact per-pixel first and
+second moments m1 = mean(L), m2 = mean(L^2), m11 = mean(L_a L_b) of the n = spp samples, and
 
-    variance of the pixel mean = (m2 - m1^2) / (n - 1),   clipped at 0,
+    variance of the pixel mean   = (m2 - m1^2) / (n - 1),            clipped at 0,
+    covariance of the pixel mean = (m11 - m1_a m1_b) / (n - 1),      clipped to Cauchy-Schwarz,
 
-i.e. the unbiased sample variance divided by n. Mitsuba's built-in ``moment`` integrator is not
-used: it stores CIE XYZ moments, from which per-channel RGB variance cannot be recovered.
+i.e. the unbiased sample (co)variance divided by n. Mitsuba's built-in ``moment`` integrator
+is not used: it stores CIE XYZ moments, from which per-channel RGB variance cannot be
+recovered.
 
 The wrapper calls the inner integrator's ``sample`` with the same sampler and nothing else, so
 it draws exactly the same random numbers: with the same seed and spp its colour equals a plain
@@ -43,7 +45,7 @@ from jaxden.render.variant import ensure_variant
 
 MOMENT_PLUGIN = "jaxden_moment"
 #: Film channel order of a moment render: R, G, B, then these AOVs.
-MOMENT_AOVS: tuple[str, ...] = ("m2.R", "m2.G", "m2.B")
+MOMENT_AOVS: tuple[str, ...] = ("m2.R", "m2.G", "m2.B", "m11.RG", "m11.GB", "m11.BR")
 #: Built-in ``aov`` integrator spec; output channels in this order (10 in all).
 FEATURE_AOVS: str = "albedo:albedo,nn:sh_normal,dd:depth,pp:position"
 FEATURE_CHANNELS: dict[str, slice] = {
@@ -70,7 +72,8 @@ def _moment_class() -> type:
         return _classes[variant]
 
     class MomentIntegrator(mi.SamplingIntegrator):
-        """Radiance of an inner integrator plus its per-channel square as 3 AOVs.
+        """Radiance of an inner integrator plus its channel squares and cross products as
+        6 AOVs.
 
         Properties: ``inner`` (a nested sampling integrator) or ``max_depth`` (for the default
         ``path`` inner integrator; -1 is unbounded).
@@ -87,9 +90,10 @@ def _moment_class() -> type:
         def sample(self, scene, sampler, ray, medium=None, active=True):
             # Only the inner integrator touches the sampler: no extra random numbers.
             radiance, valid, _ = self.inner.sample(scene, sampler, ray, medium, active)
-            squares = [radiance[0] * radiance[0], radiance[1] * radiance[1],
-                       radiance[2] * radiance[2]]
-            return radiance, valid, squares
+            moments = [radiance[0] * radiance[0], radiance[1] * radiance[1],
+                       radiance[2] * radiance[2], radiance[0] * radiance[1],
+                       radiance[1] * radiance[2], radiance[2] * radiance[0]]
+            return radiance, valid, moments
 
         def aov_names(self):
             return list(MOMENT_AOVS)
@@ -138,7 +142,8 @@ def moment_integrator(inner=None, max_depth: int = DEFAULT_MAX_DEPTH):
     """A ``jaxden_moment`` integrator wrapping ``inner`` (an mi.SamplingIntegrator).
 
     With ``inner=None`` it wraps ``path`` with ``max_depth``. Rendered with a box filter, the
-    image has 6 channels: m1 (R, G, B) then m2 (R, G, B), see the module docstring.
+    image has 9 channels: m1 (R, G, B), m2 (R, G, B), then m11 (RG, GB, BR), see the module
+    docstring.
     """
     integrator = _construct(_moment_class(), max_depth=int(max_depth))
     if inner is not None:
@@ -252,6 +257,24 @@ def features_integrator(aux: str = "first-hit"):
     if aux == "specular-chain":
         return chain_features_integrator()
     raise ValueError(f"aux must be one of {', '.join(AUX_MODES)}, got {aux!r}")
+
+
+def covariance_of_mean(m1, m11, variance, spp: int):
+    """Covariance of the pixel mean between channels (R, G), (G, B), (B, R) from the first
+    moments m1 (..., 3), the cross moments m11 = mean(L_R L_G), mean(L_G L_B), mean(L_B L_R)
+    and the variance of the mean (:func:`variance_of_mean`): ``(m11 - m1_a m1_b) / (spp - 1)``
+    in float64, clipped to ``|cov| <= sqrt(var_a var_b)`` (round-off, and the variance's own
+    clipping at 0, can otherwise break it by a few ulp)."""
+    import numpy as np
+
+    from jaxden.frame import covariance_bound
+
+    if spp < 2:
+        raise ValueError(f"covariance of the mean needs spp >= 2, got {spp}")
+    m1 = np.asarray(m1, dtype=np.float64)
+    cross = (np.asarray(m11, dtype=np.float64) - m1 * np.roll(m1, -1, axis=-1)) / (spp - 1)
+    bound = covariance_bound(variance)
+    return np.clip(cross, -bound, bound)
 
 
 def variance_of_mean(m1, m2, spp: int):

@@ -49,7 +49,8 @@ def combine_buffers(buffers) -> Frame:
     Colour: the mean of the buffers' colours. Variance of the mean: the pooled sample variance
     of all K * m samples over K * m, from each buffer's variance of its mean (m samples each;
     the frames must have ``spp``) and the spread of the buffer means, exactly as if one
-    render had taken all the samples. Features (albedo, normal, ...): the mean over the
+    render had taken all the samples; the covariance between channels likewise when every
+    buffer has one (else none). Features (albedo, normal, ...): the mean over the
     buffers (per-sample averages, as one render of all samples gives them; a present feature
     must be present in every buffer). Returns float64 NumPy arrays.
     """
@@ -76,8 +77,14 @@ def combine_buffers(buffers) -> Frame:
     squares = (var_means * m * (m - 1)).sum(axis=0) + m * np.square(means - mean).sum(axis=0)
     n = k * m
     features = {}
+    if all(f.covariance is not None for f in frames):  # the same pooling, per channel pair
+        means_next = np.roll(means, -1, axis=-1)
+        cross = (np.stack([np.asarray(f.covariance, np.float64) for f in frames]).sum(axis=0)
+                 * m * (m - 1)
+                 + m * ((means - mean) * (means_next - np.roll(mean, -1, axis=-1))).sum(axis=0))
+        features["covariance"] = cross / (k * m - 1) / (k * m)
     for name in frames[0].features():
-        if name in ("color", "variance"):
+        if name in ("color", "variance", "covariance"):
             continue
         if any(getattr(f, name) is None for f in frames):
             raise FrameError(f"combine_buffers: {name} is in buffer 0 but not in every buffer")

@@ -62,12 +62,12 @@ def resolve_method(method: str, denoiser) -> str:
 
 
 @functools.partial(jax.jit, static_argnames=("num_probes",))
-def _draw_probes(key, variance, num_probes: int):
+def _draw_probes(key, variance, num_probes: int, covariance=None):
     """:func:`jaxden.sure.draw_probes` compiled once per shape (called eagerly it retraces
     its ``lax.map`` on every call, ~0.7 s each on the project machine); the same values."""
     from jaxden.sure.stein import draw_probes
 
-    return draw_probes(key, variance, num_probes)
+    return draw_probes(key, variance, num_probes, covariance)
 
 
 @functools.lru_cache(maxsize=64)
@@ -119,7 +119,7 @@ def denoise_with_sure(
             params=denoiser.params, fd_scheme=fd_scheme, probe_batch=probe_batch,
         )
     else:
-        probes = np.asarray(_draw_probes(key, frame.variance, num_probes), np.float64)
+        probes = np.asarray(_draw_probes(key, frame.variance, num_probes, frame.covariance), np.float64)
         result = sure_blackbox(
             denoiser.function(), frame, probes=probes, eps=eps, fd_scheme=fd_scheme
         )

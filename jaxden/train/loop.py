@@ -236,7 +236,7 @@ def shared_data_key(config: TrainConfig) -> str | None:
     if mixer is None:
         return None
     fields = ("denoiser", "cache", "sure_probes", "sure_method", "sure_eps", "sure_seed",
-              "build_cache")
+              "sure_covariance", "build_cache")
     return json.dumps([str(Path(config.data.dataset).absolute()),
                        *(getattr(mixer, name) for name in fields)], default=str)
 
