@@ -291,12 +291,11 @@ def _sure_core(denoise_fn, params, frame, key, eps, *, has_params, num_probes, m
     """The traced computation; ``eps`` is a traced scalar (changing it does not recompile)."""
     x = frame.color
     var = frame.variance
-    if frame.covariance is None:
-        sqrt_var = jnp.sqrt(var)
-        scale_normals = lambda normals: sqrt_var * normals  # noqa: E731
-    else:
-        factor = colour_factor(var, frame.covariance)
-        scale_normals = lambda normals: colour_probes(normals, factor)  # noqa: E731
+    factor = None if frame.covariance is None else colour_factor(var, frame.covariance)
+    sqrt_var = jnp.sqrt(var)
+
+    def scale_normals(normals):
+        return sqrt_var * normals if factor is None else colour_probes(normals, factor)
 
     def f(color):
         perturbed = frame.replace(color=color)
