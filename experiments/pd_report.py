@@ -208,9 +208,11 @@ def cmd_sure(args: argparse.Namespace) -> None:
         rows, source = previous["rows"], previous["provenance"]
     else:
         source = provenance(args, {"denoisers": [_weights_identity(s) for s in args.denoiser]})
-        rows = {spec: pdreport.sure_accuracy(args.data, spec, split=args.split, seed=args.seed,
-                                             num_probes=args.probes or 4, spp=args.spp,
-                                             progress=True)
+        from jaxden.paths import portable
+
+        rows = {portable(spec): pdreport.sure_accuracy(
+                    args.data, spec, split=args.split, seed=args.seed,
+                    num_probes=args.probes or 4, spp=args.spp, progress=True)
                 for spec in args.denoiser}
     summaries = {spec: pdreport.summarize_sure(r) for spec, r in rows.items()}
     # Frames with a colour covariance: SURE from it, and the paper's per-channel form beside

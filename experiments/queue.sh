@@ -46,13 +46,19 @@ step sweep-rt-variants $J sweep experiments/sweeps/rt-variants.toml --workdir "$
 # pd-test-high, and SURE's accuracy for each base (experiments/README.md).
 step sweep-pd-bases env XLA_FLAGS=--xla_force_host_platform_device_count=2 $J sweep \
   experiments/sweeps/pd-bases.toml --workdir "$H/runs/sweeps/pd-bases"
-# SURE by jvp against the true error of every JAX base on pd-test-high (into the checkout's
-# experiments/results: commit it). The shipped WSKP-6 first, then the pd-bases runs.
+# SURE by jvp against the true error of every JAX base (into the checkout's
+# experiments/results: commit it). The shipped WSKP-6 first, then the pd-bases runs. On
+# pd-test-high rebuilt with the colour covariance (same config and seeds, so the same renders
+# plus Frame.covariance): SURE from the covariance and the paper's per-channel form, side by
+# side.
+step data-pd-test-high-cov $J dataset build experiments/configs/dataset-pd-test-high.toml \
+  name=pd-test-high-cov --out "$H/data/pd-test-high-cov"
 B="$H/runs/sweeps/pd-bases"
-step sure-pd-bases .venv/bin/python experiments/pd_report.py sure --data "$H/data/pd-test-high" \
-  --denoiser wskp-6 --denoiser "$B/unet-hdr" --denoiser "$B/unet-hdr-var" \
-  --denoiser "$B/unet-hdr-alb-nrm" --denoiser "$B/unet-hdr-alb-nrm-var" --denoiser "$B/kp5" \
-  --denoiser "$B/wskp6" --out experiments/results/sure-pd-bases
+step sure-pd-bases-cov .venv/bin/python experiments/pd_report.py sure \
+  --data "$H/data/pd-test-high-cov" --denoiser wskp-6 --denoiser "$B/unet-hdr" \
+  --denoiser "$B/unet-hdr-var" --denoiser "$B/unet-hdr-alb-nrm" \
+  --denoiser "$B/unet-hdr-alb-nrm-var" --denoiser "$B/kp5" --denoiser "$B/wskp6" \
+  --out experiments/results/sure-pd-bases
 step sweep-pd-mixers env XLA_FLAGS=--xla_force_host_platform_device_count=2 $J sweep \
   experiments/sweeps/pd-mixers.toml --workdir "$H/runs/sweeps/pd-mixers"
 for extra in "$H"/queue.d/*.sh; do   # ad-hoc steps of this machine, outside the checkout
