@@ -158,6 +158,17 @@ SURE_METHODS = (("input_mse_nc", "MC input: true MSE", "#7f7f7f"),
                 ("sure", "denoised: SURE", "#1f77b4"))
 
 
+#: On data with a colour covariance the report also has the paper's per-channel SURE.
+SURE_DIAG = ("sure_diag", "denoised: SURE, per-channel (the paper's)", "#ff7f0e")
+
+
+def sure_methods(report: dict) -> tuple:
+    """The curves a pd_report.py sure JSON has: SURE_METHODS, plus SURE_DIAG when every row
+    has the per-channel SURE beside the covariance one."""
+    rows = [r for group in report["rows"].values() for r in group]
+    return SURE_METHODS + ((SURE_DIAG,) if rows and all("sure_diag" in r for r in rows) else ())
+
+
 def sure_curves(report: dict) -> dict:
     """{denoiser: {curve: [(spp, mean over crops), ...]}} from a pd_report.py sure JSON."""
     curves = {}
@@ -166,7 +177,7 @@ def sure_curves(report: dict) -> dict:
         curves[denoiser] = {
             key: [(spp, float(np.mean([r[key] for r in rows if r["spp"] == spp])))
                   for spp in levels]
-            for key, _, _ in SURE_METHODS}
+            for key, _, _ in sure_methods(report)}
     return curves
 
 
@@ -183,8 +194,9 @@ def cmd_sure(args) -> None:
     panels = [(name, Path(name).name) for name in curves]
     title = args.title or (f"{report['provenance']['dataset']['config']['name']}: "
                            "estimated and true error vs spp")
-    _write_plot(out, svg_plot(curves, title, panels=panels, methods=SURE_METHODS,
-                              dashed=("input_var", "sure")), curves, args.report, report)
+    _write_plot(out, svg_plot(curves, title, panels=panels, methods=sure_methods(report),
+                              dashed=("input_var", "sure", "sure_diag")), curves, args.report,
+                report)
 
 
 def cmd_images(args) -> None:

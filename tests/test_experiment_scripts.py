@@ -594,3 +594,13 @@ def test_pd_bases_tables_ratios_targets_and_table4(tmp_path):
     svg = (out / "pd-convergence-bases.svg").read_text()
     ET.fromstring(svg)
     assert "U-Net: HDR, VAR" in svg and "PD(base)" in svg
+
+
+def test_sure_figure_adds_the_per_channel_curve_only_when_every_row_has_it():
+    rows = [{"spp": s, "crop": c, "input_mse_nc": 1.0, "input_var": 1.0, "mse_nc": 0.5,
+             "sure": 0.5, "sure_diag": 0.25} for s in (32, 64) for c in ("a", "b")]
+    report = {"rows": {"den": rows}}
+    assert pd_figure.sure_methods(report)[-1] == pd_figure.SURE_DIAG
+    assert pd_figure.sure_curves(report)["den"]["sure_diag"] == [(32, 0.25), (64, 0.25)]
+    del rows[0]["sure_diag"]
+    assert pd_figure.sure_methods(report) == pd_figure.SURE_METHODS
