@@ -61,6 +61,12 @@ step sure-pd-bases-cov .venv/bin/python experiments/pd_report.py sure \
   --out experiments/results/sure-pd-bases
 step sweep-pd-mixers env XLA_FLAGS=--xla_force_host_platform_device_count=2 $J sweep \
   experiments/sweeps/pd-mixers.toml --workdir "$H/runs/sweeps/pd-mixers"
+# The same mixers with SURE from the colour covariance, on pd-rt4k rebuilt with it
+# (pd-mixers-cov.toml; ~1 h for the data, ~1.5 h for the six runs).
+step data-pd-rt4k-cov $J dataset build experiments/configs/dataset-pd-rt4k.toml \
+  name=pd-rt4k-cov --out "$H/data/pd-rt4k-cov"
+step sweep-pd-mixers-cov env XLA_FLAGS=--xla_force_host_platform_device_count=2 $J sweep \
+  experiments/sweeps/pd-mixers-cov.toml --workdir "$H/runs/sweeps/pd-mixers-cov"
 for extra in "$H"/queue.d/*.sh; do   # ad-hoc steps of this machine, outside the checkout
   [ -e "$extra" ] && source "$extra"
 done

@@ -568,9 +568,17 @@ def test_pd_bases_tables_ratios_targets_and_table4(tmp_path):
         (sweep / name).mkdir(parents=True)
         (sweep / name / "result.json").write_text(json.dumps(
             {"run": name, "evaluations": {"pd:/data/pd-test-high": ev}}))
+    cov = tmp_path / "runs" / "sweeps" / "pd-mixers-cov" / "unet-hdr"
+    cov.mkdir(parents=True)
+    (cov / "result.json").write_text(json.dumps({"run": "unet-hdr", "evaluations": {
+        "pd:/data/pd-test-high-cov": evaluation((0.2, 0.02), (0.066, 0.011), (0.9, 0.97))}}))
     out = tmp_path / "out"
     assert T.main(["--home", str(tmp_path), "--out", str(out)]) == 0
     data = json.loads((out / "pd-table1.json").read_text())
+    # the covariance-SURE row: its PD over the same base's den (0.0385 / 0.11)
+    assert "| 1 | | PD, covariance SURE | 0.03850 (0.350x; 0.440x) |" in (
+        out / "pd-table1.md").read_text()
+    assert data["rows"]["unet-hdr"]["covariance_sure"]["worst_crop_pd_over_mc_at_top"] == 0.97
     hdr = data["rows"]["unet-hdr"]["rmse"]
     assert hdr["ratio_of_averages"] == pytest.approx(0.09 / 0.22)
     assert hdr["mean_ratio"] == pytest.approx((0.4 + 0.5) / 2)
