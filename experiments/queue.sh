@@ -61,6 +61,19 @@ step sure-pd-bases-cov .venv/bin/python experiments/pd_report.py sure \
   --out experiments/results/sure-pd-bases
 step sweep-pd-mixers env XLA_FLAGS=--xla_force_host_platform_device_count=2 $J sweep \
   experiments/sweeps/pd-mixers.toml --workdir "$H/runs/sweeps/pd-mixers"
+# Eq. 9 alone (the closed-form mixer, no network) over each base, SURE from the colour
+# covariance, per-channel t: the pd_bases_tables.py rows "Eq. 9 alone" (reports outside the
+# checkout, one per base; --keep-current skips a finished one).
+pd_closed_form() {
+  mkdir -p "$H/runs/pd-closed-form"
+  for base in unet-hdr unet-hdr-var unet-hdr-alb-nrm unet-hdr-alb-nrm-var kp5 wskp6; do
+    .venv/bin/python experiments/pd_report.py pd --data "$H/data/pd-test-high-cov" \
+      --denoiser "$H/runs/sweeps/pd-bases/$base" --mixer closed-form \
+      --mixer-set sure_covariance=true --tstat per_channel=true --probes 1 --keep-current \
+      --out "$H/runs/pd-closed-form/$base" || return 1
+  done
+}
+step pd-bases-closed-form pd_closed_form
 # The same mixers with SURE from the colour covariance, on pd-rt4k rebuilt with it
 # (pd-mixers-cov.toml; ~1 h for the data, ~1.5 h for the six runs).
 step data-pd-rt4k-cov $J dataset build experiments/configs/dataset-pd-rt4k.toml \

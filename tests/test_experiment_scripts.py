@@ -572,9 +572,17 @@ def test_pd_bases_tables_ratios_targets_and_table4(tmp_path):
     cov.mkdir(parents=True)
     (cov / "result.json").write_text(json.dumps({"run": "unet-hdr", "evaluations": {
         "pd:/data/pd-test-high-cov": evaluation((0.2, 0.02), (0.066, 0.011), (0.9, 0.97))}}))
+    closed = tmp_path / "runs" / "pd-closed-form"
+    closed.mkdir(parents=True)
+    (closed / "unet-hdr.json").write_text(json.dumps({
+        "summary": evaluation((0.2, 0.02), (0.07, 0.012), (0.98, 0.99)),
+        "provenance": {"dataset": {"path": "/data/pd-test-high-cov"}}}))
     out = tmp_path / "out"
     assert T.main(["--home", str(tmp_path), "--out", str(out)]) == 0
     data = json.loads((out / "pd-table1.json").read_text())
+    assert "| 1 | | Eq. 9 alone, covariance SURE | 0.04100 (0.373x; 0.475x) |" in (
+        out / "pd-table1.md").read_text()
+    assert data["rows"]["unet-hdr"]["closed_form"]["worst_crop_pd_over_mc_at_top"] == 0.99
     # the covariance-SURE row: its PD over the same base's den (0.0385 / 0.11)
     assert "| 1 | | PD, covariance SURE | 0.03850 (0.350x; 0.440x) |" in (
         out / "pd-table1.md").read_text()
