@@ -89,10 +89,13 @@ def cmd_sure(args: argparse.Namespace) -> int:
     write_sure_exr(out, result, attributes={
         "source": str(args.input), "denoiser": denoiser.name, "probes": args.probes,
         "method": method, "eps": -1.0 if eps is None else float(eps), "seed": args.seed,
+        "covariance": int(frame.covariance is not None),
     })
     mse = float(np.mean(np.asarray(result.sure)))
+    probes = ("from the colour covariance" if frame.covariance is not None
+              else "per channel: the file has no covariance.RG/GB/BR")
     print(f"wrote {out}: R,G,B = denoised by {denoiser.name}, sure.* = per-pixel SURE "
-          f"({args.probes} probes, {method}); image SURE (MSE estimate) = {mse:.6g}")
+          f"({args.probes} probes {probes}, {method}); image SURE (MSE estimate) = {mse:.6g}")
     return 0
 
 
