@@ -346,8 +346,8 @@ def render_frame(
         (default 1024). The 16 of older datasets leaves sampling noise in textured albedo and
         at edges, which OIDN keeps when told its features are clean: 10-25 % more RMSE at
         256-4096 spp (docs/results.md, "OIDN's auxiliary features").
-      colour: a Frame whose colour, variance and covariance to keep instead of rendering them (only the
-        feature pass runs): a render of the same scene, crop and spp, e.g. a dataset item
+      colour: a Frame whose colour, variance and covariance to keep instead of rendering
+        them (only the feature pass runs): a render of the same scene, crop and spp, e.g. a dataset item
         whose features are re-rendered (``jaxden dataset refeature``). With the seed it was
         rendered with, the result equals a full render_frame call.
       parameters: ``{name: value}`` for ``$name`` in an XML scene (Mitsuba's ``-D``).

@@ -119,7 +119,8 @@ def denoise_with_sure(
             params=denoiser.params, fd_scheme=fd_scheme, probe_batch=probe_batch,
         )
     else:
-        probes = np.asarray(_draw_probes(key, frame.variance, num_probes, frame.covariance), np.float64)
+        probes = np.asarray(_draw_probes(key, frame.variance, num_probes, frame.covariance),
+                            np.float64)
         result = sure_blackbox(
             denoiser.function(), frame, probes=probes, eps=eps, fd_scheme=fd_scheme
         )
