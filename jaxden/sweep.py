@@ -51,6 +51,7 @@ import math
 import re
 import tomllib
 from collections import defaultdict
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Literal
 
@@ -316,9 +317,13 @@ def _absolute_overrides(train_config, overrides: tuple[str, ...]) -> tuple[str, 
 
 def run_sweep(path: str | Path, workdir: str | Path, overrides=(), *, executor: str = "serial",
               workers: int | None = None, progress: bool = True, allow_large: bool = False,
-              ray_address: str | None = None) -> list[dict]:
+              ray_address: str | None = None, only: Sequence[str] = ()) -> list[dict]:
     """Run (or finish) the sweep in ``path`` under ``workdir``; returns the runs' results in
     plan order and writes ``summary.json`` / ``summary.md`` there.
+
+    ``only``: run just the runs of these names (the rest are neither run nor read), in plan
+    order, and write no summary, which always covers the whole sweep: a later call without
+    ``only`` finds those runs finished and writes it.
 
     ``executor`` / ``workers`` / ``ray_address``: see :func:`jaxden.executor.make_executor`.
     ``allow_large``: run more than :data:`MAX_RUNS` runs. With ``progress`` the run count is
@@ -329,6 +334,13 @@ def run_sweep(path: str | Path, workdir: str | Path, overrides=(), *, executor: 
 
     config, axes, base = load_sweep(path, tuple(overrides))
     runs = plan_runs(config, axes)
+    if only:
+        names = [run.name for run in runs]
+        unknown = [name for name in only if name not in names]
+        if unknown:
+            raise ConfigError(f"{path}: no run named {', '.join(map(repr, unknown))} in the "
+                              f"sweep; its runs: {', '.join(names)}")
+        runs = [run for run in runs if run.name in only]
     if len(runs) > MAX_RUNS and not allow_large:
         raise ConfigError(f"{path}: the sweep has {len(runs)} runs, more than {MAX_RUNS}; check "
                           f"its [axes], or pass --allow-large to run them all")
@@ -371,6 +383,8 @@ def run_sweep(path: str | Path, workdir: str | Path, overrides=(), *, executor: 
         for result in pool.map_unordered(_run_one, tasks):
             by_name[result["run"]] = result
     results = [by_name[run.name] for run in runs]
+    if only:
+        return results
     summary = summarize(results, list(axes))
     atomic_write_text(workdir / "summary.json", json.dumps(
         {"provenance": _provenance(path, given_workdir, overrides),

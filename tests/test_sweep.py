@@ -116,9 +116,18 @@ def test_tiny_mixer_sweep_end_to_end_and_resume(tmp_path, capsys):
                                   f'[evaluate]\npd = ["{dataset}"]\nsplit = "val"\n'
                                   "spp = [8, 32]\n")
     workdir = tmp_path / "sweep"
+    # --only runs one point and writes no summary (a summary covers the whole sweep) ...
+    with pytest.raises(ConfigError, match="no run named 'seed=2'.*seed=0, seed=1"):
+        run_sweep(sweep, workdir, progress=False, only=["seed=2"])
+    first = run_sweep(sweep, workdir, progress=False, only=["seed=1"])
+    assert [(r["run"], r["skipped"]) for r in first] == [("seed=1", False)]
+    assert not (workdir / "seed=0").exists() and not (workdir / "summary.md").exists()
+    # ... and the whole sweep then finds it finished.
     results = run_sweep(sweep, workdir, progress=False)
     assert [r["run"] for r in results] == ["seed=0", "seed=1"]
-    assert not any(r["skipped"] for r in results)
+    assert [r["skipped"] for r in results] == [False, True]
+    # (read back from its result.json, where the per-spp keys are strings)
+    assert results[1]["evaluations"] == json.loads(json.dumps(first[0]["evaluations"]))
     for result in results:
         run_dir = workdir / result["run"]
         assert (run_dir / "metrics.jsonl").is_file() and (run_dir / "result.json").is_file()
@@ -167,7 +176,7 @@ def test_tiny_mixer_sweep_end_to_end_and_resume(tmp_path, capsys):
     (workdir / "seed=1" / "result.json").unlink()
     again = run_sweep(sweep, workdir, progress=False)
     assert [r["skipped"] for r in again] == [True, False]
-    assert again[1]["evaluations"] == results[1]["evaluations"]
+    assert json.loads(json.dumps(again[1]["evaluations"])) == results[1]["evaluations"]
 
 
 SWEEP_FILES = sorted((ROOT / "experiments" / "sweeps").glob("*.toml"))

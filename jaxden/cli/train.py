@@ -54,11 +54,17 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
+    from jaxden.errors import ConfigError
     from jaxden.sweep import load_sweep, plan_runs, run_sweep
 
     if args.dry_run:
         config, axes, base = load_sweep(args.config, tuple(args.overrides))
         runs = plan_runs(config, axes)
+        unknown = sorted(set(args.only or ()) - {run.name for run in runs})
+        if unknown:
+            raise ConfigError(f"{args.config}: no run named {', '.join(unknown)} in the sweep; "
+                              f"its runs: {', '.join(run.name for run in runs)}")
+        runs = [run for run in runs if not args.only or run.name in args.only]
         print(f"{len(runs)} run(s) of {base} ({config.mode} over {', '.join(axes)}):")
         for run in runs:
             print(f"  {run.name}: {' '.join(run.overrides)}")
@@ -66,8 +72,13 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     check_ray_address(args)
     results = run_sweep(args.config, args.workdir, args.overrides, executor=args.executor,
                         workers=args.workers, allow_large=args.allow_large,
-                        ray_address=args.ray_address)
+                        ray_address=args.ray_address, only=args.only or ())
     done = sum(not r["skipped"] for r in results)
+    if args.only:
+        print(f"sweep: {len(results)} run(s) of --only ({done} run now, {len(results) - done} "
+              f"already finished); no summary written (it covers the whole sweep): "
+              + ", ".join(f"{r['run']} in {Path(args.workdir) / r['run']}" for r in results))
+        return 0
     print(f"sweep complete: {len(results)} run(s) ({done} run now, {len(results) - done} "
           f"already finished); {Path(args.workdir) / 'summary.md'}:")
     print((Path(args.workdir) / "summary.md").read_text())
@@ -105,6 +116,9 @@ def add_commands(sub) -> None:
     add_ray_address_option(p)
     p.add_argument("--allow-large", action="store_true",
                    help=f"run a sweep of more than {MAX_RUNS} runs (refused without it)")
+    p.add_argument("--only", action="append", metavar="NAME",
+                   help="run just the run of this name (repeatable; see --dry-run for the "
+                        "names); writes no summary")
     p.add_argument("--dry-run", action="store_true", help="list the runs and their overrides")
     p.set_defaults(func=cmd_sweep)
 
