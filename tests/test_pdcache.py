@@ -217,6 +217,13 @@ def test_refuses_incomplete_dataset_foreign_folder_and_bad_options(dataset, tmp_
     (partial / "manifest.json").write_text(json.dumps(data))
     with pytest.raises(DatasetError, match="incomplete"):
         cache_build.build_sure_cache(partial, "oidn", progress=False)
+    # SURE from the covariance on a dataset without one (the synthetic renderer records none):
+    # refused, naming the item, before anything is written.
+    out = tmp_path / "cov"
+    with pytest.raises(DatasetError, match=r"\.exr: no colour covariance.*sure_covariance"):
+        cache_build.build_sure_cache(dataset, blur_denoiser(), out, covariance=True,
+                                     progress=False)
+    assert not list(out.rglob("*.exr"))
 
 
 def test_open_training_cache_without_building(dataset, tmp_path, oidn_cache):

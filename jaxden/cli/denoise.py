@@ -172,6 +172,11 @@ def cmd_progressive(args: argparse.Namespace) -> int:
             and Path(config.denoiser).name != Path(args.denoiser).name):
         stderr(f"jaxden: note: the mixer was trained on the output of denoiser "
                 f"{config.denoiser!r}; mixing {denoiser.name!r} instead")
+    if config.sure_covariance and frame.covariance is None:
+        stderr(f"jaxden: note: the mixer was trained on SURE from the colour covariance, but "
+               f"{args.input} has none (channels covariance.RG/GB/BR): SURE falls back to the "
+               f"per-channel form, which underestimates the error of a denoiser that mixes "
+               f"channels")
     probes = args.probes or config.sure_probes
     z, alpha_prime, extras = progressive_denoise(
         frame, denoiser, params, config, jax.random.PRNGKey(args.seed), num_probes=probes,

@@ -222,6 +222,12 @@ def build_sure_cache(
                 frame = read_frame(dataset_dir / item.path, require=("color", "variance"))
                 if not covariance:
                     frame = frame.replace(covariance=None)
+                elif frame.covariance is None:
+                    raise DatasetError(
+                        f"{dataset_dir / item.path}: no colour covariance (channels "
+                        f"covariance.RG/GB/BR), which SURE from the covariance needs "
+                        f"(sure_covariance = true); rebuild the dataset with this jaxden, "
+                        f"which records it, or turn sure_covariance off")
                 seed_i = item_seed(seed, item.id)
                 result, _ = denoise_with_sure(
                     denoiser, frame, jax.random.PRNGKey(seed_i), num_probes=num_probes,
