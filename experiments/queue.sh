@@ -26,24 +26,24 @@ step() {  # step NAME COMMAND...: run unless $H/done/NAME exists, time it
 B="$H/runs/sweeps/pd-bases"
 # The progressive-denoising paper's Tables 1 and 2 on our data (experiments/README.md): bases
 # trained on PD data (U-Net x 4 feature sets, KP 5 x 5, WSKP-6) on pd-rt (2..1024 spp), one
-# mixer per base on pd-rt4k (2..4096 spp), PD reports on pd-test-high. The -cov builds are
-# the same renders, bit for bit, plus Frame.covariance (SURE from the colour covariance).
+# mixer per base on pd-rt4k (2..4096 spp), PD reports on pd-test-high. The builds record
+# Frame.covariance, which the per-channel SURE of the paper drops and SURE from the colour
+# covariance uses.
 # The U-Net on HDR + ALB + NRM + VAR goes first, alone, to its covariance-SURE mixer: the base
 # whose per-channel-SURE mixer ends furthest above MC at 4096 spp.
 step data-pd-rt $J dataset build experiments/configs/dataset-pd-rt.toml --out "$H/data/pd-rt"
 step pd-base-first "${X[@]}" $J sweep experiments/sweeps/pd-bases.toml --workdir "$B" \
   --only unet-hdr-alb-nrm-var
-step data-pd-test-high-cov $J dataset build experiments/configs/dataset-pd-test-high.toml \
-  name=pd-test-high-cov --out "$H/data/pd-test-high-cov"
-step data-pd-rt4k-cov $J dataset build experiments/configs/dataset-pd-rt4k.toml \
-  name=pd-rt4k-cov --out "$H/data/pd-rt4k-cov"
+step data-pd-test-high $J dataset build experiments/configs/dataset-pd-test-high.toml \
+  --out "$H/data/pd-test-high"
+step data-pd-rt4k $J dataset build experiments/configs/dataset-pd-rt4k.toml --out "$H/data/pd-rt4k"
 step pd-mixer-cov-first "${X[@]}" $J sweep experiments/sweeps/pd-mixers-cov.toml \
   --workdir "$H/runs/sweeps/pd-mixers-cov" --only unet-hdr-alb-nrm-var
 step sweep-pd-bases "${X[@]}" $J sweep experiments/sweeps/pd-bases.toml --workdir "$B"
 # SURE by jvp against the true error of every JAX base (into the checkout's
 # experiments/results: commit it): SURE from the covariance and the paper's per-channel form.
-step sure-pd-bases-cov .venv/bin/python experiments/pd_report.py sure \
-  --data "$H/data/pd-test-high-cov" --denoiser wskp-6 --denoiser "$B/unet-hdr" \
+step sure-pd-bases .venv/bin/python experiments/pd_report.py sure \
+  --data "$H/data/pd-test-high" --denoiser wskp-6 --denoiser "$B/unet-hdr" \
   --denoiser "$B/unet-hdr-var" --denoiser "$B/unet-hdr-alb-nrm" \
   --denoiser "$B/unet-hdr-alb-nrm-var" --denoiser "$B/kp5" --denoiser "$B/wskp6" \
   --out experiments/results/sure-pd-bases
@@ -56,18 +56,14 @@ step sweep-pd-mixers-cov "${X[@]}" $J sweep experiments/sweeps/pd-mixers-cov.tom
 pd_closed_form() {
   mkdir -p "$H/runs/pd-closed-form"
   for base in unet-hdr unet-hdr-var unet-hdr-alb-nrm unet-hdr-alb-nrm-var kp5 wskp6; do
-    .venv/bin/python experiments/pd_report.py pd --data "$H/data/pd-test-high-cov" \
+    .venv/bin/python experiments/pd_report.py pd --data "$H/data/pd-test-high" \
       --denoiser "$B/$base" --mixer closed-form \
       --mixer-set sure_covariance=true --tstat per_channel=true --probes 1 --keep-current \
       --out "$H/runs/pd-closed-form/$base" || return 1
   done
 }
 step pd-bases-closed-form pd_closed_form
-# The paper's per-channel SURE mixers (pd-mixers.toml: Tables 1, 2 and 4), on the builds
-# without the covariance.
-step data-pd-rt4k $J dataset build experiments/configs/dataset-pd-rt4k.toml --out "$H/data/pd-rt4k"
-step data-pd-test-high $J dataset build experiments/configs/dataset-pd-test-high.toml \
-  --out "$H/data/pd-test-high"
+# The paper's per-channel SURE mixers (pd-mixers.toml: Tables 1, 2 and 4).
 step sweep-pd-mixers "${X[@]}" $J sweep experiments/sweeps/pd-mixers.toml \
   --workdir "$H/runs/sweeps/pd-mixers"
 # Progressive denoising over the real-time WSKP-6 (`wskp-6-pd`): the mixer (jvp SURE, one

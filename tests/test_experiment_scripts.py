@@ -571,12 +571,12 @@ def test_pd_bases_tables_ratios_targets_and_table4(tmp_path):
     cov = tmp_path / "runs" / "sweeps" / "pd-mixers-cov" / "unet-hdr"
     cov.mkdir(parents=True)
     (cov / "result.json").write_text(json.dumps({"run": "unet-hdr", "evaluations": {
-        "pd:/data/pd-test-high-cov": evaluation((0.2, 0.02), (0.066, 0.011), (0.9, 0.97))}}))
+        "pd:/data/pd-test-high": evaluation((0.2, 0.02), (0.066, 0.011), (0.9, 0.97))}}))
     closed = tmp_path / "runs" / "pd-closed-form"
     closed.mkdir(parents=True)
     (closed / "unet-hdr.json").write_text(json.dumps({
         "summary": evaluation((0.2, 0.02), (0.07, 0.012), (0.98, 0.99)),
-        "provenance": {"dataset": {"path": "/data/pd-test-high-cov"}}}))
+        "provenance": {"dataset": {"path": "/data/pd-test-high"}}}))
     out = tmp_path / "out"
     assert T.main(["--home", str(tmp_path), "--out", str(out)]) == 0
     data = json.loads((out / "pd-table1.json").read_text())
