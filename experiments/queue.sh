@@ -29,40 +29,44 @@ B="$H/runs/sweeps/pd-bases"
 # mixer per base on pd-rt4k (2..4096 spp), PD reports on pd-test-high. The builds record
 # Frame.covariance, which the per-channel SURE of the paper drops and SURE from the colour
 # covariance uses.
-# The U-Net on HDR + ALB + NRM + VAR goes first, alone, to its covariance-SURE mixer: the base
-# whose per-channel-SURE mixer ends furthest above MC at 4096 spp.
+# One base at a time through its covariance-SURE mixer and Eq. 9 alone (the closed-form
+# mixer, no network, SURE from the covariance, per-channel t; reports outside the checkout,
+# read by pd_bases_tables.py), most wanted first: the U-Net on HDR + ALB + NRM + VAR, whose
+# per-channel-SURE mixer ended furthest above MC at 4096 spp, then the bases short of the
+# paper's PD / den.
 step data-pd-rt $J dataset build experiments/configs/dataset-pd-rt.toml --out "$H/data/pd-rt"
-step pd-base-first "${X[@]}" $J sweep experiments/sweeps/pd-bases.toml --workdir "$B" \
-  --only unet-hdr-alb-nrm-var
-step data-pd-test-high $J dataset build experiments/configs/dataset-pd-test-high.toml \
-  --out "$H/data/pd-test-high"
-step data-pd-rt4k $J dataset build experiments/configs/dataset-pd-rt4k.toml --out "$H/data/pd-rt4k"
-step pd-mixer-cov-first "${X[@]}" $J sweep experiments/sweeps/pd-mixers-cov.toml \
-  --workdir "$H/runs/sweeps/pd-mixers-cov" --only unet-hdr-alb-nrm-var
+closed_form() {  # closed_form BASE
+  mkdir -p "$H/runs/pd-closed-form"
+  .venv/bin/python experiments/pd_report.py pd --data "$H/data/pd-test-high" \
+    --denoiser "$B/$1" --mixer closed-form --mixer-set sure_covariance=true \
+    --tstat per_channel=true --probes 1 --keep-current --out "$H/runs/pd-closed-form/$1"
+}
+first=1
+for base in unet-hdr-alb-nrm-var unet-hdr unet-hdr-var unet-hdr-alb-nrm kp5 wskp6; do
+  step "pd-base-$base" "${X[@]}" $J sweep experiments/sweeps/pd-bases.toml --workdir "$B" \
+    --only "$base"
+  if [ "$first" = 1 ]; then  # the held-out set and the mixers' training set, once
+    step data-pd-test-high $J dataset build experiments/configs/dataset-pd-test-high.toml \
+      --out "$H/data/pd-test-high"
+    step data-pd-rt4k $J dataset build experiments/configs/dataset-pd-rt4k.toml \
+      --out "$H/data/pd-rt4k"
+    first=0
+  fi
+  step "pd-mixer-cov-$base" "${X[@]}" $J sweep experiments/sweeps/pd-mixers-cov.toml \
+    --workdir "$H/runs/sweeps/pd-mixers-cov" --only "$base"
+  step "pd-closed-form-$base" closed_form "$base"
+done
+# The sweeps' summaries (every run is finished by now) and SURE by jvp against the true error
+# of every JAX base (into the checkout's experiments/results: commit it), SURE from the
+# covariance and the paper's per-channel form.
 step sweep-pd-bases "${X[@]}" $J sweep experiments/sweeps/pd-bases.toml --workdir "$B"
-# SURE by jvp against the true error of every JAX base (into the checkout's
-# experiments/results: commit it): SURE from the covariance and the paper's per-channel form.
+step sweep-pd-mixers-cov "${X[@]}" $J sweep experiments/sweeps/pd-mixers-cov.toml \
+  --workdir "$H/runs/sweeps/pd-mixers-cov"
 step sure-pd-bases .venv/bin/python experiments/pd_report.py sure \
   --data "$H/data/pd-test-high" --denoiser wskp-6 --denoiser "$B/unet-hdr" \
   --denoiser "$B/unet-hdr-var" --denoiser "$B/unet-hdr-alb-nrm" \
   --denoiser "$B/unet-hdr-alb-nrm-var" --denoiser "$B/kp5" --denoiser "$B/wskp6" \
   --out experiments/results/sure-pd-bases
-# The Table 1/2 mixers with SURE from the colour covariance (pd-mixers-cov.toml, ~1.5 h).
-step sweep-pd-mixers-cov "${X[@]}" $J sweep experiments/sweeps/pd-mixers-cov.toml \
-  --workdir "$H/runs/sweeps/pd-mixers-cov"
-# Eq. 9 alone (the closed-form mixer, no network) over each base, SURE from the colour
-# covariance, per-channel t: the pd_bases_tables.py rows "Eq. 9 alone" (reports outside the
-# checkout, one per base; --keep-current skips a finished one).
-pd_closed_form() {
-  mkdir -p "$H/runs/pd-closed-form"
-  for base in unet-hdr unet-hdr-var unet-hdr-alb-nrm unet-hdr-alb-nrm-var kp5 wskp6; do
-    .venv/bin/python experiments/pd_report.py pd --data "$H/data/pd-test-high" \
-      --denoiser "$B/$base" --mixer closed-form \
-      --mixer-set sure_covariance=true --tstat per_channel=true --probes 1 --keep-current \
-      --out "$H/runs/pd-closed-form/$base" || return 1
-  done
-}
-step pd-bases-closed-form pd_closed_form
 # The paper's per-channel SURE mixers (pd-mixers.toml: Tables 1, 2 and 4).
 step sweep-pd-mixers "${X[@]}" $J sweep experiments/sweeps/pd-mixers.toml \
   --workdir "$H/runs/sweeps/pd-mixers"
