@@ -58,6 +58,9 @@ SAME_BASE = ("unet-hdr-alb-nrm-var", "t4-full", "t4-no-sure", "t4-no-f_act")
 METRICS = (("rmse", "RMSE"), ("rmse_nc", "RMSE (noise-corr.)"), ("relmse", "relMSE"),
            ("flip", "FLIP"))
 TARGET_RATIO = 0.6
+#: The mixers over each base: (key in pd-table1.json, row label, where their evaluations are).
+VARIANTS = (("pd", "PD", SWEEP), ("covariance_sure", "PD, covariance SURE", SWEEP_COV),
+            ("closed_form", "Eq. 9 alone, covariance SURE", CLOSED_FORM))
 
 
 def load_results(home: Path, sweep: str = SWEEP) -> dict[str, dict]:
@@ -79,7 +82,9 @@ def load_reports(home: Path, folder: str = CLOSED_FORM) -> dict[str, dict]:
     out = {}
     for path in sorted((home / folder).glob("*.json")):
         report = json.loads(path.read_text())
-        out[path.stem] = {**report["summary"], "dataset": report["provenance"]["dataset"]}
+        dataset = report["provenance"]["dataset"]
+        out[path.stem] = {**report["summary"], "dataset": str(
+            dataset.get("path") if isinstance(dataset, dict) else dataset)}
     return out
 
 
@@ -116,10 +121,11 @@ def base_row(evaluation: dict) -> dict:
 
 
 def bounds_lines(data: dict[str, dict]) -> list[str]:
-    """What a perfect SURE and the oracle would give, per base: RMSE over den (mean of the
-    per-spp ratios) and the share of the oracle's gain over den that PD reaches."""
-    rows = [(run, label, data[run]["bounds"]) for run, label, _ in BASES
-            if run in data and {"pd", "oracle"} <= set(data[run]["bounds"])]
+    """What a perfect SURE and the oracle would give, per base and mixer: RMSE over den (mean
+    of the per-spp ratios) and the share of the oracle's gain over den that PD reaches."""
+    rows = [(label, name, data[run][key]["bounds"]) for run, label, _ in BASES if run in data
+            for key, name, _ in VARIANTS
+            if key in data[run] and {"pd", "oracle"} <= set(data[run][key]["bounds"])]
     if not rows:
         return []
     lines = ["", "## Against the bounds", "",
@@ -128,13 +134,14 @@ def bounds_lines(data: dict[str, dict]) -> list[str]:
               "reference's variance) in place of SURE, i.e. what a perfect SURE would give. "
               "Oracle: one alpha per 8 x 8 tile and channel fitted to the reference. Both read "
               "the reference: bounds, not methods."), "",
-             "| base | PD | PD fed the true error | oracle | PD's share of the oracle's gain |",
-             "|---|---:|---:|---:|---:|"]
-    for run, label, b in rows:
+             "| base | mixer | PD | PD fed the true error | oracle | PD's share of the oracle's "
+             "gain |",
+             "|---|---|---:|---:|---:|---:|"]
+    for label, name, b in rows:
         true = b.get("pd_true_sure")
         gain = 1.0 - b["oracle"]
         share = (1.0 - b["pd"]) / gain if gain > 0 else float("nan")
-        lines.append(f"| {label} | {b['pd']:.3f} | "
+        lines.append(f"| {label} | {name} | {b['pd']:.3f} | "
                      + ("-" if true is None else f"{true:.3f}")
                      + f" | {b['oracle']:.3f} | {share:.0%} |")
     return lines
@@ -156,74 +163,84 @@ def pd_line(table: int, model: str, row: dict, den_row: dict) -> str:
             + ("-" if worst is None else f"{worst:.3f}") + " |")
 
 
-def table1(results: dict[str, dict], cov: dict[str, dict] | None = None,
-           closed: dict[str, dict] | None = None) -> tuple[str, dict]:
+def variant_targets(data: dict[str, dict]) -> list[str]:
+    """The issue's targets, judged for each mixer over the bases it has run on."""
+    targets = []
+    unets = [run for run, _, table in BASES if table == 1]
+    for key, name, _ in VARIANTS:
+        done = [run for run in unets if key in data.get(run, {})]
+        if done:
+            worst = max(data[run][key]["rmse"]["ratio_of_averages"] for run in done)
+            targets.append(f"- {name}: PD(U-Net) RMSE at most {TARGET_RATIO} of the U-Net's "
+                           f"own, averaged over 32..4096 spp, for every feature set (paper: "
+                           f"0.40-0.57): worst {worst:.3f} over {len(done)} of {len(unets)} "
+                           f"feature sets: {_verdict(worst, TARGET_RATIO)}"
+                           + ("" if len(done) == len(unets) else " so far") + ".")
+        tops = [(run, data[run][key]["worst_crop_pd_over_mc_at_top"]) for run in data
+                if key in data[run] and data[run][key]["worst_crop_pd_over_mc_at_top"] is not None]
+        if tops:
+            run, worst = max(tops, key=lambda t: t[1])
+            targets.append(f"- {name}: PD at or below MC's RMSE at the top spp for every crop "
+                           f"and base: worst crop {worst:.3f} (base {run}) over {len(tops)} of "
+                           f"{len(BASES)} bases: {_verdict(worst, 1.0)}"
+                           + ("" if len(tops) == len(BASES) else " so far") + ".")
+        if key in data.get("kp5", {}):
+            targets.append(f"- {name}: PD(KP) reported: PD / den RMSE "
+                           f"{data['kp5'][key]['rmse']['ratio_of_averages']:.3f}.")
+    return targets
+
+
+def table1(sources: dict[str, dict[str, dict]]) -> tuple[str, dict]:
+    """Table 1 (and 2) from ``sources``: ``{variant key: {base run: PD evaluation}}``, for the
+    keys of :data:`VARIANTS`; a base is listed with whatever mixers have run over it."""
     lines = [(f"<!-- generated by: python experiments/pd_bases_tables.py "
-              f"(from $JAXDEN_HOME/runs/sweeps/{SWEEP}/*/result.json) -->"),
+              f"(from $JAXDEN_HOME/runs/sweeps/{SWEEP}/*/result.json, "
+              f"$JAXDEN_HOME/runs/sweeps/{SWEEP_COV}/*/result.json and "
+              f"$JAXDEN_HOME/{CLOSED_FORM}/*.json) -->"),
              "# PD paper Tables 1 and 2 on our data: den against PD per base",
              "",
              ("Each base is trained on `data/pd-rt` (2..1024 spp, 4000 steps, "
               "`experiments/sweeps/pd-bases.toml`) and mixed by its own mixer, trained on "
               "`data/pd-rt4k` (2..4096 spp) with the `wskp-6-pd` recipe (jvp SURE with one "
-              "probe, width 16, closed_form_logit head; `experiments/sweeps/pd-mixers.toml`). "
-              "Errors on `data/pd-test-high` (8 held-out procedural crops of 96 x 96, 32..4096 "
-              "spp, 8192-spp references), crop means averaged over spp. PD / den: the ratio of "
-              "the spp-averaged errors (the paper's table form) and, in brackets, the mean of "
-              "the per-spp ratios. The MC row (the noisy input, the same for every base) tells "
-              "how much each base gains before mixing: a base near MC leaves PD little to do "
-              "but also makes PD / den easy. \"PD, covariance SURE\": the same recipe with "
-              "SURE from the colour covariance (`pd-mixers-cov.toml`, trained and evaluated on "
-              "the same data rebuilt with the covariance; the paper's SURE is per channel). "
-              "\"Eq. 9 alone\": the closed-form mixer, no network (the paper's Eq. 9 with local "
-              "means, sigma 12, per-channel t), on SURE from the covariance "
-              "(`$JAXDEN_HOME/runs/pd-closed-form`, step `pd-bases-closed-form` of "
-              "`queue.sh`)."),
+              "probe, width 16, closed_form_logit head). \"PD\": the paper's per-channel SURE "
+              "(`experiments/sweeps/pd-mixers.toml`); \"PD, covariance SURE\": SURE from the "
+              "colour covariance (`pd-mixers-cov.toml`); \"Eq. 9 alone\": the closed-form "
+              "mixer, no network (the paper's Eq. 9 with local means, sigma 12, per-channel t), "
+              "on SURE from the covariance (`$JAXDEN_HOME/runs/pd-closed-form`, steps "
+              "`pd-closed-form-BASE` of `queue.sh`). Errors on `data/pd-test-high` (8 held-out "
+              "procedural crops of 96 x 96, 32..4096 spp, 8192-spp references), crop means "
+              "averaged over spp. PD / den: the ratio of the spp-averaged errors (the paper's "
+              "table form) and, in brackets, the mean of the per-spp ratios. The MC row (the "
+              "noisy input, the same for every base) tells how much each base gains before "
+              "mixing: a base near MC leaves PD little to do but also makes PD / den easy."),
              "",
              "| table | base | model | " + " | ".join(label for _, label in METRICS)
              + " | PD / MC, RMSE at the top spp (crop mean; worst crop) |",
              "|---|---|---|" + "---:|" * len(METRICS) + "---:|"]
-    data, missing, targets = {}, [], []
-    if results:  # MC is the same input for every base: any finished run gives it
-        first = next(iter(results.values()))
+    data, missing = {}, []
+    available = [ev for key, _, _ in VARIANTS for ev in sources.get(key, {}).values()]
+    if available:  # MC is the same input for every base: any evaluation gives it
         lines.append("| | MC (the input) | MC | "
-                     + " | ".join(f"{averaged(first, 'mc', m):.5f}" for m, _ in METRICS)
+                     + " | ".join(f"{averaged(available[0], 'mc', m):.5f}" for m, _ in METRICS)
                      + " | 1 |")
     for run, label, table in BASES:
-        if run not in results:
+        evaluations = [(key, name, sources[key][run]) for key, name, _ in VARIANTS
+                       if run in sources.get(key, {})]
+        if not evaluations:
             missing.append(run)
             lines.append(f"| {table} | {label} | not run |" + " |" * len(METRICS) + " |")
             continue
-        row = data[run] = base_row(results[run])
+        # den is the base alone on the same data: the same in every evaluation of the base
+        den = {m: {"den": averaged(evaluations[0][2], "denoiser", m)} for m, _ in METRICS}
+        data[run] = {"den": {m: den[m]["den"] for m, _ in METRICS}}
         lines.append(f"| {table} | {label} | den | "
-                     + " | ".join(f"{row[m]['den']:.5f}" for m, _ in METRICS) + " | |")
-        lines.append(pd_line(table, "PD", row, row))
-        if run in (cov or {}):
-            crow = data[run]["covariance_sure"] = base_row(cov[run])
-            lines.append(pd_line(table, "PD, covariance SURE", crow, row))
-        if run in (closed or {}):
-            frow = data[run]["closed_form"] = base_row(closed[run])
-            lines.append(pd_line(table, "Eq. 9 alone, covariance SURE", frow, row))
+                     + " | ".join(f"{den[m]['den']:.5f}" for m, _ in METRICS) + " | |")
+        for key, name, evaluation in evaluations:
+            row = data[run][key] = base_row(evaluation)
+            lines.append(pd_line(table, name, row, den))
     lines += bounds_lines(data)
-    lines += ["", "## Targets", ""]
-    unets = [run for run, _, table in BASES if table == 1]
-    done = [run for run in unets if run in data]
-    if done:
-        worst = max(data[run]["rmse"]["ratio_of_averages"] for run in done)
-        targets.append(f"- PD(U-Net) RMSE at most {TARGET_RATIO} of the U-Net's own, averaged "
-                       f"over 32..4096 spp, for every feature set (paper: 0.40-0.57): worst "
-                       f"{worst:.3f} over {len(done)} of {len(unets)} feature sets: "
-                       f"{_verdict(worst, TARGET_RATIO)}"
-                       + ("" if len(done) == len(unets) else " so far") + ".")
-    tops = [(run, data[run]["worst_crop_pd_over_mc_at_top"]) for run in data
-            if data[run]["worst_crop_pd_over_mc_at_top"] is not None]
-    if tops:
-        run, worst = max(tops, key=lambda t: t[1])
-        targets.append(f"- PD at or below MC's RMSE at the top spp for every crop and base: "
-                       f"worst crop {worst:.3f} (base {run}): {_verdict(worst, 1.0)}.")
-    if "kp5" in data:
-        targets.append(f"- PD(KP) reported: PD / den RMSE "
-                       f"{data['kp5']['rmse']['ratio_of_averages']:.3f}.")
-    lines += targets or ["- no run has finished yet"]
+    targets = variant_targets(data)
+    lines += ["", "## Targets", ""] + (targets or ["- no run has finished yet"])
     if missing:
         lines += ["", "Not run yet: " + ", ".join(missing) + "."]
     return "\n".join(lines) + "\n", {"rows": data, "missing": missing, "targets": targets}
@@ -256,21 +273,30 @@ def table4(results: dict[str, dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def convergence(results: dict[str, dict]) -> tuple[str, dict]:
-    """One log-log RMSE panel per finished base: MC, the base, PD over it."""
+def convergence(sources: dict[str, dict[str, dict]]) -> tuple[str, dict]:
+    """One log-log RMSE panel per base with any mixer: MC, the base, PD over it per mixer."""
     sys.path.insert(0, str(REPO / "experiments"))
     from pd_figure import svg_plot
 
-    curves, panels = {}, []
+    legends = {"pd": ("PD(base)", "#d62728"),
+               "covariance_sure": ("PD(base), covariance SURE", "#2ca02c"),
+               "closed_form": ("Eq. 9 alone over the base, covariance SURE", "#9467bd")}
+    curves, panels, shown = {}, [], set()
     for run, label, _ in BASES:
-        if run not in results:
+        evaluations = {key: sources[key][run] for key, _, _ in VARIANTS
+                       if run in sources.get(key, {})}
+        if not evaluations:
             continue
-        levels = _levels(results[run])
+        levels = _levels(next(iter(evaluations.values())))
         curves[run] = {key: [(s, m[f"{key}_rmse"]) for s, m in levels]
-                       for key in ("mc", "denoiser", "pd")}
+                       for key in ("mc", "denoiser")}
+        for key, _, _ in VARIANTS:
+            curves[run][key] = ([(s, m["pd_rmse"]) for s, m in _levels(evaluations[key])]
+                                if key in evaluations else [])
+        shown |= set(evaluations)
         panels.append((run, label.split(" (")[0]))
     methods = (("mc", "MC", "#7f7f7f"), ("denoiser", "den (the base)", "#1f77b4"),
-               ("pd", "PD(base)", "#d62728"))
+               *((key, *legends[key]) for key, _, _ in VARIANTS if key in shown))
     if not panels:
         return "", curves
     return svg_plot(curves, "RMSE against spp on pd-test-high (crop means)", panels=panels,
@@ -287,20 +313,24 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     home = args.home or jaxden_home()
     results = load_results(home)
+    sources = {"pd": results, "covariance_sure": load_results(home, SWEEP_COV),
+               "closed_form": load_reports(home)}
     args.out.mkdir(parents=True, exist_ok=True)
-    text, data = table1(results, load_results(home, SWEEP_COV), load_reports(home))
+    text, data = table1(sources)
     atomic_write_text(args.out / "pd-table1.md", text)
     atomic_write_text(args.out / "pd-table1.json", json.dumps(
-        {**data, "source": f"$JAXDEN_HOME/runs/sweeps/{SWEEP}",
-         "datasets": sorted({r["dataset"] for r in results.values()})}, indent=1) + "\n")
+        {**data, "sources": {key: where for key, _, where in VARIANTS},
+         "datasets": sorted({r["dataset"] for runs in sources.values() for r in runs.values()})},
+        indent=1) + "\n")
     atomic_write_text(args.out / "pd-table4.md", table4(results))
-    svg, curves = convergence(results)
+    svg, curves = convergence(sources)
     if svg:
         atomic_write_text(args.out / "pd-convergence-bases.svg", svg)
         atomic_write_text(args.out / "pd-convergence-bases.json",
                           json.dumps({"curves": curves}, indent=1) + "\n")
     print(f"wrote pd-table1.md, pd-table4.md{', pd-convergence-bases.svg' if svg else ''} "
-          f"into {args.out} from {len(results)} finished runs")
+          f"into {args.out} from " + ", ".join(f"{len(sources[key])} {name!r}"
+                                              for key, name, _ in VARIANTS))
     return 0
 
 

@@ -577,6 +577,10 @@ def test_pd_bases_tables_ratios_targets_and_table4(tmp_path):
     (closed / "unet-hdr.json").write_text(json.dumps({
         "summary": evaluation((0.2, 0.02), (0.07, 0.012), (0.98, 0.99)),
         "provenance": {"dataset": {"path": "/data/pd-test-high"}}}))
+    # a base with Eq. 9 alone only (no network mixer has run over it): listed, den included
+    (closed / "kp5.json").write_text(json.dumps({
+        "summary": evaluation((0.3, 0.03), (0.12, 0.02), (0.95,)),
+        "provenance": {"dataset": {"path": "/data/pd-test-high"}}}))
     out = tmp_path / "out"
     assert T.main(["--home", str(tmp_path), "--out", str(out)]) == 0
     data = json.loads((out / "pd-table1.json").read_text())
@@ -587,16 +591,26 @@ def test_pd_bases_tables_ratios_targets_and_table4(tmp_path):
     assert "| 1 | | PD, covariance SURE | 0.03850 (0.350x; 0.440x) |" in (
         out / "pd-table1.md").read_text()
     assert data["rows"]["unet-hdr"]["covariance_sure"]["worst_crop_pd_over_mc_at_top"] == 0.97
-    hdr = data["rows"]["unet-hdr"]["rmse"]
+    hdr = data["rows"]["unet-hdr"]["pd"]["rmse"]
     assert hdr["ratio_of_averages"] == pytest.approx(0.09 / 0.22)
     assert hdr["mean_ratio"] == pytest.approx((0.4 + 0.5) / 2)
     worst = 0.079 / 0.11  # unet-hdr-var's ratio of averages: over 0.6
-    assert any(f"worst {worst:.3f} over 2 of 4 feature sets: NOT met so far" in t
-               for t in data["targets"])
-    assert any("worst crop 1.020 (base unet-hdr-var): NOT met" in t for t in data["targets"])
-    assert set(data["missing"]) == {"unet-hdr-alb-nrm", "unet-hdr-alb-nrm-var", "kp5", "wskp6"}
+    assert f"- PD: PD(U-Net) RMSE at most 0.6 of the U-Net's own, averaged over 32..4096 spp, " \
+           f"for every feature set (paper: 0.40-0.57): worst {worst:.3f} over 2 of 4 feature " \
+           f"sets: NOT met so far." in data["targets"]
+    assert any(t.startswith("- PD: PD at or below MC's RMSE") and "worst crop 1.020 (base "
+               "unet-hdr-var) over 2 of 6 bases: NOT met so far." in t for t in data["targets"])
+    # each mixer is judged on its own: Eq. 9 alone over unet-hdr only (0.07 / 0.11 at most)
+    assert any(t.startswith("- Eq. 9 alone, covariance SURE: PD(U-Net)") and "worst 0.373 "
+               "over 1 of 4 feature sets: met so far." in t for t in data["targets"])
+    assert set(data["missing"]) == {"unet-hdr-alb-nrm", "unet-hdr-alb-nrm-var", "wskp6"}
+    assert "| 2 | KP, 5 x 5 kernels (the paper's KPCN) | den | 0.16500 |" in (
+        out / "pd-table1.md").read_text()
+    assert "- Eq. 9 alone, covariance SURE: PD(KP) reported: PD / den RMSE 0.424." in \
+        data["targets"]  # (0.12 + 0.02) / (0.3 + 0.03)
     # PD's mean ratio 0.45 against the oracle's 0.35: (1 - 0.45) / (1 - 0.35) of its gain
-    assert "| U-Net: HDR | 0.450 | 0.420 | 0.350 | 85% |" in (out / "pd-table1.md").read_text()
+    assert "| U-Net: HDR | PD | 0.450 | 0.420 | 0.350 | 85% |" in (
+        out / "pd-table1.md").read_text()
     assert "| | MC (the input) | MC | 0.10000 | 0.10000 | 0.10000 | 0.10000 | 1 |" in (
         out / "pd-table1.md").read_text()
     assert "| U-Net: HDR, VAR |" not in (out / "pd-table1.md").read_text().split(
