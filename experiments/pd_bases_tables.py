@@ -134,8 +134,8 @@ def bounds_lines(data: dict[str, dict]) -> list[str]:
               "reference's variance) in place of SURE, i.e. what a perfect SURE would give. "
               "Oracle: one alpha per 8 x 8 tile and channel fitted to the reference. Both read "
               "the reference: bounds, not methods."), "",
-             "| base | mixer | PD | PD fed the true error | oracle | PD's share of the oracle's "
-             "gain |",
+             ("| base | mixer | PD | PD fed the true error | oracle | PD's share of the "
+              "oracle's gain |"),
              "|---|---|---:|---:|---:|---:|"]
     for label, name, b in rows:
         true = b.get("pd_true_sure")
