@@ -399,3 +399,25 @@ def test_mutated_weight_meta_loads_or_raises_checkpoint_errors(tmp_path_factory,
         load_denoiser(path)
     except (CheckpointError, ConfigError) as error:
         assert "\n" not in str(error)
+
+
+def test_a_covariance_mixer_on_a_file_without_the_covariance_says_so(tmp_path, capsys):
+    # SURE from the covariance falls back to the per-channel form on a file that has none (a
+    # renderer other than jaxden's): a note says so; a file with it gets no note.
+    import dataclasses
+
+    from jaxden.frame import covariance_bound
+    from jaxden.progressive.mixer import load_mixer, save_mixer
+
+    params, config = load_mixer("oidn-pd")
+    save_mixer(tmp_path / "cov.msgpack", params, dataclasses.replace(config, sure_covariance=True))
+    frame_file(tmp_path)
+    argv = ["progressive", str(tmp_path / "f.exr"), "--denoiser", "oidn", "--mixer",
+            str(tmp_path / "cov.msgpack"), "--out", str(tmp_path / "o.exr")]
+    assert cli.main(argv) == 0
+    err = capsys.readouterr().err
+    assert "trained on SURE from the colour covariance, but" in err and "f.exr has none" in err
+    variance = synthetic_render("adversarial", 16, seed=3, size=(12, 10)).numpy().variance
+    frame_file(tmp_path, covariance=(0.5 * covariance_bound(variance)).astype(np.float32))
+    assert cli.main(argv) == 0
+    assert "colour covariance" not in capsys.readouterr().err
