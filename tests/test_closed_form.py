@@ -129,6 +129,8 @@ def test_closed_form_spec_config_and_errors(tmp_path):
     assert params == {} and config.kind == "closed_form" and config.closed_form_sigma == 12.0
     _, config = P.load_mixer("closed-form:sigma=3, per_channel=true")
     assert (config.closed_form_sigma, config.closed_form_per_channel) == (3.0, True)
+    assert not config.sure_covariance
+    assert P.load_mixer("closed-form:covariance=true")[1].sure_covariance
     assert P.mixer_init(jax.random.PRNGKey(0), config) == {}
     for spec, message in [("closed-form:width=3", "KEY one of sigma, per_channel"),
                           ("closed-form:sigma", "KEY=VALUE"),

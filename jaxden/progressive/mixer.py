@@ -37,11 +37,13 @@ from jaxden.progressive.tstat import TStatConfig
 # ------------------------------------------------------------------------ closed-form mixer
 
 #: Mixer spec (``--mixer``, :func:`load_mixer`) of the closed-form mixer; options as
-#: ``closed-form:sigma=4,per_channel=true``.
+#: ``closed-form:sigma=4,per_channel=true``; ``covariance=true`` takes SURE from the colour
+#: covariance of frames that carry one (``Frame.covariance``; the stronger PD over JAX bases
+#: that mix channels, docs/results.md).
 CLOSED_FORM_SPEC = "closed-form"
 #: Option names of the closed-form spec -> :class:`MixerConfig` fields.
 CLOSED_FORM_OPTIONS = {"sigma": "closed_form_sigma", "per_channel": "closed_form_per_channel",
-                       "stops": "closed_form_stops"}
+                       "stops": "closed_form_stops", "covariance": "sure_covariance"}
 
 
 def closed_form_alpha(x, y, var, sure, *, sigma: float = 12.0, per_channel: bool = False,
