@@ -22,8 +22,8 @@ The dataset's spp levels are independent renders (their own sampler seeds), but 
 at the same spp. For level N with levels N/2 and 2N both present, x' = w x_2N + (1 - w) x_N/2 with
 w in [0, 1] the root of w^2 / 2N + (1 - w)^2 / (N / 2) = 1 / N: unbiased, independent of x_N,
 with exactly x_N's per-pixel variance (its noise is a blend of two sample counts rather than one,
-so its tails differ a little). Features and variance are blended the same way (variance with
-w^2 and (1 - w)^2). The denoiser runs on x' as on x.
+so its tails differ a little). Features, variance and covariance are blended the same way
+(variance and covariance with w^2 and (1 - w)^2). The denoiser runs on x' as on x.
 
 Writes OUT.md and OUT.json: per spp, the mean over crops of RMSE over the denoiser's for the
 oracle, the cross-fitted oracle and PD (from ``--report``, the same crops and spp), and the share
@@ -63,9 +63,14 @@ def blend_frames(high_frame, low_frame, w: float):
         if a is not None and b is not None:
             changes[name] = (w * np.asarray(a, np.float64)
                              + (1 - w) * np.asarray(b, np.float64)).astype(np.float32)
-    var = (w * w * np.asarray(high_frame.variance, np.float64)
-           + (1 - w) ** 2 * np.asarray(low_frame.variance, np.float64))
-    return low_frame.replace(variance=var.astype(np.float32), **changes)
+    for name in ("variance", "covariance"):  # of the mean: squared weights (independent)
+        a, b = getattr(high_frame, name), getattr(low_frame, name)
+        if a is not None and b is not None:
+            changes[name] = (w * w * np.asarray(a, np.float64)
+                             + (1 - w) ** 2 * np.asarray(b, np.float64)).astype(np.float32)
+        elif name == "covariance":
+            changes[name] = None
+    return low_frame.replace(**changes)
 
 
 def evaluate(data, denoiser_spec: str, split: str) -> list[dict]:
@@ -131,10 +136,20 @@ def summarize(rows: list[dict], report: dict | None) -> dict:
             "share_of_oracle_gain": shares}
 
 
-def markdown(summary: dict, denoiser: str) -> str:
+def report_label(report: dict | None) -> str:
+    """The PD column's name: the report's mixer spec and its overrides."""
+    if report is None:
+        return "PD"
+    source = report.get("provenance", {})
+    spec = source.get("mixer", {}).get("spec", "?")
+    overrides = source.get("mixer_overrides") or []
+    return f"PD (mixer {spec}{''.join(f', {o}' for o in overrides)})"
+
+
+def markdown(summary: dict, denoiser: str, label: str = "PD") -> str:
     lines = [(f"RMSE over {denoiser}'s (mean over crops; the oracle and the cross-fitted oracle "
               f"also over both renders of each pair):"), "",
-             "| spp | 8 x 8 oracle | cross-fitted oracle | PD (shipped mixer) |",
+             f"| spp | 8 x 8 oracle | cross-fitted oracle | {label} |",
              "|---:|---:|---:|---:|"]
     for n, e in summary["per_spp"].items():
         pd = "" if e["pd"] is None else f"{e['pd']:.3f}"
@@ -168,7 +183,7 @@ def main(argv=None) -> int:
         raise SystemExit(f"{args.data}: no spp level N with N/2 and 2N both present")
     summary = summarize(rows, report)
     write_report(Path(args.out), {"provenance": source, "rows": rows, "summary": summary},
-                 markdown(summary, args.denoiser))
+                 markdown(summary, args.denoiser, report_label(report)))
     return 0
 
 

@@ -634,3 +634,39 @@ def test_sure_figure_adds_the_per_channel_curve_only_when_every_row_has_it():
     assert pd_figure.sure_curves(report)["den"]["sure_diag"] == [(32, 0.25), (64, 0.25)]
     del rows[0]["sure_diag"]
     assert pd_figure.sure_methods(report) == pd_figure.SURE_METHODS
+
+
+def test_oracle_crossfit_blend_has_the_variance_of_n_spp_and_the_summary_its_shares():
+    """The cross-fitted oracle's twin render: w x_2N + (1 - w) x_N/2 has exactly the variance
+    of an N-spp render; the summary's shares of the oracle's gain follow from the ratios; the
+    PD column is named after the report's mixer."""
+    import pd_oracle_crossfit as X
+
+    for n in (64, 256, 2048):
+        w = X.blend_weight(n, n // 2, 2 * n)
+        assert 0 <= w <= 1 and w**2 / (2 * n) + (1 - w) ** 2 / (n // 2) == pytest.approx(1 / n)
+    with pytest.raises(ValueError, match="no blend of 32 and 64 spp"):
+        X.blend_weight(16, 32, 64)
+    rows = [{"crop": c, "spp": 64, "oracle_rmse_0": 0.5, "oracle_rmse_1": 0.7,
+             "crossfit_rmse_0": 0.8, "crossfit_rmse_1": 0.8, "denoiser_rmse_0": 1.0,
+             "denoiser_rmse_1": 1.0} for c in ("a", "b")]
+    report = {"rows": [{"crop": c, "spp": 64, "pd_rmse": 0.7, "denoiser_rmse": 1.0}
+                       for c in ("a", "b")],
+              "provenance": {"mixer": {"spec": "closed-form"},
+                             "mixer_overrides": ["sure_covariance=true"]}}
+    summary = X.summarize(rows, report)
+    assert summary["mean_over_spp"] == pytest.approx({"oracle": 0.6, "crossfit": 0.8, "pd": 0.7})
+    assert summary["share_of_oracle_gain"] == pytest.approx({"crossfit": 0.5, "pd": 0.75})
+    text = X.markdown(summary, "den", X.report_label(report))
+    assert "| spp | 8 x 8 oracle | cross-fitted oracle | PD (mixer closed-form, " \
+           "sure_covariance=true) |" in text and "- PD: 75%" in text
+    # the twin's variance and covariance are the blend's, with the squared weights
+    from jaxden.frame import Frame
+
+    ones = np.ones((2, 2, 3), np.float32)
+    high = Frame(color=ones, variance=ones * 0.5, covariance=ones * 0.25)
+    low = Frame(color=ones * 3, variance=ones * 2.0, covariance=ones * 1.0)
+    twin = X.blend_frames(high, low, 0.5)
+    np.testing.assert_allclose(twin.color, 2.0)
+    np.testing.assert_allclose(twin.variance, 0.25 * 0.5 + 0.25 * 2.0)
+    np.testing.assert_allclose(twin.covariance, 0.25 * 0.25 + 0.25 * 1.0)
