@@ -309,9 +309,9 @@ def test_rt_tables_verdicts_from_seeds(tmp_path):
 
 def test_relmse_crops_matches_a_numpy_relmse_and_names_the_worst_crop(tmp_path, capsys):
     # A tiny synthetic dataset (no Mitsuba); "oidn" is the model, so no training is needed.
+    import relmse_crops
     from helpers import build_tiny_dataset
 
-    import relmse_crops
     from jaxden.data.layout import load_manifest
     from jaxden.denoise.registry import load_denoiser
     from jaxden.io.exr import read_frame

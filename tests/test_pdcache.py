@@ -19,8 +19,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxden.progressive import cache as pdcache
-from jaxden.progressive import cache_build
 from jaxden.config import load_config
 from jaxden.data.builder import build_dataset, synthetic_render
 from jaxden.data.config import DatasetConfig
@@ -29,6 +27,8 @@ from jaxden.data.loader import DatasetLoader, dihedral
 from jaxden.denoise.registry import Denoiser, DenoiserDef, make_denoiser
 from jaxden.errors import ConfigError, DatasetError
 from jaxden.io.exr import read_frame, read_header
+from jaxden.progressive import cache as pdcache
+from jaxden.progressive import cache_build
 from jaxden.progressive.mixer import MixerConfig
 from jaxden.sure.stein import draw_probes, sure, sure_blackbox
 
