@@ -322,13 +322,16 @@ def main(argv=None) -> int:
         {**data, "sources": {key: where for key, _, where in VARIANTS},
          "datasets": sorted({r["dataset"] for runs in sources.values() for r in runs.values()})},
         indent=1) + "\n")
-    atomic_write_text(args.out / "pd-table4.md", table4(results))
+    if any(run in results for run in SAME_BASE):  # else the current file stays as it is
+        atomic_write_text(args.out / "pd-table4.md", table4(results))
     svg, curves = convergence(sources)
     if svg:
         atomic_write_text(args.out / "pd-convergence-bases.svg", svg)
         atomic_write_text(args.out / "pd-convergence-bases.json",
                           json.dumps({"curves": curves}, indent=1) + "\n")
-    print(f"wrote pd-table1.md, pd-table4.md{', pd-convergence-bases.svg' if svg else ''} "
+    table4_written = any(run in results for run in SAME_BASE)
+    print(f"wrote pd-table1.md{', pd-table4.md' if table4_written else ''}"
+          f"{', pd-convergence-bases.svg' if svg else ''} "
           f"into {args.out} from " + ", ".join(f"{len(sources[key])} {name!r}"
                                               for key, name, _ in VARIANTS))
     return 0

@@ -3,6 +3,7 @@ ship_mixer, relmse_crops, pd_ood), tested without data or renders."""
 
 import json
 import math
+import shutil
 import sys
 import xml.etree.ElementTree as ET
 from importlib.metadata import version
@@ -624,6 +625,11 @@ def test_pd_bases_tables_ratios_targets_and_table4(tmp_path):
     svg = (out / "pd-convergence-bases.svg").read_text()
     ET.fromstring(svg)
     assert "U-Net: HDR, VAR" in svg and "PD(base)" in svg
+    # With no run over Table 4's base, its current file is left as it is (not emptied).
+    shutil.rmtree(sweep)
+    assert T.main(["--home", str(tmp_path), "--out", str(out)]) == 0
+    assert (out / "pd-table4.md").read_text() == table4
+    assert "| 1 | | PD, covariance SURE |" in (out / "pd-table1.md").read_text()
 
 
 def test_sure_figure_adds_the_per_channel_curve_only_when_every_row_has_it():
