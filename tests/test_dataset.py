@@ -339,12 +339,12 @@ def test_finishing_a_build_of_files_without_the_colour_covariance_is_refused(tmp
     # The core renderer writes the covariance beside the variance; files of an older jaxden
     # have none, and a build that finished them would mix the two (SURE from the covariance
     # silently per-channel on some items). The synthetic renderer stands for the older one.
-    from jaxden.data.builder import _check_covariance_recorded
+    from jaxden.data.verify import check_covariance_recorded
 
     old, _ = build(tmp_path / "old")
     with pytest.raises(DatasetError, match=r"old: 24 of its 24 finished files \(.*\.exr, \.\.\.\) "
                                            r"have the variance but no colour covariance"):
-        _check_covariance_recorded(tmp_path / "old", old.items)
+        check_covariance_recorded(tmp_path / "old", old.items)
 
     def with_covariance(scene, spp, seed=0, size=None, *, crop=None):
         frame = synthetic_render(scene, spp, seed, size, crop=crop)
@@ -353,7 +353,7 @@ def test_finishing_a_build_of_files_without_the_colour_covariance_is_refused(tmp
         return frame.replace(covariance=np.zeros_like(frame.variance))
 
     new, _ = build(tmp_path / "new", render=with_covariance)
-    _check_covariance_recorded(tmp_path / "new", new.items)  # every file has it: no error
+    check_covariance_recorded(tmp_path / "new", new.items)  # every file has it: no error
 
 
 class AuxRender(CountingRender):

@@ -340,28 +340,6 @@ def _item_state(directory: Path, item: Item, window: tuple[int, int, int, int]) 
     return "recovered"
 
 
-def _check_covariance_recorded(directory: Path, finished: list[Item]) -> None:
-    """Refuse to finish a build whose files lack the colour covariance beside their variance:
-    they were rendered by a jaxden older than ``Frame.covariance``, whose renderer writes it,
-    and finishing the build would mix files with and without it (SURE from the covariance
-    would then silently fall back to the per-channel form on some items)."""
-    from jaxden.frame import CHANNELS
-    from jaxden.io.exr import read_header
-
-    lacking = []
-    for item in finished:
-        channels = set(read_header(directory / item.path)["channels"])
-        if set(CHANNELS["variance"]) <= channels and not set(CHANNELS["covariance"]) <= channels:
-            lacking.append(item.path)
-    if lacking:
-        raise DatasetError(
-            f"{directory}: {len(lacking)} of its {len(finished)} finished files ({lacking[0]}, "
-            f"...) have the variance but no colour covariance (channels "
-            f"{'/'.join(CHANNELS['covariance'])}), which this jaxden's renderer records: they "
-            f"come from an older jaxden, and finishing the build would mix files with and "
-            f"without it. Build into another folder, or delete {directory} to rebuild it.")
-
-
 def _clean_temporaries(directory: Path) -> int:
     removed = 0
     for root, _, files in os.walk(directory):
@@ -515,10 +493,10 @@ def _build(config: DatasetConfig, directory: Path, planned: Manifest, pool: Any,
                     (directory / item.path).unlink(missing_ok=True)
                 item.sha256 = item.bytes = item.render_seconds = None
                 pending.append(item)
-        if render_fn is None and pending:
-            waiting = {item.id for item in pending}
-            _check_covariance_recorded(
-                directory, [item for item in manifest.items if item.id not in waiting])
+        if render_fn is None and pending:  # the renderer's files all carry the covariance
+            from jaxden.data.verify import check_covariance_recorded
+
+            check_covariance_recorded(directory, manifest.items, skip=pending)
         for item in pending:
             (directory / item.path).parent.mkdir(parents=True, exist_ok=True)
         manifest.save(directory)

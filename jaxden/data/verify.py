@@ -23,7 +23,7 @@ from jaxden.data.layout import (
     required_features,
     sha256_file,
 )
-from jaxden.errors import ExrError
+from jaxden.errors import DatasetError, ExrError
 
 
 @dataclasses.dataclass(frozen=True)
@@ -182,3 +182,27 @@ def verify_dataset(
             kind = "leftover temporary file" if temporary else "file not in the manifest"
             warnings.append(f"{os.path.join(root, name)}: {kind}")
     return VerifyReport(str(directory), len(items), checked, problems, sorted(warnings))
+
+
+def check_covariance_recorded(directory: Path, items: list, skip: list = ()) -> None:
+    """Refuse to finish a build whose files lack the colour covariance beside their variance:
+    they were rendered by a jaxden older than ``Frame.covariance``, whose renderer writes it,
+    and finishing the build would mix files with and without it (SURE from the covariance
+    would then silently fall back to the per-channel form on some items)."""
+    from jaxden.frame import CHANNELS
+    from jaxden.io.exr import read_header
+
+    waiting = {item.id for item in skip}  # not rendered yet
+    finished = [item for item in items if item.id not in waiting]
+    lacking = []
+    for item in finished:
+        channels = set(read_header(directory / item.path)["channels"])
+        if set(CHANNELS["variance"]) <= channels and not set(CHANNELS["covariance"]) <= channels:
+            lacking.append(item.path)
+    if lacking:
+        raise DatasetError(
+            f"{directory}: {len(lacking)} of its {len(finished)} finished files ({lacking[0]}, "
+            f"...) have the variance but no colour covariance (channels "
+            f"{'/'.join(CHANNELS['covariance'])}), which this jaxden's renderer records: they "
+            f"come from an older jaxden, and finishing the build would mix files with and "
+            f"without it. Build into another folder, or delete {directory} to rebuild it.")
