@@ -32,8 +32,8 @@ B="$H/runs/sweeps/pd-bases"
 # One base at a time through its covariance-SURE mixer and Eq. 9 alone (the closed-form
 # mixer, no network, SURE from the covariance, per-channel t; reports outside the checkout,
 # read by pd_bases_tables.py), most wanted first: the U-Net on HDR + ALB + NRM + VAR, whose
-# per-channel-SURE mixer ended furthest above MC at 4096 spp, then the bases short of the
-# paper's PD / den.
+# per-channel-SURE mixer ended furthest above MC at 4096 spp, the bases short of the paper's
+# PD / den, Table 4 over the first, then the other bases.
 step data-pd-rt $J dataset build experiments/configs/dataset-pd-rt.toml --out "$H/data/pd-rt"
 closed_form() {  # closed_form BASE
   mkdir -p "$H/runs/pd-closed-form"
@@ -41,21 +41,28 @@ closed_form() {  # closed_form BASE
     --denoiser "$B/$1" --mixer closed-form --mixer-set sure_covariance=true \
     --tstat per_channel=true --probes 1 --keep-current --out "$H/runs/pd-closed-form/$1"
 }
-first=1
-for base in unet-hdr-alb-nrm-var unet-hdr unet-hdr-var unet-hdr-alb-nrm kp5 wskp6; do
+base_steps() {  # base_steps BASE: the base, its covariance-SURE mixer, Eq. 9 alone over it
+  local base=$1
   step "pd-base-$base" "${X[@]}" $J sweep experiments/sweeps/pd-bases.toml --workdir "$B" \
     --only "$base"
-  if [ "$first" = 1 ]; then  # the held-out set and the mixers' training set, once
-    step data-pd-test-high $J dataset build experiments/configs/dataset-pd-test-high.toml \
-      --out "$H/data/pd-test-high"
-    step data-pd-rt4k $J dataset build experiments/configs/dataset-pd-rt4k.toml \
-      --out "$H/data/pd-rt4k"
-    first=0
-  fi
   step "pd-mixer-cov-$base" "${X[@]}" $J sweep experiments/sweeps/pd-mixers-cov.toml \
     --workdir "$H/runs/sweeps/pd-mixers-cov" --only "$base"
   step "pd-closed-form-$base" closed_form "$base"
+}
+step pd-base-unet-hdr-alb-nrm-var "${X[@]}" $J sweep experiments/sweeps/pd-bases.toml \
+  --workdir "$B" --only unet-hdr-alb-nrm-var
+# The held-out set and the mixers' training set.
+step data-pd-test-high $J dataset build experiments/configs/dataset-pd-test-high.toml \
+  --out "$H/data/pd-test-high"
+step data-pd-rt4k $J dataset build experiments/configs/dataset-pd-rt4k.toml --out "$H/data/pd-rt4k"
+for base in unet-hdr-alb-nrm-var unet-hdr unet-hdr-var; do base_steps "$base"; done
+# Table 4 (the paper's ablations, per-channel SURE as the paper) over the U-Net on HDR + ALB +
+# NRM + VAR: the f_act mixer, without SURE, without f_act, and our closed_form_logit head.
+for run in unet-hdr-alb-nrm-var t4-full t4-no-sure t4-no-f_act; do
+  step "pd-mixer-$run" "${X[@]}" $J sweep experiments/sweeps/pd-mixers.toml \
+    --workdir "$H/runs/sweeps/pd-mixers" --only "$run"
 done
+for base in unet-hdr-alb-nrm kp5 wskp6; do base_steps "$base"; done
 # The sweeps' summaries (every run is finished by now) and SURE by jvp against the true error
 # of every JAX base (into the checkout's experiments/results: commit it), SURE from the
 # covariance and the paper's per-channel form.
