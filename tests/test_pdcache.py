@@ -226,6 +226,14 @@ def test_refuses_incomplete_dataset_foreign_folder_and_bad_options(dataset, tmp_
     assert not list(out.rglob("*.exr"))
 
 
+def test_the_two_forms_of_sure_have_their_own_default_folders(dataset):
+    # SURE per channel and from the colour covariance are different caches of one denoiser:
+    # side by side (a study of the two trains mixers on both), never in each other's way.
+    plain = cache_build.default_cache_dir(dataset, blur_denoiser())
+    assert cache_build.default_cache_dir(dataset, blur_denoiser(), True) == plain.with_name(
+        plain.name + "-cov")
+
+
 def test_open_training_cache_without_building(dataset, tmp_path, oidn_cache):
     config = MixerConfig(denoiser="oidn", build_cache=False, cache=str(tmp_path / "none"))
     with pytest.raises(DatasetError, match="no SURE cache.*sure-cache"):

@@ -67,12 +67,13 @@ def cmd_sure_cache(args: argparse.Namespace) -> int:
     cache = build_sure_cache(
         args.dir, args.denoiser, args.out, num_probes=args.probes, method=args.method,
         eps=args.eps, seed=args.seed, fd_scheme=args.fd_scheme, probe_batch=args.probe_batch,
-        half=args.half, progress=not args.quiet,
+        half=args.half, progress=not args.quiet, covariance=args.covariance,
     )
     settings = cache.identity.get("settings", {})
     print(f"SURE cache complete: {cache.directory} ({len(cache.records)} items; "
           f"{settings.get('num_probes')} probes, {settings.get('method')}, "
-          f"eps {settings.get('eps')}, seed {settings.get('seed')})")
+          f"eps {settings.get('eps')}, seed {settings.get('seed')}"
+          + ("; SURE from the colour covariance" if settings.get("covariance") else "") + ")")
     return 0
 
 
@@ -124,5 +125,8 @@ def add_commands(sub) -> None:
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--probe-batch", type=positive_int, default=None)
     c.add_argument("--half", action="store_true", help="store float16 channels")
+    c.add_argument("--covariance", action="store_true",
+                   help="SURE from the colour covariance (the dataset must record it; a mixer "
+                        "with sure_covariance = true reads this cache, in DIR/derived/<denoiser>-cov)")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
     c.set_defaults(func=cmd_sure_cache)

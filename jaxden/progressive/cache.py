@@ -148,9 +148,12 @@ def item_seed(seed: int, item_id: str) -> int:
     return derive_seed(int(seed), "sure", item_id)
 
 
-def default_cache_dir(dataset_dir, denoiser) -> Path:
-    """``DATASET/derived/<name>`` (black boxes) or ``DATASET/derived/<name>-<params hash>``."""
-    return Path(dataset_dir) / DERIVED_DIR / denoiser_slug(resolve_denoiser(denoiser))
+def default_cache_dir(dataset_dir, denoiser, covariance: bool = False) -> Path:
+    """``DATASET/derived/<name>`` (black boxes) or ``DATASET/derived/<name>-<params hash>``,
+    with ``-cov`` for SURE from the colour covariance (both forms of one denoiser side by
+    side, as a study of the two needs)."""
+    slug = denoiser_slug(resolve_denoiser(denoiser))
+    return Path(dataset_dir) / DERIVED_DIR / (f"{slug}-cov" if covariance else slug)
 
 
 def _dataset_identity(manifest) -> dict[str, Any]:

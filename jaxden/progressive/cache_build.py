@@ -145,7 +145,8 @@ def build_sure_cache(
         "settings": settings,
     }
     cache_key = _cache_key(identity)
-    directory = Path(out_dir) if out_dir is not None else default_cache_dir(dataset_dir, denoiser)
+    directory = (Path(out_dir) if out_dir is not None
+                 else default_cache_dir(dataset_dir, denoiser, covariance))
     if directory.exists() and not directory.is_dir():
         raise DatasetError(f"{directory} exists and is not a folder")
     directory.mkdir(parents=True, exist_ok=True)
@@ -289,7 +290,8 @@ def open_training_cache(dataset_dir, config) -> SureCache:
     """The SURE cache a :class:`jaxden.progressive.MixerConfig` asks for, built or finished
     first when ``config.build_cache`` (a complete cache costs one checksum pass to confirm)."""
     denoiser = resolve_denoiser(config.denoiser)
-    directory = Path(config.cache) if config.cache else default_cache_dir(dataset_dir, denoiser)
+    directory = (Path(config.cache) if config.cache
+                 else default_cache_dir(dataset_dir, denoiser, config.sure_covariance))
     options = dict(num_probes=config.sure_probes, method=config.sure_method, eps=config.sure_eps,
                    seed=config.sure_seed, covariance=config.sure_covariance)
     if config.build_cache:
