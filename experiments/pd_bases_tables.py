@@ -160,7 +160,7 @@ def pd_line(table: int, model: str, row: dict, den_row: dict) -> str:
             + " | ".join(f"{row[m]['pd']:.5f} ({row[m]['pd'] / den_row[m]['den']:.3f}x; "
                          f"{row[m]['mean_ratio']:.3f}x)" for m, _ in METRICS)
             + f" | {row['pd_over_mc_at_top']:.3f}; "
-            + ("-" if worst is None else f"{worst:.3f}") + " |")
+            + ("-" if worst is None else f"{worst:.4f}") + " |")
 
 
 def variant_targets(data: dict[str, dict]) -> list[str]:
@@ -181,7 +181,7 @@ def variant_targets(data: dict[str, dict]) -> list[str]:
         if tops:
             run, worst = max(tops, key=lambda t: t[1])
             targets.append(f"- {name}: PD at or below MC's RMSE at the top spp for every crop "
-                           f"and base: worst crop {worst:.3f} (base {run}) over {len(tops)} of "
+                           f"and base: worst crop {worst:.4f} (base {run}) over {len(tops)} of "
                            f"{len(BASES)} bases: {_verdict(worst, 1.0)}"
                            + ("" if len(tops) == len(BASES) else " so far") + ".")
         if key in data.get("kp5", {}):
