@@ -185,6 +185,19 @@ def plan_runs(config: SweepConfig, axes: dict[str, list[Any]]) -> list[Run]:
     return runs
 
 
+def select_runs(runs: list[Run], only: Sequence[str], path) -> list[Run]:
+    """The runs named in ``only`` (all when empty), in plan order; ConfigError for a name the
+    sweep in ``path`` does not have."""
+    if not only:
+        return runs
+    names = [run.name for run in runs]
+    unknown = [name for name in only if name not in names]
+    if unknown:
+        raise ConfigError(f"{path}: no run named {', '.join(map(repr, unknown))} in the "
+                          f"sweep; its runs: {', '.join(names)}")
+    return [run for run in runs if run.name in only]
+
+
 def _run_one(task: tuple[str, str, tuple[str, ...], dict, dict[str, Any], bool]) -> dict:
     """Train, evaluate and record one run (module level: the local executor pickles it)."""
     _worker_setup()
@@ -334,13 +347,7 @@ def run_sweep(path: str | Path, workdir: str | Path, overrides=(), *, executor: 
 
     config, axes, base = load_sweep(path, tuple(overrides))
     runs = plan_runs(config, axes)
-    if only:
-        names = [run.name for run in runs]
-        unknown = [name for name in only if name not in names]
-        if unknown:
-            raise ConfigError(f"{path}: no run named {', '.join(map(repr, unknown))} in the "
-                              f"sweep; its runs: {', '.join(names)}")
-        runs = [run for run in runs if run.name in only]
+    runs = select_runs(runs, only, path)
     if len(runs) > MAX_RUNS and not allow_large:
         raise ConfigError(f"{path}: the sweep has {len(runs)} runs, more than {MAX_RUNS}; check "
                           f"its [axes], or pass --allow-large to run them all")

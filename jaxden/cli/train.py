@@ -54,17 +54,11 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from jaxden.errors import ConfigError
-    from jaxden.sweep import load_sweep, plan_runs, run_sweep
+    from jaxden.sweep import load_sweep, plan_runs, run_sweep, select_runs
 
     if args.dry_run:
         config, axes, base = load_sweep(args.config, tuple(args.overrides))
-        runs = plan_runs(config, axes)
-        unknown = sorted(set(args.only or ()) - {run.name for run in runs})
-        if unknown:
-            raise ConfigError(f"{args.config}: no run named {', '.join(unknown)} in the sweep; "
-                              f"its runs: {', '.join(run.name for run in runs)}")
-        runs = [run for run in runs if not args.only or run.name in args.only]
+        runs = select_runs(plan_runs(config, axes), args.only or (), args.config)
         print(f"{len(runs)} run(s) of {base} ({config.mode} over {', '.join(axes)}):")
         for run in runs:
             print(f"  {run.name}: {' '.join(run.overrides)}")
