@@ -69,7 +69,7 @@ def evaluate(data: Path, crops, spp, mixers, denoiser: str = "oidn", seed: int =
     from jaxden.progressive.heads import mix
     from jaxden.progressive.mixer import _mixer_alpha, _mixer_swap_args, closed_form_alpha
     from jaxden.progressive.report import iter_crops
-    from jaxden.progressive.tstat import _gaussian_sigma, t_statistic_scaling
+    from jaxden.progressive.tstat import _gaussian_sigma, consistent_mix
     from jaxden.sure.denoiser import denoise_with_sure
 
     model = load_denoiser(denoiser)
@@ -101,8 +101,7 @@ def evaluate(data: Path, crops, spp, mixers, denoiser: str = "oidn", seed: int =
                 alphas = {"single": single, "swapped": swapped, "average": (single + swapped) / 2}
                 pd = {}
                 for name, alpha in alphas.items():
-                    scaled = t_statistic_scaling(alpha, x, mix(x, y, alpha), var, config.tstat)
-                    pd[name] = mix(x, y, scaled)
+                    pd[name], _ = consistent_mix(x, y, alpha, var, config.tstat)
                     entry[name] = {"alpha": float(jnp.mean(alpha)),
                                    "pd_over_mc": rmse(pd[name]) / mc}
                 if worst:

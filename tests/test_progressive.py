@@ -173,12 +173,15 @@ def test_scaling_is_tiny_change_without_difference_and_shrinks_alpha():
     np.testing.assert_allclose(scaled[small], alpha[small], rtol=2e-3)
 
 
-def test_consistent_mix_composes_mix_and_scaling():
+def test_consistent_mix_composes_mix_scaling_and_guard():
     x, y, var, alpha, _ = make_scene(seed=6)
     z = np.asarray(P.mix(x, y, alpha))
+    scaled = np.asarray(P.t_statistic_scaling(alpha, x, z, var))
+    _, alpha_paper = P.consistent_mix(x, y, alpha, var, guard=False)
+    np.testing.assert_allclose(np.asarray(alpha_paper), scaled, rtol=1e-6)
     z_prime, alpha_prime = P.consistent_mix(x, y, alpha, var)
     np.testing.assert_allclose(np.asarray(alpha_prime),
-                               np.asarray(P.t_statistic_scaling(alpha, x, z, var)), rtol=1e-6)
+                               np.asarray(P.error_guard(scaled, x, y, var)), rtol=1e-6)
     np.testing.assert_allclose(np.asarray(z_prime), x + np.asarray(alpha_prime) * (y - x),
                                rtol=1e-6, atol=1e-6)
 
@@ -230,7 +233,9 @@ def test_channel_summed_t_misses_hue_shift_bias_but_per_channel_catches_it():
     with the same alpha in every channel cancels in the sum over R, G, B, so t stays O(1)
     (it only sees the noise) and alpha' ~ alpha even as var -> 0: z' does not converge.
     ``per_channel=True`` sees it in R and G: t ~ alpha beta / sqrt(var) ~ 500 here (B has no
-    bias, so alpha'_B ~ alpha_B is right there and z'_B - x_B = alpha_B sqrt(var) n -> 0)."""
+    bias, so alpha'_B ~ alpha_B is right there and z'_B - x_B = alpha_B sqrt(var) n -> 0).
+    The error guard (on by default) sums squares over the channels, so it catches the shift
+    with the channel-summed t too."""
     rng = np.random.default_rng(11)
     shape = (8, 9, 3)
     clean = rng.uniform(0.2, 0.8, shape).astype(np.float32)
@@ -238,11 +243,13 @@ def test_channel_summed_t_misses_hue_shift_bias_but_per_channel_catches_it():
     y = clean + np.array([0.1, -0.1, 0.0], np.float32)
     alpha = np.full(shape, 0.5, np.float32)
     x, var = _shrink(clean, np.full(shape, 1e-2, np.float32), noise, 10)  # std 1e-4
-    _, summed = P.consistent_mix(x, y, alpha, var)
-    _, per_channel = P.consistent_mix(x, y, alpha, var, per_channel=True)
+    _, summed = P.consistent_mix(x, y, alpha, var, guard=False)
+    _, per_channel = P.consistent_mix(x, y, alpha, var, per_channel=True, guard=False)
     assert np.asarray(summed).min() > 0.45  # keep >= 0.9: nothing detected
     assert np.asarray(per_channel)[..., :2].max() < 1e-6
     assert np.asarray(per_channel)[..., 2].min() > 0.45
+    _, guarded = P.consistent_mix(x, y, alpha, var)
+    assert np.asarray(guarded).max() < 1e-6
 
 
 # ------------------------------------------------------------------------ mixer inputs

@@ -68,6 +68,7 @@ from jaxden.progressive.pipeline import (
 from jaxden.progressive.tstat import (
     TStatConfig,
     consistent_mix,
+    error_guard,
     t_statistic,
     t_statistic_scaling,
 )
@@ -101,6 +102,7 @@ __all__ = [
     "closed_form_logit_alpha",
     "closed_form_mixer",
     "consistent_mix",
+    "error_guard",
     "f_act",
     "load_mixer",
     "mix",

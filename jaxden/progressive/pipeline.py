@@ -12,7 +12,7 @@ from jaxden.errors import ConfigError
 from jaxden.frame import Frame
 from jaxden.progressive.heads import _mix
 from jaxden.progressive.mixer import MixerConfig, _inference_alpha, load_mixer
-from jaxden.progressive.tstat import TStatConfig, _scale_alpha, _t_statistic
+from jaxden.progressive.tstat import TStatConfig, _consistent_alpha
 
 # ------------------------------------------------------------------------------ inference
 
@@ -38,7 +38,8 @@ def progressive_denoise(
 
     y = D(x); SURE of y (jvp for JAX denoisers, finite differences for black boxes such as
     OIDN; :func:`jaxden.sure.denoise_with_sure`); alpha = mixer; alpha' = t-statistic
-    scaling; z' = x + alpha' (y - x).
+    scaling, then the error guard (:mod:`jaxden.progressive.guard`, ``tstat.guard``);
+    z' = x + alpha' (y - x).
 
     Args:
       frame: :class:`jaxden.frame.Frame` (H, W, 3) (leading batch dims if the denoiser takes
@@ -112,7 +113,7 @@ def mix_given_sure(x, y, var, sure, mixer_params, mixer_config: MixerConfig, *,
     mixed = _mix(x, y, alpha)
     if tstat is None:
         return mixed, alpha, alpha, mixed
-    alpha_prime = _scale_alpha(alpha, _t_statistic(x, mixed, var, tstat), tstat)
+    alpha_prime = _consistent_alpha(alpha, x, y, var, mixed, tstat)
     return _mix(x, y, alpha_prime), alpha_prime, alpha, mixed
 
 

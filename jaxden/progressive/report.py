@@ -129,7 +129,7 @@ def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
     from jaxden.progressive.heads import mix
     from jaxden.progressive.mixer import load_mixer, swap_symmetry
     from jaxden.progressive.pipeline import mix_given_sure, progressive_denoise
-    from jaxden.progressive.tstat import t_statistic_scaling
+    from jaxden.progressive.tstat import consistent_mix
 
     model = load_denoiser(denoiser) if isinstance(denoiser, str) else denoiser
     params, config = load_mixer(mixer) if isinstance(mixer, (str, Path)) else mixer
@@ -146,8 +146,8 @@ def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
                 num_probes=num_probes)
             index += 1
             alpha_pc, alpha_shared = (
-                t_statistic_scaling(extras["alpha"], frame.color, extras["mixed"],
-                                    frame.variance, tstat) for tstat in (per_channel, shared))
+                consistent_mix(frame.color, extras["denoised"], extras["alpha"],
+                               frame.variance, tstat)[1] for tstat in (per_channel, shared))
             z_true, *_ = mix_given_sure(frame.color, extras["denoised"], frame.variance,
                                         true_error(extras["denoised"], reference), params,
                                         config)

@@ -18,7 +18,8 @@ from jaxden.config import bounded
 from jaxden.errors import ConfigError, FrameError
 from jaxden.progressive.closed_form import _blur_shifted
 from jaxden.progressive.checks import _check_image, _check_same, _check_variance_values
-from jaxden.progressive.heads import mix
+from jaxden.progressive.guard import _guard_alpha
+from jaxden.progressive.heads import _mix
 
 # ---------------------------------------------------------------------------------- t-test
 
@@ -45,6 +46,14 @@ class TStatConfig:
       per_channel: False (authors): one t per pixel from channel-summed sums, shared by R, G,
         B. True: one t per pixel and channel (same sums without the channel sum).
       eps: added to the standard deviation in t's denominator (1e-6).
+      guard: apply the error guard after the scaling (:mod:`jaxden.progressive.guard`, our
+        addition; on by default, off reproduces the paper): alpha'' = min(alpha',
+        guard_gamma / chi^2) (1 - S(a (chi - c))), chi^2 the local mean of (y - x)^2 over the
+        local mean of var, so that the mix never ends far above x where y is far off x.
+      guard_gamma: the cap's factor on var / E[(y - x)^2]: 2 is where the mix breaks even
+        with x in expectation.
+      guard_sigma: standard deviation in pixels of the guard's Gaussian local means
+        (truncated at 3 sigma).
     """
 
     window: int = bounded(11, low=1, high=255, unit='pixels')
@@ -60,6 +69,9 @@ class TStatConfig:
     neighbour_weight: float = bounded(1.0 / 3.0, low=0, high=1)
     per_channel: bool = False
     eps: float = bounded(1e-6, low=0, low_open=True, high=1)
+    guard: bool = True
+    guard_gamma: float = bounded(2.0, low=0, low_open=True, high=1e3)
+    guard_sigma: float = bounded(1.0, low=0, low_open=True, high=64, unit='pixels')
 
     def __post_init__(self):
         def fail(field, expected):
@@ -69,7 +81,8 @@ class TStatConfig:
 
         if not isinstance(self.window, int) or self.window < 1 or self.window % 2 == 0:
             fail("window", "an odd integer >= 1")
-        for field in ("a", "sigma_scale", "sigma_variance_cap", "sigma_min", "sigma_fixed", "eps"):
+        for field in ("a", "sigma_scale", "sigma_variance_cap", "sigma_min", "sigma_fixed", "eps",
+                      "guard_gamma", "guard_sigma"):
             value = getattr(self, field)
             if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
                 fail(field, "a finite number > 0")
@@ -81,7 +94,7 @@ class TStatConfig:
             fail("squash", "'normal_cdf' or 'logistic'")
         if self.sigma_rule not in ("mean_variance", "image_mean_variance", "fixed"):
             fail("sigma_rule", "'mean_variance', 'image_mean_variance' or 'fixed'")
-        for field in ("use_max_variance_neighbour", "per_channel"):
+        for field in ("use_max_variance_neighbour", "per_channel", "guard"):
             if not isinstance(getattr(self, field), bool):
                 fail(field, "a bool")
 
@@ -275,9 +288,44 @@ def t_statistic_scaling(alpha, x, z, var, config: TStatConfig | None = None, **o
     return _scale_alpha(jnp.asarray(alpha), t, config)
 
 
+def error_guard(alpha, x, y, var, config: TStatConfig | None = None, **overrides):
+    """The error guard alone (:mod:`jaxden.progressive.guard`): alpha'' = min(alpha,
+    gamma / chi^2) (1 - S(a (chi - c))), shape of ``alpha`` broadcast. Applied whatever
+    ``config.guard`` says (that flag is for :func:`consistent_mix` and the pipeline).
+
+    Args: alpha (..., H, W, 3) or (..., H, W, 1); x noisy colour, y denoised colour, var the
+    variance of the pixel mean of x, all (..., H, W, 3). ``config``/``overrides``:
+    :class:`TStatConfig` fields (``guard_gamma``, ``guard_sigma``, ``a``, ``c``, ``squash``,
+    ``per_channel``).
+    """
+    config = _resolve_config(config, overrides)
+    shape = _check_same("error_guard", x=x, y=y, var=var)
+    alpha_shape = _check_image("alpha", alpha, "error_guard", channels=(1, 3))
+    if alpha_shape[:-1] != shape[:-1]:
+        raise FrameError(f"error_guard: 'alpha' has shape {alpha_shape} but x has {shape}")
+    _check_variance_values(var, "error_guard")
+    return _guard_alpha(jnp.asarray(alpha), jnp.asarray(x), jnp.asarray(y), jnp.asarray(var),
+                        config)
+
+
+def _consistent_alpha(alpha, x, y, var, mixed, config: TStatConfig):
+    """The inference stage after the mixer, on validated arrays: the t-statistic scaling of
+    alpha (``mixed`` = x + alpha (y - x)), then the error guard when ``config.guard``."""
+    scaled = _scale_alpha(alpha, _t_statistic(x, mixed, var, config), config)
+    return _guard_alpha(scaled, x, y, var, config) if config.guard else scaled
+
+
 def consistent_mix(x, y, alpha, var, config: TStatConfig | None = None, **overrides):
-    """The inference output: (z', alpha') with z = mix(x, y, alpha), alpha' the scaled alpha
+    """The inference output: (z', alpha') with alpha' the t-statistic scaling of alpha (over
+    z = mix(x, y, alpha)) followed by the error guard (when ``config.guard``, the default),
     and z' = x + alpha' (y - x). Shapes as in :func:`t_statistic_scaling`."""
-    z = mix(x, y, alpha)
-    alpha_prime = t_statistic_scaling(alpha, x, z, var, config, **overrides)
-    return mix(x, y, alpha_prime), alpha_prime
+    config = _resolve_config(config, overrides)
+    _check_same("consistent_mix", x=x, y=y, var=var)
+    alpha_shape = _check_image("alpha", alpha, "consistent_mix", channels=(1, 3))
+    if alpha_shape[:-1] != np.shape(x)[:-1]:
+        raise FrameError(
+            f"consistent_mix: 'alpha' has shape {alpha_shape} but x has {np.shape(x)}")
+    _check_variance_values(var, "consistent_mix")
+    x, y, var, alpha = (jnp.asarray(a) for a in (x, y, var, alpha))
+    alpha_prime = _consistent_alpha(alpha, x, y, var, _mix(x, y, alpha), config)
+    return _mix(x, y, alpha_prime), alpha_prime
