@@ -11,6 +11,8 @@ compiled and warmed up before timing, timed alternately, median of the repeats:
 - ``pd_single_over_oidn``: the same with one mixer call (``swap_average`` off, the paper's form);
 - ``mixer_over_oidn``: one mixer call (PDNet on the 18 input channels) / one OIDN call;
 - ``tstat_over_oidn``: the t-statistic scaling alone / one OIDN call;
+- ``guard_over_oidn``: the error guard after it (``tstat.guard``, on in every pipeline above)
+  alone / one OIDN call;
 - ``closed_form_over_oidn``: the closed-form mixer's alpha (``--mixer closed-form``: Eq. 9
   with Gaussian local means, width 12 px) / one OIDN call; it replaces the mixer call;
 - ``closed_form_stops_over_closed_form``: the range-aware closed form (``closed_form_stops =
@@ -46,7 +48,7 @@ def bench_progressive(quick: bool) -> dict:
     from jaxden.progressive.mixer import (closed_form_alpha, closed_form_mixer, load_mixer,
                                           mixer_alpha)
     from jaxden.progressive.pipeline import progressive_denoise, shipped_mixer_path
-    from jaxden.progressive.tstat import t_statistic_scaling
+    from jaxden.progressive.tstat import error_guard, t_statistic_scaling
 
     size = QUICK_SIZE if quick else (1280, 720)
     repeats = QUICK_REPEATS if quick else 3
@@ -92,13 +94,14 @@ def bench_progressive(quick: bool) -> dict:
         "pd_single": lambda: pd(False),
         "mixer": lambda: mixer_alpha(params, config, x, y, var, sure_map),
         "tstat": lambda: t_statistic_scaling(alpha, x, mixed, var, config.tstat),
+        "guard": lambda: error_guard(alpha, x, y, var, config.tstat),
         "closed_form": lambda: closed_form_alpha(x, y, var, sure_map),
         "closed_form_stops": lambda: closed_form_alpha(x, y, var, sure_map, stops=1.0),
     }
     median = median_times(runners, repeats)
     return {
         **{f"{name}_over_oidn": median[name] / median["oidn"]
-           for name in ("pd", "pd_single", "mixer", "tstat", "closed_form")},
+           for name in ("pd", "pd_single", "mixer", "tstat", "guard", "closed_form")},
         "closed_form_stops_over_closed_form": median["closed_form_stops"] / median["closed_form"],
         "pd_wskp6_over_wskp6": median["pd_wskp6"] / median["wskp6"],
         "pd_wskp6_closed_form_k1_over_wskp6": median["pd_wskp6_closed_form_k1"] / median["wskp6"],
