@@ -676,3 +676,28 @@ def test_oracle_crossfit_blend_has_the_variance_of_n_spp_and_the_summary_its_sha
     np.testing.assert_allclose(twin.color, 2.0)
     np.testing.assert_allclose(twin.variance, 0.25 * 0.5 + 0.25 * 2.0)
     np.testing.assert_allclose(twin.covariance, 0.25 * 0.25 + 0.25 * 1.0)
+
+
+# ------------------------------------------------------------------------- pd_targets
+def test_pd_targets_checks_each_image_against_mc_and_the_better_of_mc_and_the_denoiser():
+    import pd_targets
+
+    def row(crop, spp, mc, den, pd, margin=0.0, relmse=(1.0, 1.0, 1.0)):
+        return {"crop": crop, "scene": f"s/{crop}.xml", "spp": spp, "mc_mse_nc": mc,
+                "denoiser_mse_nc": den, "pd_mse_nc": pd, "pd_vs_mc_margin": margin,
+                "mc_relmse": relmse[0], "denoiser_relmse": relmse[1], "pd_relmse": relmse[2]}
+
+    report = {"rows": [
+        # a: at the top spp 2 % above MC but within the margin; at 8 spp PD = 1.1x den's RMSE^2
+        row("a", 8, 4.0, 1.0, 1.21), row("a", 4096, 1.0, 9.0, 1.02, margin=0.03),
+        # b: above MC beyond the margin at the top spp; relMSE 1.04x the better one
+        row("b", 8, 4.0, 9.0, 3.0, relmse=(2.0, 1.0, 1.04)),
+        row("b", 4096, 1.0, 9.0, 1.02, margin=0.01)]}
+    a, b = pd_targets.check(report, factor=1.05)
+    assert (a["crop"], a["top_spp"], a["top_ok"]) == ("a", 4096, True)
+    assert a["worst_rmse"] == pytest.approx(1.1) and a["worst_rmse_spp"] == 8
+    assert not a["rmse_ok"] and a["relmse_ok"]
+    assert not b["top_ok"] and b["top_pd_over_mc"] == pytest.approx(1.02)
+    assert b["worst_rmse"] == pytest.approx(math.sqrt(1.02)) and b["rmse_ok"]
+    assert b["worst_relmse"] == pytest.approx(1.04) and b["relmse_ok"]
+    assert "**no**" in pd_targets.table({"r": [a, b]}, 1.05)
