@@ -29,17 +29,17 @@ step() {  # step NAME COMMAND...: run unless $H/done/NAME exists, time it
 step data-pd-test-high $J dataset build experiments/configs/dataset-pd-test-high.toml \
   --out "$H/data/pd-test-high"
 step data-stress $J dataset build experiments/configs/dataset-stress.toml --out "$H/data/stress"
+step data-test-chain $J dataset build experiments/configs/dataset-test.toml name=test-chain \
+  --out "$H/data/test-chain"
+step data-ood $J dataset build experiments/configs/dataset-ood.toml --out "$H/data/ood"
+step data-test-high-chain $J dataset build experiments/configs/dataset-test-high.toml \
+  name=test-high-chain --out "$H/data/test-high-chain"
 # The mixers' training set, and the paper's f_act mixer over the shipped WSKP-6 (the recipe of
 # wskp-6-pd with the f_act head of the paper's Table 4): measured beside the shipped mixers.
 step data-pd-rt4k $J dataset build experiments/configs/dataset-pd-rt4k.toml --out "$H/data/pd-rt4k"
 step mixer-wskp6-fact "${X[@]}" $J train experiments/configs/mixer-wskp6.toml \
   data.dataset="$H/data/pd-rt4k" model_config.head=f_act model_config.logit_bound=none \
   model_config.logit_eps=0.001 --workdir "$H/runs/mixer-wskp6-fact"
-step data-test-chain $J dataset build experiments/configs/dataset-test.toml name=test-chain \
-  --out "$H/data/test-chain"
-step data-ood $J dataset build experiments/configs/dataset-ood.toml --out "$H/data/ood"
-step data-test-high-chain $J dataset build experiments/configs/dataset-test-high.toml \
-  name=test-high-chain --out "$H/data/test-high-chain"
 B="$H/runs/sweeps/pd-bases"
 # The progressive-denoising paper's Tables 1 and 2 on our data (experiments/README.md): bases
 # trained on PD data (U-Net x 4 feature sets, KP 5 x 5, WSKP-6) on pd-rt (2..1024 spp), one
