@@ -16,12 +16,20 @@ motion     (..., H, W, 2)  pixel offset (dx, dy) from this pixel to where its su
                            in the previous frame: prev_xy = xy + motion
 covariance (..., H, W, 3)  covariance of the pixel *mean* between channels (R, G), (G, B),
                            (B, R): the off-diagonal of its 3 x 3 covariance (needs variance)
+emission   (..., H, W, 3)  radiance emitted by the surface each camera ray hits first (directly
+                           visible emitters, Le at the first hit), averaged over the colour's
+                           own samples; the environment on camera-ray misses is not in it
+                           (Cycles' ``Emit`` pass; the background is its own pass there)
 spp        (...)           samples per pixel (a float array so batches can mix spp levels)
 =========  ============  =====================================================================
 
 Monte Carlo noise is strongly correlated across R, G and B (one path carries all three), so a
 frame may carry the covariance as well as the variance: SURE then draws its probes from the
 full 3 x 3 covariance (``jaxden.sure``), which a denoiser that mixes channels needs.
+
+With ``emission`` from the same samples as the colour, ``color - emission`` is the rest of the
+radiance (everything but directly seen emitters): a denoiser can filter it alone and add the
+emission back (``jaxden.denoise.emission``), so bright lamps are not spread onto dark pixels.
 
 Every field but ``color`` is optional (None). Frames are registered as JAX pytrees, so they pass
 through ``jit``, ``vmap`` and ``jvp`` unchanged; construction does no checking (it must work on
@@ -48,6 +56,7 @@ CHANNELS: dict[str, tuple[str, ...]] = {
     "position": ("position.X", "position.Y", "position.Z"),
     "motion": ("motion.X", "motion.Y"),
     "covariance": ("covariance.RG", "covariance.GB", "covariance.BR"),
+    "emission": ("emission.R", "emission.G", "emission.B"),
 }
 IMAGE_FIELDS: tuple[str, ...] = tuple(CHANNELS)
 NonFinitePolicy = Literal["error", "zero"]
@@ -67,6 +76,7 @@ class Frame:
     motion: Any = None
     spp: Any = None
     covariance: Any = None
+    emission: Any = None
 
     # ------------------------------------------------------------------ accessors
     @property
@@ -112,9 +122,12 @@ class Frame:
         """Raise FrameError naming the missing features if any of ``names`` is absent."""
         missing = [n for n in names if getattr(self, n) is None]
         if missing:
+            channels = "; ".join(f"{n}: {'/'.join(CHANNELS[n])}" for n in missing
+                                 if n in CHANNELS)
             raise FrameError(
-                f"{who} needs the frame feature(s) {', '.join(missing)}, but the frame has only "
-                f"{', '.join(self.features())}"
+                f"{who} needs the frame feature(s) {', '.join(missing)}"
+                + (f" (EXR channels {channels})" if channels else "")
+                + f", but the frame has only {', '.join(self.features())}"
             )
 
     # ------------------------------------------------------------------ validation
@@ -122,13 +135,17 @@ class Frame:
         """Check shapes and values; return the frame (repaired if ``nonfinite='zero'``).
 
         Checks: every present field is an array of shape (..., H, W, C) with the field's channel
-        count and the colour's (..., H, W); variance is finite and >= 0; all fields are finite.
+        count and the colour's (..., H, W); variance and emission are >= 0; all fields are
+        finite. ``emission <= color`` is not checked: it holds for jaxden's renders (the same
+        samples), but not per pixel for other renderers (a clamped or differently filtered
+        combined pass), and the emission-separating denoisers clamp ``color - emission`` at 0.
 
         ``nonfinite``: ``'error'`` (default) raises on NaN or inf anywhere. ``'zero'`` is the
         documented repair policy of the authors' pipeline: NaN and inf are replaced by 0 and
         negative variance is clipped to 0 (e.g. round-off in m2 - m1^2 of another renderer);
         it still raises on variance below -1e-6 * (1 + |colour|^2), which is not round-off but
-        a wrong file.
+        a wrong file. Negative emission (a pixel filter with negative lobes) is an error, or
+        clipped to 0 with ``'zero'``.
 
         ``where`` names the source (a file path, a function) in error messages.
         """
@@ -186,6 +203,18 @@ class Frame:
                            if nonfinite == "error" else "")
                     )
                 repaired["variance"] = np.maximum(variance, 0.0).astype(variance.dtype)
+        if "emission" in arrays:
+            emission = repaired.get("emission", arrays["emission"])
+            negative = emission < 0
+            if negative.any():
+                index = tuple(int(i) for i in np.argwhere(negative)[0])
+                if nonfinite == "error":
+                    raise FrameError(
+                        f"{where}: emission (emitted radiance) must be >= 0 but "
+                        f"{int(negative.sum())} value(s) are negative (first at index {index}: "
+                        f"{emission[index]:.6g}); pass nonfinite='zero' (CLI: --nonfinite zero) "
+                        f"to clip them to 0")
+                repaired["emission"] = np.maximum(emission, 0.0).astype(emission.dtype)
         if "covariance" in arrays:
             repaired.update(_checked_covariance(
                 repaired.get("covariance", arrays["covariance"]),

@@ -24,6 +24,7 @@ def make_frame(h=6, w=7, seed=0, full=True):
             depth=rng.uniform(0.5, 9, (h, w, 1)).astype(np.float32),
             position=rng.normal(size=(h, w, 3)).astype(np.float32),
             motion=rng.normal(size=(h, w, 2)).astype(np.float32),
+            emission=rng.uniform(0, 2, (h, w, 3)).astype(np.float32),
         )
         var = fields["variance"]
         fields["covariance"] = (rng.uniform(-0.9, 0.9, (h, w, 3))

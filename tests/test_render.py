@@ -140,7 +140,7 @@ def test_moment_colour_equals_plain_path_render(cornell):
     plain = np.array(mi.render(cornell, sensor=sensor, integrator=path, seed=7, spp=8))
     both = np.array(mi.render(cornell, sensor=sensor, integrator=moment, seed=7, spp=8))
     other = np.array(mi.render(cornell, sensor=sensor, integrator=path, seed=8, spp=8))
-    assert both.shape == plain.shape[:2] + (9,)
+    assert both.shape == plain.shape[:2] + (integrators.MOMENT_CHANNELS,)
     np.testing.assert_allclose(both[..., :3], plain, rtol=1e-6, atol=1e-7)
     assert np.abs(other - plain).max() > 1e-2
     # Second moments: m2 >= m1^2 (Cauchy-Schwarz) up to round-off, and the cross moments
@@ -434,7 +434,7 @@ def test_crop_camera_equals_mitsuba_film_crop(cornell, camera):
         mine = np.array(mi.render(cornell, sensor=emulated, integrator=moment, seed=4, spp=4))
         film_crop = load.build_sensor(sensor_dict, (40, 30), crop, "test")
         theirs = np.array(mi.render(cornell, sensor=film_crop, integrator=moment, seed=4, spp=4))
-        assert mine.shape == theirs.shape == (crop[2], crop[3], 9)
+        assert mine.shape == theirs.shape == (crop[2], crop[3], integrators.MOMENT_CHANNELS)
         close = np.abs(mine - theirs) <= 1e-4 * (1 + np.abs(theirs))
         assert close.all(-1).mean() > 0.97, crop  # a grazing ray may flip at an edge
     assert sensors[0] is sensors[1]

@@ -11,6 +11,10 @@ features at min(spp, 1024) samples, the ones OIDN does best with), which cost mo
 
 ``ratio`` uses wall-clock time (what users wait for); ``cpu_ratio`` uses the process's CPU time
 over all threads, which is steadier when other jobs share the machine.
+
+``ratio_emission`` (and ``cpu_ratio_emission``): the colour pass with the emission AOVs (one more
+camera-ray intersection per sample, 3 more film channels) over the same pass without them
+(``moment_integrator(emission=False)``, the integrator before ``Frame.emission``).
 """
 
 from __future__ import annotations
@@ -33,7 +37,8 @@ def measure(scene_spec=SCENE, size=SIZE, spp=SPP, repeats: int = 5) -> dict:
     """Times (seconds) and ratio for one scene; see the module docstring."""
     import mitsuba as mi
 
-    from jaxden.render import core, load as scenes
+    from jaxden.render import core, integrators
+    from jaxden.render import load as scenes
     from jaxden.render.variant import ensure_variant
 
     variant = ensure_variant()
@@ -50,7 +55,17 @@ def measure(scene_spec=SCENE, size=SIZE, spp=SPP, repeats: int = 5) -> dict:
     def plain() -> None:
         np.array(mi.render(scene, sensor=sensor, integrator=inner, spp=spp, seed=1))
 
-    runs = (("frame", frame), ("legacy", legacy), ("plain", plain))
+    with_emission = integrators.moment_integrator(inner)
+    without_emission = integrators.moment_integrator(inner, emission=False)
+
+    def emission() -> None:
+        np.array(mi.render(scene, sensor=sensor, integrator=with_emission, spp=spp, seed=1))
+
+    def no_emission() -> None:
+        np.array(mi.render(scene, sensor=sensor, integrator=without_emission, spp=spp, seed=1))
+
+    runs = (("frame", frame), ("legacy", legacy), ("plain", plain), ("emission", emission),
+            ("no_emission", no_emission))
     for _, fn in runs:
         fn()  # warm-up: compile every kernel once
     wall: dict[str, list[float]] = {key: [] for key, _ in runs}
@@ -69,6 +84,10 @@ def measure(scene_spec=SCENE, size=SIZE, spp=SPP, repeats: int = 5) -> dict:
         "cpu_ratio": frame_cpu / plain_cpu,
         "ratio_legacy_features": legacy_s / plain_s,
         "cpu_ratio_legacy_features": legacy_cpu / plain_cpu,
+        "ratio_emission": statistics.median(wall["emission"]) / statistics.median(
+            wall["no_emission"]),
+        "cpu_ratio_emission": statistics.median(cpu["emission"]) / statistics.median(
+            cpu["no_emission"]),
         "render_frame_s": frame_s,
         "plain_path_s": plain_s,
         "render_frame_cpu_s": frame_cpu,

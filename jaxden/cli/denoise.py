@@ -155,15 +155,17 @@ def cmd_progressive(args: argparse.Namespace) -> int:
     out, alpha_out = exr_outputs(("--out", args.out), ("--alpha", args.alpha),
                                  inputs=(args.input,), overwrite_input=args.overwrite_input)
     if args.mixer is None:
+        from jaxden.denoise.registry import split_spec
         from jaxden.progressive.pipeline import SHIPPED_MIXERS, shipped_mixer_path
 
-        if shipped_mixer_path(args.denoiser) is None:
+        base, _ = split_spec(args.denoiser)  # wskp-6:emission=separate -> wskp-6's mixer
+        if not isinstance(base, str) or shipped_mixer_path(base) is None:
             raise CheckpointError(
                 f"jaxden progressive: no mixer ships for denoiser {args.denoiser!r} (shipped: "
                 f"{', '.join(f'{m} for {d}' for d, m in SHIPPED_MIXERS.items())}); pass "
                 f"--mixer CKPT, or --mixer closed-form (no training, any denoiser)"
             )
-        args.mixer = SHIPPED_MIXERS[args.denoiser]
+        args.mixer = SHIPPED_MIXERS[base]
     params, config = load_mixer(args.mixer)
     frame = read_input_frame(args, "jaxden progressive")
     denoiser = load_denoiser(args.denoiser)
@@ -247,7 +249,10 @@ def add_commands(sub) -> None:
 
     p = sub.add_parser("denoise", help="denoise an EXR with a registered or trained denoiser")
     p.add_argument("input", help="input EXR (colour and the features the model needs)")
-    p.add_argument("--model", required=True, help="oidn, a shipped model name, or a checkpoint folder")
+    p.add_argument("--model", required=True,
+                   help="oidn, a shipped model name, or a checkpoint folder; add "
+                        ":emission=separate to keep the emission (emission.R/G/B) out of the "
+                        "filter: D(colour - emission) + emission")
     p.add_argument("--out", required=True, help="output .exr")
     p.add_argument("--nonfinite", choices=("error", "zero"), default="error",
                    help="NaN/inf in the input: refuse (default) or replace by 0")

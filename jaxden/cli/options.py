@@ -70,11 +70,14 @@ def _channel_spec(text: str) -> tuple[str, tuple[str, ...]]:
 
 def add_channels_option(parser: argparse.ArgumentParser) -> None:
     """``--channels FIELD=NAME,...``: the input file's channel names for a Frame field."""
+    from jaxden.frame import CHANNELS
+
     parser.add_argument(
         "--channels", type=_channel_spec, action="append", default=None, metavar="FIELD=NAMES",
         help="the input's channel names for a field, if not jaxden's, e.g. "
-             "albedo=Albedo.R,Albedo.G,Albedo.B or normal=Ns.X,Ns.Y,Ns.Z (repeatable; fields: "
-             "color, variance, albedo, normal, depth, position, motion)")
+             "albedo=Albedo.R,Albedo.G,Albedo.B, normal=Ns.X,Ns.Y,Ns.Z or (Blender Cycles) "
+             "emission=ViewLayer.Emit.R,ViewLayer.Emit.G,ViewLayer.Emit.B (repeatable; fields: "
+             f"{', '.join(CHANNELS)})")
 
 
 def channel_map(args: argparse.Namespace) -> dict[str, tuple[str, ...]] | None:
@@ -97,7 +100,7 @@ def feature_notice(frame, denoiser, path) -> None:
     raises its error by 4 % (RMSE) and 13 % (relMSE) on average over 2..1024 spp, up to 10 % and
     25 % at 16-64 spp (experiments/results/oidn-no-features.md), and a mixer trained on OIDN
     with features then sees inputs unlike its training data."""
-    if denoiser.name != "oidn":
+    if denoiser.name.partition("+")[0] != "oidn":  # also oidn+emission-separate
         return
     lacking = [field for field in ("albedo", "normal") if getattr(frame, field) is None]
     if lacking:
@@ -191,7 +194,8 @@ def sure_input_options(parser: argparse.ArgumentParser, *, probes_from_mixer: bo
     ``probes_from_mixer`` ``--probes`` defaults to None (the mixer's training probes)."""
     parser.add_argument("input", help="input EXR: colour and the variance of the pixel mean")
     parser.add_argument("--denoiser", required=True,
-                        help="oidn, a shipped model name, a checkpoint folder or a .msgpack file")
+                        help="oidn, a shipped model name, a checkpoint folder or a .msgpack file; "
+                             "add :emission=separate to keep the emission out of the filter")
     parser.add_argument("--probes", type=positive_int, default=None if probes_from_mixer else 4,
                         help="SURE probes K (default: as many as the mixer was trained with, "
                              "its sure_probes)" if probes_from_mixer else

@@ -493,10 +493,10 @@ def _build(config: DatasetConfig, directory: Path, planned: Manifest, pool: Any,
                     (directory / item.path).unlink(missing_ok=True)
                 item.sha256 = item.bytes = item.render_seconds = None
                 pending.append(item)
-        if render_fn is None and pending:  # the renderer's files all carry the covariance
-            from jaxden.data.verify import check_covariance_recorded
+        if render_fn is None and pending:  # the renderer's files carry covariance, emission
+            from jaxden.data.verify import check_renderer_fields_recorded
 
-            check_covariance_recorded(directory, manifest.items, skip=pending)
+            check_renderer_fields_recorded(directory, manifest.items, skip=pending)
         for item in pending:
             (directory / item.path).parent.mkdir(parents=True, exist_ok=True)
         manifest.save(directory)

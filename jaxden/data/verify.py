@@ -2,7 +2,9 @@
 
 ``verify_dataset(DIR)`` checks every planned item: the file exists, its size and SHA-256 match
 the manifest, it reads back as a complete, finite frame with the dataset features (variance
-when spp > 1), of the crop's size, and its header names the same item, seed and spp. The report
+when spp > 1), of the crop's size, and its header names the same item, seed and spp; and the
+emission (``emission.R/G/B``) is in all files or in none (datasets of a jaxden older than
+``Frame.emission`` have none, and load and work without it). The report
 lists every problem with its path; the CLI prints them and exits non-zero if there are any.
 ``build_dataset`` on the same folder re-renders exactly the items that fail.
 """
@@ -169,6 +171,7 @@ def verify_dataset(
                 continue
         for message in check_item_file(path, item, windows[item.crop], read=read):
             problems.append(Problem(shown, item.id, message))
+    problems += _mixed_emission(directory, items)
     planned = {str(Path(item.path)) for item in items}
     warnings = []
     for root, folders, files in os.walk(directory):
@@ -184,25 +187,89 @@ def verify_dataset(
     return VerifyReport(str(directory), len(items), checked, problems, sorted(warnings))
 
 
-def check_covariance_recorded(directory: Path, items: list, skip: list = ()) -> None:
+def _mixed_emission(directory: Path, items: list[Item]) -> list[Problem]:
+    """A Problem for each file without the emission when other files of the dataset have it
+    (files of two jaxden versions); none when all or none have it (an older dataset)."""
+    from jaxden.frame import CHANNELS
+    from jaxden.io.exr import read_header
+
+    has: dict[str, bool] = {}
+    for item in items:
+        try:
+            has[item.id] = set(CHANNELS["emission"]) <= set(
+                read_header(directory / item.path)["channels"])
+        except (ExrError, OSError):
+            continue  # reported above
+    if all(has.values()) or not any(has.values()):
+        return []
+    return [Problem(str(directory / item.path), item.id,
+                    f"no emission ({'/'.join(CHANNELS['emission'])}) while {sum(has.values())} "
+                    f"other files of the dataset have it: files of two jaxden versions; delete "
+                    f"the files without it and run the build again")
+            for item in items if has.get(item.id) is False]
+
+
+def check_covariance_recorded(directory: Path, items: list, skip: list = (), *,
+                              channels: dict | None = None) -> None:
     """Refuse to finish a build whose files lack the colour covariance beside their variance:
     they were rendered by a jaxden older than ``Frame.covariance``, whose renderer writes it,
     and finishing the build would mix files with and without it (SURE from the covariance
-    would then silently fall back to the per-channel form on some items)."""
+    would then silently fall back to the per-channel form on some items). ``channels``:
+    ``{item path: its channel names}`` already read (else the headers are read here)."""
     from jaxden.frame import CHANNELS
+
+    finished, channels = _finished_channels(directory, items, skip, channels)
+    lacking = [item.path for item in finished
+               if set(CHANNELS["variance"]) <= channels[item.path]
+               and not set(CHANNELS["covariance"]) <= channels[item.path]]
+    _refuse_mixing(directory, lacking, len(finished),
+                   f"have the variance but no colour covariance (channels "
+                   f"{'/'.join(CHANNELS['covariance'])})")
+
+
+def check_emission_recorded(directory: Path, items: list, skip: list = (), *,
+                            channels: dict | None = None) -> None:
+    """Refuse to finish a build whose files lack the emission (``Frame.emission``, written
+    in every file by this jaxden's renderer): they come from an older jaxden, and finishing
+    the build would mix files with and without it (a denoiser with ``emission=separate`` would
+    then fail on some items). Such a dataset, finished by the jaxden that started it, loads and
+    works as before, without emission."""
+    from jaxden.frame import CHANNELS
+
+    finished, channels = _finished_channels(directory, items, skip, channels)
+    lacking = [item.path for item in finished
+               if not set(CHANNELS["emission"]) <= channels[item.path]]
+    _refuse_mixing(directory, lacking, len(finished),
+                   f"have no emission (channels {'/'.join(CHANNELS['emission'])})")
+
+
+def check_renderer_fields_recorded(directory: Path, items: list, skip: list = ()) -> None:
+    """Before a resumed build of jaxden's renderer renders the rest (``skip``): every finished
+    file has what the renderer records beside the colour, the covariance and the emission
+    (:func:`check_covariance_recorded`, :func:`check_emission_recorded`); one header read
+    per file."""
+    _, channels = _finished_channels(directory, items, skip, None)
+    check_covariance_recorded(directory, items, skip, channels=channels)
+    check_emission_recorded(directory, items, skip, channels=channels)
+
+
+def _finished_channels(directory: Path, items: list, skip, channels: dict | None):
+    """(items not in ``skip``, {their path: set of channel names}) from the EXR headers."""
     from jaxden.io.exr import read_header
 
     waiting = {item.id for item in skip}  # not rendered yet
     finished = [item for item in items if item.id not in waiting]
-    lacking = []
+    channels = dict(channels or {})
     for item in finished:
-        channels = set(read_header(directory / item.path)["channels"])
-        if set(CHANNELS["variance"]) <= channels and not set(CHANNELS["covariance"]) <= channels:
-            lacking.append(item.path)
+        if item.path not in channels:
+            channels[item.path] = set(read_header(directory / item.path)["channels"])
+    return finished, channels
+
+
+def _refuse_mixing(directory: Path, lacking: list[str], finished: int, what: str) -> None:
     if lacking:
         raise DatasetError(
-            f"{directory}: {len(lacking)} of its {len(finished)} finished files ({lacking[0]}, "
-            f"...) have the variance but no colour covariance (channels "
-            f"{'/'.join(CHANNELS['covariance'])}), which this jaxden's renderer records: they "
-            f"come from an older jaxden, and finishing the build would mix files with and "
-            f"without it. Build into another folder, or delete {directory} to rebuild it.")
+            f"{directory}: {len(lacking)} of its {finished} finished files ({lacking[0]}, "
+            f"...) {what}, which this jaxden's renderer records: they come from an older "
+            f"jaxden, and finishing the build would mix files with and without it. Build into "
+            f"another folder, or delete {directory} to rebuild it.")

@@ -7,6 +7,12 @@ differences for them.
 
 >>> den = make_denoiser("oidn")               # ready to call: den(frame) -> image
 >>> den = make_denoiser("unet", key=key)      # freshly initialised parameters
+>>> den = load_denoiser("wskp-6:emission=separate")   # a spec with options
+
+A spec ``SPEC:KEY=VALUE,...`` takes the options of :data:`DENOISER_OPTIONS` after the last
+colon, for every denoiser: ``emission=separate`` keeps the directly visible emission
+(``Frame.emission``) out of the filter, ``D(colour - emission) + emission``
+(:mod:`jaxden.denoise.emission`); ``emission=filter`` is the default.
 
 The registered denoisers live beside this module (:mod:`jaxden.denoise.oidn`,
 :mod:`jaxden.denoise.models`); the package imports them, so any import of
@@ -24,8 +30,12 @@ from typing import Any
 
 import jax
 
+from jaxden.denoise.emission import EMISSION_MODES, separated_apply
 from jaxden.errors import CheckpointError, ConfigError
 from jaxden.frame import Frame
+
+#: Options of a denoiser spec ``SPEC:KEY=VALUE,...`` -> their values (the first: the default).
+DENOISER_OPTIONS: dict[str, tuple[str, ...]] = {"emission": EMISSION_MODES}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -124,18 +134,73 @@ def make_denoiser(
     return Denoiser(definition, config, params)
 
 
+@functools.cache
+def emission_separated(definition: DenoiserDef) -> DenoiserDef:
+    """``definition`` with the emission kept out of the filter (:mod:`jaxden.denoise.emission`):
+    same config, parameters and init; requires ``emission`` too; named ``NAME+emission-separate``
+    (its SURE caches and reports are kept apart from D's). One object per definition, so the
+    jit and SURE caches keyed on it hold."""
+    name = f"{definition.name}+emission-separate"
+    required = definition.required
+    return DenoiserDef(
+        name=name,
+        description=f"{definition.description}; directly visible emission kept out of the filter",
+        config_cls=definition.config_cls,
+        required=lambda config: (*required(config), "emission"),
+        apply=separated_apply(definition.apply, name, definition.differentiable),
+        init=definition.init,
+        differentiable=definition.differentiable,
+    )
+
+
+def split_spec(spec: str | os.PathLike) -> tuple[str | os.PathLike, dict[str, str]]:
+    """``(base spec, {option: value})`` of ``SPEC[:KEY=VALUE,...]``: options follow the last
+    colon (:data:`DENOISER_OPTIONS`); a spec that names an existing path has none. An unknown
+    option or value is a ConfigError naming the allowed ones."""
+    if not isinstance(spec, str) or ":" not in spec or Path(spec).exists():
+        return spec, {}
+    base, _, tail = spec.rpartition(":")
+    options: dict[str, str] = {}
+    for option in (part.strip() for part in tail.split(",")):
+        key, equals, value = (p.strip() for p in option.partition("="))
+        if not equals or key not in DENOISER_OPTIONS:
+            raise ConfigError(
+                f"denoiser {spec!r}: expected options KEY=VALUE after the last ':' with KEY one "
+                f"of {', '.join(DENOISER_OPTIONS)}, got {option!r}")
+        if value not in DENOISER_OPTIONS[key]:
+            raise ConfigError(f"denoiser {spec!r}: {key} must be one of "
+                              f"{', '.join(DENOISER_OPTIONS[key])}, got {value!r}")
+        options[key] = value
+    return base, options
+
+
+def with_options(denoiser: Denoiser, emission: str = "filter") -> Denoiser:
+    """The denoiser with the spec options of :data:`DENOISER_OPTIONS` applied."""
+    if emission not in EMISSION_MODES:
+        raise ConfigError(f"emission must be one of {', '.join(EMISSION_MODES)}, got {emission!r}")
+    if emission == "filter":
+        return denoiser
+    return Denoiser(emission_separated(denoiser.definition), denoiser.config, denoiser.params)
+
+
 WEIGHTS_DIR = Path(__file__).parent.parent / "weights"
 
 
 def load_denoiser(spec: str | os.PathLike) -> Denoiser:
-    """A ready denoiser from a name or trained weights.
+    """A ready denoiser from a name or trained weights, with spec options.
 
     ``spec``: a registered black-box name (``oidn``); a name with weights shipped in the
     package (``jaxden/weights/<name>.msgpack``); a training workdir or checkpoint folder from
-    ``jaxden train``; or a released ``.msgpack`` weights file. The checkpoint's meta record
-    says which model and config it holds; a mixer checkpoint or an unknown model is a
-    CheckpointError.
+    ``jaxden train``; or a released ``.msgpack`` weights file; any of these followed by
+    ``:KEY=VALUE,...`` options (:func:`split_spec`, e.g. ``wskp-6:emission=separate``). The
+    checkpoint's meta record says which model and config it holds; a mixer checkpoint or an
+    unknown model is a CheckpointError.
     """
+    base, options = split_spec(spec)
+    return with_options(_load_base(base), **options)
+
+
+def _load_base(spec: str | os.PathLike) -> Denoiser:
     from jaxden.checkpoint import load_trained_params, read_checkpoint_meta
     from jaxden.config import load_config
 

@@ -4,7 +4,7 @@ Two renders per frame, with the same sensor:
 
 1. **Colour pass(es)**: the ``jaxden_moment`` integrator (see
    :mod:`jaxden.render.integrators`) gives the exact per-pixel RGB first and second sample
-   moments in one render. Large jobs (spp x pixels > ``MAX_SAMPLES_PER_PASS``, or spp >
+   moments in one render, and the emission of the first hit averaged over the same samples. Large jobs (spp x pixels > ``MAX_SAMPLES_PER_PASS``, or spp >
    ``MAX_SPP_PER_PASS``) are split into passes with their own derived seeds; the passes'
    moments are combined exactly (weighted by their spp, in float64). Passes keep the Dr.Jit
    wavefront far below its 2^32 limit and bound the float32 round-off of the film's per-pixel
@@ -257,24 +257,28 @@ def _render(scene, sensor, integrator, seed: int, spp: int, channels: int) -> np
 def _render_colour(mi_scene, mi_sensor, max_depth, seed: int, spp: int,
                    shape: tuple[int, int], budget: int):
     """Colour passes: (pixel mean, variance of the mean, covariance of the mean between
-    channels), float32; the last two None at 1 spp."""
+    channels, emission of the first hit averaged over the same samples), float32; variance
+    and covariance None at 1 spp."""
     _, moment = _integrators(mi_scene, max_depth)
-    sums = np.zeros(shape + (9,), np.float64)
+    channels = integrators.MOMENT_CHANNELS
+    sums = np.zeros(shape + (channels,), np.float64)
     for index, pass_spp in enumerate(split_passes(spp, shape[0] * shape[1], budget)):
         sums += pass_spp * _render(mi_scene, mi_sensor, moment, derive_seed(seed, "color", index),
-                                   pass_spp, 9).astype(np.float64)
+                                   pass_spp, channels).astype(np.float64)
     moments = sums / spp
     m1 = moments[..., 0:3]
+    emission = moments[..., 9:12].astype(np.float32)
     if spp == 1:
-        return m1.astype(np.float32), None, None
+        return m1.astype(np.float32), None, None, emission
     variance = integrators.variance_of_mean(m1, moments[..., 3:6], spp)
     covariance = integrators.covariance_of_mean(m1, moments[..., 6:9], variance, spp)
-    return m1.astype(np.float32), variance.astype(np.float32), covariance.astype(np.float32)
+    return (m1.astype(np.float32), variance.astype(np.float32), covariance.astype(np.float32),
+            emission)
 
 
 def _check_colour(colour: Frame, spp: int, shape: tuple[int, int]):
-    """The colour, variance and covariance of a given render, checked against the frame to
-    be made."""
+    """The colour, variance, covariance and emission of a given render, checked against the
+    frame to be made."""
     color = np.asarray(colour.color, np.float32)
     if color.shape != shape + (3,):
         raise SceneError(f"render_frame: colour= has shape {color.shape}, the render is "
@@ -286,7 +290,8 @@ def _check_colour(colour: Frame, spp: int, shape: tuple[int, int]):
     if variance is None and spp > 1:
         raise SceneError("render_frame: colour= has no variance")
     covariance = None if colour.covariance is None else np.asarray(colour.covariance, np.float32)
-    return color, variance, covariance
+    emission = None if colour.emission is None else np.asarray(colour.emission, np.float32)
+    return color, variance, covariance, emission
 
 
 def _render_features(scene, sensor, integrator, seed: int, spp: int, pixels: int,
@@ -319,7 +324,7 @@ def render_frame(
     colour: Frame | None = None,
     parameters: dict[str, str] | None = None,
 ) -> Frame:
-    """Render a Frame: colour, variance of the mean, albedo, normal, depth, position.
+    """Render a Frame: colour, variance of the mean, emission, albedo, normal, depth, position.
 
     Args:
       scene: anything :func:`jaxden.render.load_scene` accepts (built-in name,
@@ -346,8 +351,8 @@ def render_frame(
         (default 1024). The 16 of older datasets leaves sampling noise in textured albedo and
         at edges, which OIDN keeps when told its features are clean: 10-25 % more RMSE at
         256-4096 spp (docs/results.md, "OIDN's auxiliary features").
-      colour: a Frame whose colour, variance and covariance to keep instead of rendering
-        them (only the feature pass runs): a render of the same scene, crop and spp, e.g. a dataset item
+      colour: a Frame whose colour, variance, covariance and emission to keep instead of
+        rendering them (only the feature pass runs): a render of the same scene, crop and spp, e.g. a dataset item
         whose features are re-rendered (``jaxden dataset refeature``). With the seed it was
         rendered with, the result equals a full render_frame call.
       parameters: ``{name: value}`` for ``$name`` in an XML scene (Mitsuba's ``-D``).
@@ -356,7 +361,11 @@ def render_frame(
       A Frame of float32 NumPy arrays without batch dimension: color (H, W, 3) (linear
       radiance, mean of spp samples), variance (H, W, 3) variance of that mean and
       covariance (H, W, 3) its covariance between channels (R, G), (G, B), (B, R), both None
-      when spp == 1; albedo (H, W, 3); normal (H, W, 3), unit length, 0 where no feature sample hit;
+      when spp == 1; emission (H, W, 3) the radiance emitted by the first hit (directly
+      visible emitters; not the environment on misses), averaged over the colour's own
+      samples, so 0 <= emission <= color (see :mod:`jaxden.render.integrators`; None with a
+      ``colour`` frame that has none); albedo (H, W, 3); normal (H, W, 3), unit length, 0
+      where no feature sample hit;
       depth (H, W, 1) distance along the camera ray, 0 on misses; position (H, W, 3) world
       space, 0 on misses; spp = np.float32(spp). Features average min(spp, feature_spp)
       samples.
@@ -379,10 +388,10 @@ def render_frame(
     mi_scene, mi_sensor, (height, width) = _scene_and_sensor(scene, size, crop, sensor,
                                                              parameters)
     if colour is None:
-        color, variance, covariance = _render_colour(mi_scene, mi_sensor, max_depth, seed, spp,
-                                                     (height, width), budget)
+        color, variance, covariance, emission = _render_colour(
+            mi_scene, mi_sensor, max_depth, seed, spp, (height, width), budget)
     else:
-        color, variance, covariance = _check_colour(colour, spp, (height, width))
+        color, variance, covariance, emission = _check_colour(colour, spp, (height, width))
 
     features = _render_features(mi_scene, mi_sensor, _features_integrator(aux),
                                 derive_seed(seed, "aov"), min(spp, feature_spp), height * width,
@@ -402,4 +411,5 @@ def render_frame(
         position=np.ascontiguousarray(features[..., channels["position"]]),
         spp=np.float32(spp),
         covariance=covariance,
+        emission=emission,
     )
