@@ -351,6 +351,11 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
         f"and {label}'s output y per pixel; at inference the t-statistic scaling (window "
         f"{mc['tstat']['window']}, a = {mc['tstat']['a']}, c = {mc['tstat']['c']}, "
         f"per_channel = {str(mc['tstat']['per_channel']).lower()}) makes the result consistent"
+        + (f", and the error guard (`tstat.guard`: alpha <= {mc['tstat'].get('guard_gamma', 2.0)}"
+           f" var / E[(y - x)^2] from {mc['tstat'].get('guard_sigma', 1.0)}-px local means, "
+           "scaled to 0 where y is c standard errors off x; our addition, "
+           "`jaxden.progressive.guard`) keeps it from ending above x where y is far off"
+           if mc["tstat"].get("guard", True) else "")
         + (" and alpha is the mean of the mixer's alpha and 1 - alpha of its swapped call "
            "(`swap_average`, a second mixer call; our addition, see `MixerConfig`). "
            if mc.get("swap_average") else ". ")
