@@ -6,9 +6,10 @@ spp PD is at most a factor above the better of MC and its denoiser.
         --out experiments/results/pd-targets
 
 Per report and image (a crop of the test set; on the stress set a whole frame):
-- top spp: PD's noise-corrected MSE against MC's, passing when PD <= MC + the reference-noise
-  margin of the row (``pd_vs_mc_margin``: twice the standard deviation that the reference's
-  noise puts into the difference of the two errors);
+- top spp: PD's noise-corrected MSE against MC's, passing when PD <= MC + the noise margin of
+  the row (``pd_vs_mc_margin``: twice the standard deviation that the noise of the render and
+  of the reference puts into the difference of the two errors,
+  :func:`jaxden.progressive.report.noise_margin`);
 - every spp: PD / min(MC, denoiser) in RMSE (from the noise-corrected MSE) and in relMSE; the
   worst spp is listed, passing at <= --factor (1.05).
 """
@@ -56,8 +57,8 @@ def table(results: dict[str, list[dict]], factor: float) -> str:
         "## Progressive denoising, image by image: ends at or below MC, never far above the "
         "better of MC and the denoiser",
         "",
-        "Top spp: PD / MC in noise-corrected MSE, with the reference-noise margin (twice the "
-        "standard deviation the reference's noise puts into the difference), as a fraction "
+        "Top spp: PD / MC in noise-corrected MSE, with the noise margin (twice the standard "
+        "deviation the render's and the reference's noise put into the difference), as a fraction "
         f"of MC's MSE. Every spp: the worst PD / min(MC, denoiser), in RMSE (noise-corrected) "
         f"and relMSE, with its spp; target <= {factor}.",
         "",

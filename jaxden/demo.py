@@ -35,7 +35,7 @@ from jaxden.errors import JaxdenError
 
 @dataclasses.dataclass(frozen=True)
 class DemoSettings:
-    scenes: tuple[str, ...] = ("cornell-box", "texture-bump")
+    scenes: tuple[str, ...] = ("cornell-box", "texture-bump", "small-lights")
     size: tuple[int, int] = (128, 128)
     spp_levels: tuple[int, ...] = (1, 4, 16, 64, 256)
     reference_spp: int = 4096

@@ -50,15 +50,19 @@ def _errors(image, reference) -> dict[str, float]:
     }
 
 
-def reference_noise_margin(image, x, reference) -> float:
-    """Twice the standard deviation that the reference's noise puts into the difference of two
-    noise-corrected MSEs scored against it, MSE(image) - MSE(x), in MSE units (mean over
-    pixels and channels): (image - r)^2 - (x - r)^2 = (image - x)(image + x - 2 r), whose
-    part from the reference r = mu + e is -2 (image - x) e, of variance 4 sum (image - x)^2
-    var_ref / N^2. Within it, image and x are the same distance from the truth as far as this
-    reference can tell."""
+def noise_margin(image, x, variance, reference) -> float:
+    """Twice the standard deviation that the noise of the render x and of the reference puts
+    into the difference of two noise-corrected MSEs scored against the same reference,
+    MSE(image) - MSE(x), in MSE units (mean over pixels and channels). Per pixel
+    (image - r)^2 - (x - r)^2 = (image - x)(image + x - 2 r); with image - x held fixed, its
+    noise is 2 (image - x)((x - mu) - (r - mu)), of variance 4 (image - x)^2 (var_x + var_r).
+    Within the margin, image and x are equally far from the truth as far as one render and
+    one reference can tell (a pixel mixed at Eq. 9's break-even alpha is such a pixel); a
+    bias shows beyond it, its excess growing with (image - x)^2 and the margin with its square
+    root."""
     image, x = (np.asarray(a, np.float64) for a in (image, x))
-    spread = np.sum((image - x) ** 2 * np.asarray(reference.variance, np.float64))
+    spread = np.sum((image - x) ** 2 * (np.asarray(variance, np.float64)
+                                        + np.asarray(reference.variance, np.float64)))
     return float(4.0 * math.sqrt(spread) / image.size)
 
 
@@ -172,7 +176,7 @@ def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
             row: dict[str, Any] = {"crop": crop.id, "scene": crop.scene, "spp": level}
             for method, image in images.items():
                 row |= {f"{method}_{k}": v for k, v in _errors(image, reference).items()}
-            row["pd_vs_mc_margin"] = reference_noise_margin(z, frame.color, reference)
+            row["pd_vs_mc_margin"] = noise_margin(z, frame.color, frame.variance, reference)
             row["sure"] = float(np.mean(np.asarray(extras["sure"])))
             row["alpha"] = float(np.mean(np.asarray(extras["alpha"])))
             row["alpha_prime"] = float(np.mean(np.asarray(alpha_prime)))
