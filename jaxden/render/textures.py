@@ -326,3 +326,24 @@ def environment_map(shape, rng: np.random.Generator) -> np.ndarray:
         image = image + strength * tint * np.exp(-0.5 * (angle / size) ** 2)[..., None]
     image = image / max(float(image.mean()), 1e-6)
     return image.astype(np.float32)
+
+
+def write_textures(images: dict[str, np.ndarray], out) -> list:
+    """Write scene textures into the folder ``out``: ``NAME.png`` as 8-bit PNG (uint8 arrays),
+    anything else (``NAME.exr``) as a half-float EXR; what a scene set's make_textures.py
+    commits beside its XML files. Returns the paths written."""
+    from pathlib import Path
+
+    from jaxden.io.exr import write_image
+    from jaxden.io.png import write_png
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name, image in images.items():
+        if name.endswith(".png"):
+            write_png(out / name, image)
+        else:
+            write_image(out / name, image, half=True)
+        written.append(out / name)
+    return written

@@ -54,16 +54,10 @@ def textures() -> dict[str, np.ndarray]:
 
 
 def main(out: Path = HERE / "textures") -> int:
-    from jaxden.io.exr import write_image
-    from jaxden.io.png import write_png
+    from jaxden.render.textures import write_textures
 
-    out.mkdir(parents=True, exist_ok=True)
-    for name, image in textures().items():
-        if name.endswith(".png"):
-            write_png(out / name, image)
-        else:
-            write_image(out / name, image, half=True)
-        print(f"wrote {out / name}")
+    for path in write_textures(textures(), out):
+        print(f"wrote {path}")
     return 0
 
 
