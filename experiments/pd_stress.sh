@@ -9,7 +9,8 @@
 #                         was trained with)
 #   wskp6-pd-t-test-only  the same with the t-test alone
 #   wskp6-closed-form     Eq. 9 alone over WSKP-6 (no network; per-channel t, one probe)
-# then experiments/results/pd-targets over them and the pd-test-high reports of wskp-6-pd.
+# then experiments/results/pd-targets over them, the pd-test-high reports of wskp-6-pd and
+# oidn-pd's report on test (experiments/pd_tables.sh).
 # A report already made on the same build with the same options is kept (--keep-current).
 # Data: $JAXDEN_HOME/data/stress (experiments/queue.sh); the first-hit refeature is made here.
 set -euo pipefail
@@ -35,4 +36,4 @@ pd --data "$H/data/stress-first-hit" --denoiser wskp-6 --mixer wskp-6-pd --tstat
   "$R"/pd-stress-wskp6-closed-form.json "$R"/pd-stress-oidn-pd-t-test-only.json \
   "$R"/pd-stress-wskp6-pd-t-test-only.json "$R"/pd-wskp6-test-high.json \
   "$R"/pd-wskp6-test-high-closed-form.json "$R"/pd-wskp6-test-high-t-test-only.json \
-  --out "$R/pd-targets"
+  "$R"/pd-oidn-test-shipped.json --out "$R/pd-targets"
