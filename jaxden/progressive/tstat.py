@@ -16,8 +16,8 @@ from jax.scipy.special import ndtr
 
 from jaxden.config import bounded
 from jaxden.errors import ConfigError, FrameError
-from jaxden.progressive.closed_form import _blur_shifted
 from jaxden.progressive.checks import _check_image, _check_same, _check_variance_values
+from jaxden.progressive.closed_form import _blur_shifted
 from jaxden.progressive.guard import _guard_alpha
 from jaxden.progressive.heads import _mix
 
@@ -232,6 +232,13 @@ def t_statistic(x, z, var, config: TStatConfig | None = None, **overrides):
     return _t_statistic(jnp.asarray(x), jnp.asarray(z), jnp.asarray(var), config)
 
 
+def _check_alpha(alpha, shape: tuple, where: str) -> None:
+    """alpha (..., H, W, 1 or 3) over the (..., H, W) of the colour shape ``shape``."""
+    alpha_shape = _check_image("alpha", alpha, where, channels=(1, 3))
+    if alpha_shape[:-1] != shape[:-1]:
+        raise FrameError(f"{where}: 'alpha' has shape {alpha_shape} but x has {shape}")
+
+
 @functools.partial(jax.jit, static_argnames=("config",))
 def _scale_alpha(alpha, t, config: TStatConfig):
     # Separate from _t_statistic so both public functions share its compiled code.
@@ -278,11 +285,7 @@ def t_statistic_scaling(alpha, x, z, var, config: TStatConfig | None = None, **o
     """
     config = _resolve_config(config, overrides)
     shape = _check_same("t_statistic_scaling", x=x, z=z, var=var)
-    alpha_shape = _check_image("alpha", alpha, "t_statistic_scaling", channels=(1, 3))
-    if alpha_shape[:-1] != shape[:-1]:
-        raise FrameError(
-            f"t_statistic_scaling: 'alpha' has shape {alpha_shape} but x has {shape}"
-        )
+    _check_alpha(alpha, shape, "t_statistic_scaling")
     _check_variance_values(var, "t_statistic_scaling")
     t = _t_statistic(jnp.asarray(x), jnp.asarray(z), jnp.asarray(var), config)
     return _scale_alpha(jnp.asarray(alpha), t, config)
@@ -300,9 +303,7 @@ def error_guard(alpha, x, y, var, config: TStatConfig | None = None, **overrides
     """
     config = _resolve_config(config, overrides)
     shape = _check_same("error_guard", x=x, y=y, var=var)
-    alpha_shape = _check_image("alpha", alpha, "error_guard", channels=(1, 3))
-    if alpha_shape[:-1] != shape[:-1]:
-        raise FrameError(f"error_guard: 'alpha' has shape {alpha_shape} but x has {shape}")
+    _check_alpha(alpha, shape, "error_guard")
     _check_variance_values(var, "error_guard")
     return _guard_alpha(jnp.asarray(alpha), jnp.asarray(x), jnp.asarray(y), jnp.asarray(var),
                         config)
@@ -320,11 +321,7 @@ def consistent_mix(x, y, alpha, var, config: TStatConfig | None = None, **overri
     z = mix(x, y, alpha)) followed by the error guard (when ``config.guard``, the default),
     and z' = x + alpha' (y - x). Shapes as in :func:`t_statistic_scaling`."""
     config = _resolve_config(config, overrides)
-    _check_same("consistent_mix", x=x, y=y, var=var)
-    alpha_shape = _check_image("alpha", alpha, "consistent_mix", channels=(1, 3))
-    if alpha_shape[:-1] != np.shape(x)[:-1]:
-        raise FrameError(
-            f"consistent_mix: 'alpha' has shape {alpha_shape} but x has {np.shape(x)}")
+    _check_alpha(alpha, _check_same("consistent_mix", x=x, y=y, var=var), "consistent_mix")
     _check_variance_values(var, "consistent_mix")
     x, y, var, alpha = (jnp.asarray(a) for a in (x, y, var, alpha))
     alpha_prime = _consistent_alpha(alpha, x, y, var, _mix(x, y, alpha), config)
