@@ -101,7 +101,8 @@ def evaluate(data: Path, crops, spp, mixers, denoiser: str = "oidn", seed: int =
                 alphas = {"single": single, "swapped": swapped, "average": (single + swapped) / 2}
                 pd = {}
                 for name, alpha in alphas.items():
-                    pd[name], _ = consistent_mix(x, y, alpha, var, config.tstat)
+                    pd[name], _ = consistent_mix(x, y, alpha, var, config.tstat,
+                                                 spp=frame.spp)
                     entry[name] = {"alpha": float(jnp.mean(alpha)),
                                    "pd_over_mc": rmse(pd[name]) / mc}
                 if worst:

@@ -9,6 +9,8 @@
 #                         was trained with)
 #   wskp6-pd-t-test-only  the same with the t-test alone
 #   wskp6-closed-form     Eq. 9 alone over WSKP-6 (no network; per-channel t, one probe)
+#   oidn-pd-strata, wskp6-pd-strata   the shipped mixers with the guard's noise strata on
+#                         (tstat.guard_strata=1, an option; jaxden/progressive/guard.py)
 # then experiments/results/pd-targets over them, the pd-test-high reports of wskp-6-pd and
 # oidn-pd's report on test (experiments/pd_tables.sh).
 # A report already made on the same build with the same options is kept (--keep-current).
@@ -28,12 +30,17 @@ pd --data "$H/data/stress" --denoiser oidn --mixer oidn-pd --out "$R/pd-stress-o
 pd --data "$H/data/stress-first-hit" --denoiser wskp-6 --mixer wskp-6-pd --out "$R/pd-stress-wskp6-pd"
 pd --data "$H/data/stress-first-hit" --denoiser wskp-6 --mixer closed-form --probes 1 \
   --tstat per_channel=true --out "$R/pd-stress-wskp6-closed-form"
+pd --data "$H/data/stress" --denoiser oidn --mixer oidn-pd --tstat guard_strata=1 \
+  --out "$R/pd-stress-oidn-pd-strata"
+pd --data "$H/data/stress-first-hit" --denoiser wskp-6 --mixer wskp-6-pd --tstat guard_strata=1 \
+  --out "$R/pd-stress-wskp6-pd-strata"
 pd --data "$H/data/stress" --denoiser oidn --mixer oidn-pd --tstat guard=false \
   --out "$R/pd-stress-oidn-pd-t-test-only"
 pd --data "$H/data/stress-first-hit" --denoiser wskp-6 --mixer wskp-6-pd --tstat guard=false \
   --out "$R/pd-stress-wskp6-pd-t-test-only"
 "$python" experiments/pd_targets.py "$R"/pd-stress-oidn-pd.json "$R"/pd-stress-wskp6-pd.json \
-  "$R"/pd-stress-wskp6-closed-form.json "$R"/pd-stress-oidn-pd-t-test-only.json \
+  "$R"/pd-stress-wskp6-closed-form.json "$R"/pd-stress-oidn-pd-strata.json \
+  "$R"/pd-stress-wskp6-pd-strata.json "$R"/pd-stress-oidn-pd-t-test-only.json \
   "$R"/pd-stress-wskp6-pd-t-test-only.json "$R"/pd-wskp6-test-high.json \
   "$R"/pd-wskp6-test-high-closed-form.json "$R"/pd-wskp6-test-high-t-test-only.json \
   "$R"/pd-oidn-test-shipped.json --out "$R/pd-targets"

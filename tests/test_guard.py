@@ -21,34 +21,75 @@ from jaxden import progressive as P
 from jaxden.errors import ConfigError, FrameError
 
 
-def reference_guard(alpha, x, y, var, cfg: P.TStatConfig) -> np.ndarray:
-    """Literal guard for one image, float64: Gaussian local means (3-sigma window, in-image
-    pixels), chi^2 = mean (y - x)^2 / mean var, alpha'' = min(alpha, gamma / chi^2) *
-    Phi(-a (chi - c))."""
-    alpha, x, y, var = (np.asarray(a, np.float64) for a in (alpha, x, y, var))
-    height, width, _ = x.shape
+def _pair_window(shape, cfg) -> np.ndarray:
+    """w(p - q) for every pair of pixels of an (H, W) image: the Gaussian weight within the
+    3-sigma window, 0 outside it, (H W, H W)."""
     radius = max(1, math.ceil(3 * cfg.guard_sigma))
-    residual, variance = (y - x) ** 2, var
+    rows, cols = np.indices(shape).reshape(2, -1)
+    dy, dx = rows[:, None] - rows[None, :], cols[:, None] - cols[None, :]
+    inside = (np.abs(dy) <= radius) & (np.abs(dx) <= radius)
+    return np.where(inside, np.exp(-(dy ** 2 + dx ** 2) / (2 * cfg.guard_sigma ** 2)), 0.0)
+
+
+def _local_sum(image, pairs):
+    """sum_q pairs[p, q] image[q] for (H, W, C) ``image``."""
+    height, width, channels = image.shape
+    return (pairs @ image.reshape(-1, channels)).reshape(height, width, channels)
+
+
+def _chi2(residual, variance):
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(variance > 0, residual / np.where(variance > 0, variance, 1),
+                        np.where(residual > 0, np.inf, 0))
+
+
+def reference_guard(alpha, x, y, var, cfg: P.TStatConfig, spp=None) -> np.ndarray:
+    """Literal guard for one image, float64, as docs/departures.md states it.
+
+    Spatial chi^2 = sum w (y - x)^2 / sum w var I (3-sigma Gaussian window over in-image
+    pixels; I = 1 + confidence sqrt(2 / ((spp - 1) N_eff)), N_eff = (sum w)^2 / sum w^2 of
+    the full window, 1 without spp). Strata chi^2: the same sums with the pair weight
+    sum_b s_b(p) s_b(q) of tent bins over the level L = clip(log2 sd - mean log2 sd, +-16) /
+    width (sd from the channel mean of var; pixels with var = 0 take no part), width =
+    max(stops, 3 x RMS of L - its local mean over members where that is < 8); used where the
+    stratum's share of the window weight is >= 0.3. alpha'' = min(alpha, gamma / chi_sp^2)
+    Phi(-a (max(chi_sp, chi_st) - c))."""
+    alpha, x, y, var = (np.asarray(a, np.float64) for a in (alpha, x, y, var))
+    radius = max(1, math.ceil(3 * cfg.guard_sigma))
+    offsets = np.arange(-radius, radius + 1)
+    window = np.exp(-(offsets[:, None] ** 2 + offsets[None, :] ** 2) / (2 * cfg.guard_sigma ** 2))
+    n_eff = window.sum() ** 2 / np.square(window).sum()
+    pairs = _pair_window(x.shape[:2], cfg)
+    inflation = 1.0 if spp is None else (
+        1 + cfg.guard_confidence * math.sqrt(2 / (max(spp - 1, 1) * n_eff)))
+    residual, variance = (y - x) ** 2, var * inflation
     if not cfg.per_channel:
         residual = residual.sum(-1, keepdims=True)
         variance = variance.sum(-1, keepdims=True)
-    out = np.empty(np.broadcast_shapes(alpha.shape, residual.shape))
-    for py in range(height):
-        for px in range(width):
-            d = v = 0.0
-            for dy in range(-radius, radius + 1):
-                for dx in range(-radius, radius + 1):
-                    qy, qx = py + dy, px + dx
-                    if 0 <= qy < height and 0 <= qx < width:
-                        w = math.exp(-(dy * dy + dx * dx) / (2 * cfg.guard_sigma ** 2))
-                        d = d + w * residual[qy, qx]
-                        v = v + w * variance[qy, qx]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                chi2 = np.where(v > 0, d / np.where(v > 0, v, 1), np.where(d > 0, np.inf, 0))
-                cap = np.where(chi2 > 0, cfg.guard_gamma / chi2, np.inf)
-            keep = norm.cdf(-cfg.a * (np.sqrt(chi2) - cfg.c))
-            out[py, px] = np.minimum(alpha[py, px], cap) * keep
-    return out
+    chi2_cap = _chi2(_local_sum(residual, pairs), _local_sum(variance, pairs))
+    chi2_test = chi2_cap
+    if cfg.guard_strata is not None:
+        sd = np.sqrt(var.mean(-1))
+        member = sd > 0
+        log_sd = np.log2(np.where(member, sd, 1))
+        level = np.where(member, np.clip(log_sd - log_sd[member].mean(), -16, 16), 0)
+        local = (_local_sum(level[..., None], pairs)[..., 0]
+                 / _local_sum(member[..., None].astype(float), pairs)[..., 0])
+        deviation = np.abs(level - local)
+        counted = member & (deviation < 8)
+        width = max(cfg.guard_strata, 3 * math.sqrt(np.mean(deviation[counted] ** 2)))
+        position = (level / width).ravel()
+        bins = np.arange(math.floor(position.min()) - 1, math.ceil(position.max()) + 2)
+        tents = np.maximum(0, 1 - np.abs(position[:, None] - bins[None, :]))  # (H W, bins)
+        tents = tents * member.ravel()[:, None]
+        strata_pairs = pairs * (tents @ tents.T)
+        ones = np.ones(x.shape[:2] + (1,))
+        support = _local_sum(ones, strata_pairs) / _local_sum(ones, pairs)
+        strata = _chi2(_local_sum(residual, strata_pairs), _local_sum(variance, strata_pairs))
+        chi2_test = np.maximum(chi2_cap, np.where(support >= 0.3, strata, 0))
+    with np.errstate(divide="ignore"):
+        cap = np.where(chi2_cap > 0, cfg.guard_gamma / chi2_cap, np.inf)
+    return np.minimum(alpha, cap) * norm.cdf(-cfg.a * (np.sqrt(chi2_test) - cfg.c))
 
 
 def scene(seed, height=9, width=11, bias=3.0, zero_var_pixels=4):
@@ -65,15 +106,18 @@ def scene(seed, height=9, width=11, bias=3.0, zero_var_pixels=4):
     return tuple(a.astype(np.float32) for a in (alpha, x, y, var))
 
 
-@pytest.mark.parametrize("cfg", [
-    P.TStatConfig(),
-    P.TStatConfig(per_channel=True),
-    P.TStatConfig(guard_gamma=0.5, guard_sigma=2.5, a=3.0, c=3.0),
-], ids=["default", "per_channel", "options"])
-def test_guard_matches_numpy_reference(cfg):
+@pytest.mark.parametrize("cfg,spp", [
+    (P.TStatConfig(), None),
+    (P.TStatConfig(), 4),
+    (P.TStatConfig(per_channel=True, guard_strata=1.0), 1),
+    (P.TStatConfig(guard_strata=1.0), 16),
+    (P.TStatConfig(guard_gamma=0.5, guard_sigma=2.5, a=3.0, c=3.0, guard_confidence=3.0,
+                   guard_strata=4.0), 64),
+], ids=["default", "spp4", "per_channel_strata_spp1", "strata_spp16", "options_spp64"])
+def test_guard_matches_numpy_reference(cfg, spp):
     alpha, x, y, var = scene(seed=3, bias=6.0)
-    got = np.asarray(P.error_guard(alpha, x, y, var, cfg))
-    want = reference_guard(alpha, x, y, var, cfg)
+    got = np.asarray(P.error_guard(alpha, x, y, var, cfg, spp=spp))
+    want = reference_guard(alpha, x, y, var, cfg, spp)
     # float32 local sums of <= 49 terms against float64; the cap is a ratio of two of them.
     np.testing.assert_allclose(got, want, rtol=2e-5, atol=1e-6)
     assert (got < 0.5 * alpha).mean() > 0.1  # the scene makes the guard act somewhere
@@ -81,11 +125,18 @@ def test_guard_matches_numpy_reference(cfg):
 
 def test_guard_never_raises_alpha_and_batches():
     alpha, x, y, var = (np.stack(a) for a in zip(*(scene(seed=s) for s in (1, 2))))
-    guarded = np.asarray(P.error_guard(alpha, x, y, var))
+    spp = np.array([2.0, 256.0])
+    guarded = np.asarray(P.error_guard(alpha, x, y, var, spp=spp))
     assert np.all(guarded <= alpha) and np.all(guarded >= 0)
     for i in range(2):
-        np.testing.assert_allclose(guarded[i], np.asarray(P.error_guard(alpha[i], x[i], y[i],
-                                                                        var[i])), rtol=1e-6)
+        np.testing.assert_allclose(
+            guarded[i], np.asarray(P.error_guard(alpha[i], x[i], y[i], var[i], spp=spp[i])),
+            rtol=1e-6)
+    # the sample count only ever loosens the guard, and none means an exact variance
+    assert np.all(guarded >= np.asarray(P.error_guard(alpha, x, y, var)))
+    np.testing.assert_array_equal(np.asarray(P.error_guard(alpha, x, y, var, spp=spp,
+                                                           guard_confidence=0.0)),
+                                  np.asarray(P.error_guard(alpha, x, y, var)))
 
 
 def test_guard_leaves_an_unbiased_denoiser_alone():
@@ -99,6 +150,63 @@ def test_guard_leaves_an_unbiased_denoiser_alone():
     alpha = np.full(mu.shape, 0.95, np.float32)
     guarded = np.asarray(P.error_guard(alpha, x, mu, var))
     assert np.quantile(guarded / alpha, 0.01) > 0.99
+
+
+def test_guard_trusts_an_unbiased_denoiser_at_2_spp_given_the_sample_count():
+    """x the mean of 2 samples per pixel, each mu (0.3 + 0.7 B / p) with B ~ Bernoulli(p = 0.5)
+    shared by R, G, B (a light path found or not), var their sample variance / 2 (one degree
+    of freedom); y = mu exactly (a perfect denoiser, so any cut of alpha is pure loss). Taking
+    the 2-sample variance as exact, the guard overstates chi^2 where neither sample found the
+    light and leaves 4.5 % of MC's MSE; given spp = 2 it leaves 0.9 % (seed 11, 96 x 96)."""
+    rng = np.random.default_rng(11)
+    mu = rng.uniform(0.2, 2.0, (96, 96, 3))
+    found = rng.uniform(size=(2, 96, 96, 1)) < 0.5
+    samples = mu * (0.3 + 0.7 * found / 0.5)
+    x = samples.mean(0).astype(np.float32)
+    var = (samples.var(0, ddof=1) / 2).astype(np.float32)
+    y, alpha = mu.astype(np.float32), np.ones_like(x)
+    mc = np.mean((x - mu) ** 2)
+
+    def left(spp):
+        guarded = np.asarray(P.error_guard(alpha, x, y, var, spp=spp))
+        return np.mean((x + guarded * (y - x) - mu) ** 2) / mc
+
+    assert left(None) > 0.03 and left(2) < 0.015
+
+
+def lamp_with_bleed(seed=13):
+    """A 15 x 15 dark floor (mu 0.05, variance 1e-4) with a 3 x 3 lamp rim (mu 500, variance
+    1e5) whose denoised image smears 40 onto the ring of dark pixels around it (the bleed of
+    WSKP-6 on the stress set's lamp-ladder), unbiased elsewhere: (alpha, x, y, var, mu, ring)."""
+    rng = np.random.default_rng(seed)
+    mu = np.full((15, 15, 3), 0.05)
+    var = np.full_like(mu, 1e-4)
+    mu[6:9, 6:9], var[6:9, 6:9] = 500.0, 1e5
+    ring = np.zeros((15, 15), bool)
+    ring[5:10, 5:10] = True
+    ring[6:9, 6:9] = False
+    x = mu + np.sqrt(var) * rng.standard_normal(mu.shape)
+    y = mu.copy()
+    y[ring] = 40.0
+    alpha = np.full_like(mu, 0.9)
+    return (*(a.astype(np.float32) for a in (alpha, x, y, var)), mu, ring)
+
+
+def test_noise_strata_catch_the_bleed_that_the_lamp_rim_hides():
+    """Spatially the rim's variance (1e5) swamps the ring's residual (40^2 against 1e-4), so
+    chi ~ 0.3 and alpha stays 0.9 on the ring; pooled with its own noise level the ring has
+    chi ~ 2300 and alpha goes to 0. Off the lamp the strata change nothing (y is unbiased
+    there). Checked against the NumPy reference too."""
+    alpha, x, y, var, mu, ring = lamp_with_bleed()
+    spatial = np.asarray(P.error_guard(alpha, x, y, var, spp=64))
+    strata = np.asarray(P.error_guard(alpha, x, y, var, spp=64, guard_strata=1.0))
+    assert spatial[ring].min() > 0.85 and strata[ring].max() < 1e-6
+    far = np.zeros_like(ring)
+    far[:3], far[-3:] = True, True
+    np.testing.assert_allclose(strata[far], spatial[far], rtol=1e-6)
+    np.testing.assert_allclose(
+        strata, reference_guard(alpha, x, y, var, P.TStatConfig(guard_strata=1.0), 64),
+        rtol=2e-5, atol=1e-6)
 
 
 def test_guard_exact_cases():
@@ -140,7 +248,8 @@ def test_guard_catches_a_small_alpha_over_a_far_off_y_that_the_t_test_passes(per
 
 
 def test_guard_config_is_checked():
-    for bad in (dict(guard_gamma=0.0), dict(guard_sigma=-1.0), dict(guard="yes")):
+    for bad in (dict(guard_gamma=0.0), dict(guard_sigma=-1.0), dict(guard="yes"),
+                dict(guard_confidence=-1.0), dict(guard_strata=0.0)):
         with pytest.raises(ConfigError):
             P.TStatConfig(**bad)
     alpha, x, y, var = scene(seed=1)
@@ -148,6 +257,10 @@ def test_guard_config_is_checked():
         P.error_guard(alpha, x, y[:-1], var)
     with pytest.raises(FrameError, match="variance"):
         P.error_guard(alpha, x, y, -var - 1)
+    with pytest.raises(FrameError, match="spp must be"):
+        P.error_guard(alpha, x, y, var, spp=0)
+    with pytest.raises(FrameError, match="leading"):
+        P.error_guard(alpha, x, y, var, spp=[4, 8])
 
 
 # ------------------------------------------------------------- the failure it exists for

@@ -94,7 +94,7 @@ def bench_progressive(quick: bool) -> dict:
         "pd_single": lambda: pd(False),
         "mixer": lambda: mixer_alpha(params, config, x, y, var, sure_map),
         "tstat": lambda: t_statistic_scaling(alpha, x, mixed, var, config.tstat),
-        "guard": lambda: error_guard(alpha, x, y, var, config.tstat),
+        "guard": lambda: error_guard(alpha, x, y, var, config.tstat, spp=4),
         "closed_form": lambda: closed_form_alpha(x, y, var, sure_map),
         "closed_form_stops": lambda: closed_form_alpha(x, y, var, sure_map, stops=1.0),
     }

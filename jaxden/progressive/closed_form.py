@@ -50,21 +50,31 @@ def _blur_2d(image, taps):
     return _blur_shifted(_blur_shifted(image, taps, 0), taps, 1)
 
 
-def _range_strata(level, lo: int, hi: int):
-    """Tent memberships of ``level`` (in bin units) in the integer bins lo..hi: they sum to 1
-    wherever lo <= level <= hi, and each is nonzero only within one bin of its centre."""
-    for b in range(lo, hi + 1):
-        yield jnp.clip(1.0 - jnp.abs(level - b), 0.0, 1.0)
+def _strata_local_sums(terms, level, lo: int, hi: int, taps):
+    """Gaussian local sums of ``terms`` (H, W, C) over neighbours in the same strata: tent bins
+    of ``level`` (H, W, 1), in bin units, for the integer bins lo..hi. For each bin b the terms
+    of its members (weight s_b) are blurred, and a pixel collects sum_b s_b(p) blur(s_b
+    terms)(p), so neighbours more than two bins apart do not contribute. A loop over the bins
+    (one compiled body), empty bins skipped at run time."""
+
+    def add(b, total):
+        weight = jnp.clip(1.0 - jnp.abs(level - b.astype(level.dtype)), 0.0, 1.0)
+        return jax.lax.cond(
+            jnp.any(weight > 0),
+            lambda t: t + weight * _blur_2d(terms * weight, taps),
+            lambda t: t,
+            total,
+        )
+
+    return jax.lax.fori_loop(lo, hi + 1, add, jnp.zeros_like(terms))
 
 
 def _range_local_means(terms, x, y, taps, stops: float):
     """Gaussian local sums of ``terms`` (H, W, C) restricted to pixels of similar brightness.
 
-    A bilateral grid along log2 brightness with tent bins ``stops`` wide: for each bin b the
-    terms of its member pixels (weight s_b) are blurred, and a pixel collects sum_b s_b(p)
-    blur(s_b terms)(p). Neighbours more than two bins apart in brightness do not contribute,
-    so a bright emitter does not set the alpha of the dim wall beside it. Empty bins are
-    skipped at run time.
+    A bilateral grid along log2 brightness with tent bins ``stops`` wide
+    (:func:`_strata_local_sums`): neighbours more than two bins apart in brightness do not
+    contribute, so a bright emitter does not set the alpha of the dim wall beside it.
     """
     proxy = jnp.mean((x + y) * 0.5, axis=-1, keepdims=True)
     proxy = _blur_2d(proxy, jnp.asarray(_gaussian_taps(CLOSED_FORM_PROXY_SIGMA), x.dtype))
@@ -72,15 +82,7 @@ def _range_local_means(terms, x, y, taps, stops: float):
     level = jnp.log2(proxy) / stops
     lo = math.floor(math.log2(CLOSED_FORM_RANGE_FLOOR) / stops)
     hi = math.ceil(math.log2(CLOSED_FORM_RANGE_CEIL) / stops)
-    total = jnp.zeros_like(terms)
-    for weight in _range_strata(level, lo, hi):
-        total = jax.lax.cond(
-            jnp.any(weight > 0),
-            lambda t, w=weight: t + w * _blur_2d(terms * w, taps),
-            lambda t: t,
-            total,
-        )
-    return total
+    return _strata_local_sums(terms, level, lo, hi, taps)
 
 
 def _closed_form_single(x, y, var, sure, taps, per_channel: bool, stops: float | None = None):

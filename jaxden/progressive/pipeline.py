@@ -12,7 +12,7 @@ from jaxden.errors import ConfigError
 from jaxden.frame import Frame
 from jaxden.progressive.heads import _mix
 from jaxden.progressive.mixer import MixerConfig, _inference_alpha, load_mixer
-from jaxden.progressive.tstat import TStatConfig, _consistent_alpha
+from jaxden.progressive.tstat import TStatConfig, _check_spp, _consistent_alpha
 
 # ------------------------------------------------------------------------------ inference
 
@@ -87,7 +87,7 @@ def progressive_denoise(
     sure_map = jnp.asarray(result.sure, jnp.float32)
     z_prime, alpha_prime, alpha, mixed = mix_given_sure(
         frame.color, y, frame.variance, sure_map, mixer_params, mixer_config, tstat=tstat,
-        swap_average=swap_average)
+        swap_average=swap_average, spp=frame.spp)
     extras = {
         "denoised": y,
         "sure": sure_map,
@@ -99,10 +99,11 @@ def progressive_denoise(
 
 
 def mix_given_sure(x, y, var, sure, mixer_params, mixer_config: MixerConfig, *,
-                   tstat=_FROM_CONFIG, swap_average: bool | None = None):
+                   tstat=_FROM_CONFIG, swap_average: bool | None = None, spp=None):
     """The part of :func:`progressive_denoise` after SURE: alpha from the mixer (swap-averaged
     per ``swap_average``, None: the config's), the t-statistic scaling (``tstat`` as there) and
     the mix. ``sure`` may be any map in SURE's place (the PD report feeds the true error).
+    ``spp``: the sample count ``var`` was estimated from, for the error guard (None: unknown).
     Returns ``(z_prime, alpha_prime, alpha, mixed)``, float32 JAX arrays."""
     if tstat is _FROM_CONFIG:
         tstat = mixer_config.tstat
@@ -113,7 +114,9 @@ def mix_given_sure(x, y, var, sure, mixer_params, mixer_config: MixerConfig, *,
     mixed = _mix(x, y, alpha)
     if tstat is None:
         return mixed, alpha, alpha, mixed
-    alpha_prime = _consistent_alpha(alpha, x, y, var, mixed, tstat)
+    if tstat.guard:
+        spp = _check_spp(spp, tuple(x.shape[:-3]), "progressive_denoise")
+    alpha_prime = _consistent_alpha(alpha, x, y, var, mixed, tstat, spp)
     return _mix(x, y, alpha_prime), alpha_prime, alpha, mixed
 
 

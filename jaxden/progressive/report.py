@@ -163,10 +163,11 @@ def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
             index += 1
             alpha_pc, alpha_shared = (
                 consistent_mix(frame.color, extras["denoised"], extras["alpha"],
-                               frame.variance, tstat)[1] for tstat in (per_channel, shared))
+                               frame.variance, tstat, spp=frame.spp)[1]
+                for tstat in (per_channel, shared))
             z_true, *_ = mix_given_sure(frame.color, extras["denoised"], frame.variance,
                                         true_error(extras["denoised"], reference), params,
-                                        config)
+                                        config, spp=frame.spp)
             images = {"mc": frame.color, "denoiser": extras["denoised"],
                       "mixed": extras["mixed"], "pd": z,
                       "pd_pc": mix(frame.color, extras["denoised"], alpha_pc),
