@@ -131,7 +131,8 @@ def test_progressive_bench(tiny, capsys):
     result = run_json("progressive", capsys)
     assert_ratios(result, ["pd_over_oidn", "pd_single_over_oidn", "mixer_over_oidn",
                            "tstat_over_oidn", "guard_over_oidn", "closed_form_over_oidn",
-                           "closed_form_stops_over_closed_form", "pd_wskp6_over_wskp6",
+                           "closed_form_stops_over_closed_form", "guard_strata_over_guard",
+                           "pd_wskp6_over_wskp6",
                            "pd_wskp6_closed_form_k1_over_wskp6"])
     assert (result["width"], result["height"]) == FRAME_SIZE and result["mixer"] == "oidn-pd"
     # PD around a JAX base does at least the base's own forward

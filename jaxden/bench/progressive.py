@@ -13,6 +13,9 @@ compiled and warmed up before timing, timed alternately, median of the repeats:
 - ``tstat_over_oidn``: the t-statistic scaling alone / one OIDN call;
 - ``guard_over_oidn``: the error guard after it (``tstat.guard``, on in every pipeline above)
   alone / one OIDN call;
+- ``guard_strata_over_guard``: the error guard with its noise-strata option
+  (``tstat.guard_strata = 1``: one more pair of local sums per occupied noise stratum) / the
+  guard as shipped, the cost of the option;
 - ``closed_form_over_oidn``: the closed-form mixer's alpha (``--mixer closed-form``: Eq. 9
   with Gaussian local means, width 12 px) / one OIDN call; it replaces the mixer call;
 - ``closed_form_stops_over_closed_form``: the range-aware closed form (``closed_form_stops =
@@ -95,6 +98,8 @@ def bench_progressive(quick: bool) -> dict:
         "mixer": lambda: mixer_alpha(params, config, x, y, var, sure_map),
         "tstat": lambda: t_statistic_scaling(alpha, x, mixed, var, config.tstat),
         "guard": lambda: error_guard(alpha, x, y, var, config.tstat, spp=4),
+        "guard_strata": lambda: error_guard(alpha, x, y, var, config.tstat, spp=4,
+                                            guard_strata=1.0),
         "closed_form": lambda: closed_form_alpha(x, y, var, sure_map),
         "closed_form_stops": lambda: closed_form_alpha(x, y, var, sure_map, stops=1.0),
     }
@@ -103,6 +108,7 @@ def bench_progressive(quick: bool) -> dict:
         **{f"{name}_over_oidn": median[name] / median["oidn"]
            for name in ("pd", "pd_single", "mixer", "tstat", "guard", "closed_form")},
         "closed_form_stops_over_closed_form": median["closed_form_stops"] / median["closed_form"],
+        "guard_strata_over_guard": median["guard_strata"] / median["guard"],
         "pd_wskp6_over_wskp6": median["pd_wskp6"] / median["wskp6"],
         "pd_wskp6_closed_form_k1_over_wskp6": median["pd_wskp6_closed_form_k1"] / median["wskp6"],
         **{f"{name}_s": value for name, value in median.items()},
