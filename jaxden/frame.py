@@ -42,6 +42,7 @@ import dataclasses
 from typing import Any, Literal
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from jaxden.errors import FrameError
@@ -114,6 +115,30 @@ class Frame:
             )
         return self.map(lambda a: a[..., top : top + height, left : left + width, :])
 
+    def is_valid_on_device(self) -> bool:
+        """True when every image field is a JAX array on an accelerator (or the CPU backend),
+        with the shapes and dtypes :meth:`validated` asks for, and its values pass every check
+        of :meth:`validated` strictly (one jitted reduction, one bool to the host): the frame
+        then comes back unchanged, without copying it to the host. Anything else (a NumPy
+        field, a value that fails or is borderline) goes the NumPy way, which words the error
+        or repairs."""
+        fields = {name: getattr(self, name) for name in IMAGE_FIELDS
+                  if getattr(self, name) is not None}
+        if not all(isinstance(a, jax.Array) and not isinstance(a, jax.core.Tracer)
+                   for a in fields.values()):
+            return False
+        base = fields["color"].shape[:-1]
+        for name, array in fields.items():
+            if (array.ndim < 3 or array.shape[-1] != len(CHANNELS[name])
+                    or array.shape[:-1] != base
+                    or not jnp.issubdtype(array.dtype, jnp.floating)):
+                return False
+        if self.spp is not None:
+            spp = np.asarray(self.spp)
+            if not np.all(np.isfinite(spp)) or np.any(spp <= 0):
+                return False
+        return bool(_fields_pass(fields))
+
     def numpy(self) -> Frame:
         """A copy with every field as a float32 NumPy array (for I/O)."""
         return jax.tree_util.tree_map(lambda a: np.asarray(a, dtype=np.float32), self)
@@ -153,6 +178,8 @@ class Frame:
             raise FrameError(f"nonfinite policy must be 'error' or 'zero', got {nonfinite!r}")
         if self.color is None:
             raise FrameError(f"{where}: the frame has no colour")
+        if self.is_valid_on_device():
+            return self
         arrays: dict[str, np.ndarray] = {}
         for name in IMAGE_FIELDS:
             value = getattr(self, name)
@@ -224,6 +251,26 @@ class Frame:
             if not np.all(np.isfinite(spp)) or np.any(spp <= 0):
                 raise FrameError(f"{where}: spp must be > 0, got {spp}")
         return self.replace(**repaired) if repaired else self
+
+
+@jax.jit
+def _fields_pass(fields: dict) -> jax.Array:
+    """The value checks of :meth:`Frame.validated`, strictly (no repair would change a value):
+    every field finite, variance and emission >= 0, |covariance| within (1 - 1e-5) of
+    sqrt(var_a var_b)."""
+    ok = jnp.array(True)
+    for array in fields.values():
+        ok &= jnp.all(jnp.isfinite(array))
+    for name in ("variance", "emission"):
+        if name in fields:
+            ok &= jnp.all(fields[name] >= 0)
+    if "covariance" in fields:
+        if "variance" not in fields:
+            return jnp.array(False)
+        variance = jnp.maximum(fields["variance"], 0.0)
+        bound = jnp.sqrt(variance * jnp.roll(variance, -1, axis=-1))
+        ok &= jnp.all(jnp.abs(fields["covariance"]) <= (1.0 - 1e-5) * bound)
+    return ok
 
 
 #: Relative slack of the Cauchy-Schwarz check |cov_ab| <= sqrt(var_a var_b): float32 files

@@ -98,7 +98,9 @@ def denoise_with_sure(
     ``eps`` None: :func:`default_eps`. ``probe_batch``: probes per jvp pass (memory; JAX only).
 
     Returns ``(SureResult, frame)``: fields (..., H, W, 3) (JAX arrays for JAX denoisers, NumPy
-    for black boxes) and the validated (possibly repaired, ``nonfinite='zero'``) NumPy frame.
+    for black boxes) and the validated frame: as given when it holds JAX arrays that pass
+    every check (a frame on the GPU is not copied to the host), else a NumPy copy (possibly
+    repaired, ``nonfinite='zero'``).
     Raises FrameError when the frame has no variance (naming SURE and the variance), bad
     values, or lacks a feature the denoiser needs.
     """
@@ -108,7 +110,8 @@ def denoise_with_sure(
     require_variance(frame, where, held_in="EXR channels variance.R/G/B")
     if nonfinite not in ("error", "zero"):
         raise ConfigError(f"{where}: nonfinite must be 'error' or 'zero', got {nonfinite!r}")
-    frame = frame.numpy().validated(where=where, nonfinite=nonfinite)
+    if not frame.is_valid_on_device():  # a frame on the device stays there (no host copy)
+        frame = frame.numpy().validated(where=where, nonfinite=nonfinite)
     denoiser.check_frame(frame)
     method = resolve_method(method, denoiser)
     if eps is None:
