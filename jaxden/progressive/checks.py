@@ -5,6 +5,7 @@ values.
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from jaxden.errors import FrameError
@@ -34,9 +35,17 @@ def _is_concrete(*arrays) -> bool:
     return not any(isinstance(a, jax.core.Tracer) for a in arrays)
 
 
+@jax.jit
+def _variance_passes(var) -> jax.Array:
+    return jnp.all(jnp.isfinite(var) & (var >= 0))
+
+
 def _check_variance_values(var, where: str) -> None:
-    """Variance must be finite and >= 0 (only checked on concrete arrays)."""
+    """Variance must be finite and >= 0 (only checked on concrete arrays; a JAX array is
+    checked where it lives, and copied to the host only to word a failure)."""
     if not _is_concrete(var):
+        return
+    if isinstance(var, jax.Array) and bool(_variance_passes(var)):
         return
     values = np.asarray(var)
     bad = ~np.isfinite(values) | (values < 0)
