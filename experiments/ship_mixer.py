@@ -353,6 +353,8 @@ def _card(name: str, facts: dict, mc: dict, reports: list[tuple[str, dict]], siz
         f"per_channel = {str(mc['tstat']['per_channel']).lower()}) makes the result consistent"
         + (f", and the error guard (`tstat.guard`: alpha <= {mc['tstat'].get('guard_gamma', 2.0)}"
            f" var / E[(y - x)^2] from {mc['tstat'].get('guard_sigma', 1.0)}-px local means, "
+           f"the variance raised to an upper confidence bound from the sample count "
+           f"({mc['tstat'].get('guard_confidence', 2.0)} standard deviations of its estimate), "
            "scaled to 0 where y is c standard errors off x; our addition, "
            "`jaxden.progressive.guard`) keeps it from ending above x where y is far off"
            if mc["tstat"].get("guard", True) else "")
