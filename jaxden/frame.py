@@ -116,8 +116,9 @@ class Frame:
         return self.map(lambda a: a[..., top : top + height, left : left + width, :])
 
     def is_valid_on_device(self) -> bool:
-        """True when every image field is a JAX array on an accelerator (or the CPU backend),
-        with the shapes and dtypes :meth:`validated` asks for, and its values pass every check
+        """True when every image field is a JAX array on an accelerator
+        (``DEVICE_CHECK_PLATFORMS``; on the CPU a host copy costs nothing and the jitted check
+        would only add compiles), with the shapes and dtypes :meth:`validated` asks for, and its values pass every check
         of :meth:`validated` strictly (one jitted reduction, one bool to the host): the frame
         then comes back unchanged, without copying it to the host. Anything else (a NumPy
         field, a value that fails or is borderline) goes the NumPy way, which words the error
@@ -125,6 +126,7 @@ class Frame:
         fields = {name: getattr(self, name) for name in IMAGE_FIELDS
                   if getattr(self, name) is not None}
         if not all(isinstance(a, jax.Array) and not isinstance(a, jax.core.Tracer)
+                   and all(d.platform in DEVICE_CHECK_PLATFORMS for d in a.devices())
                    for a in fields.values()):
             return False
         base = fields["color"].shape[:-1]
@@ -251,6 +253,10 @@ class Frame:
             if not np.all(np.isfinite(spp)) or np.any(spp <= 0):
                 raise FrameError(f"{where}: spp must be > 0, got {spp}")
         return self.replace(**repaired) if repaired else self
+
+
+#: Platforms whose arrays :meth:`Frame.validated` checks where they are (no host copy).
+DEVICE_CHECK_PLATFORMS = ("gpu", "cuda", "rocm", "tpu")
 
 
 @jax.jit

@@ -28,11 +28,22 @@ def on_device(frame):
     return jax.tree_util.tree_map(jnp.asarray, frame)
 
 
+@pytest.fixture(autouse=True)
+def cpu_counts_as_a_device(monkeypatch):
+    """The device path runs for accelerators only; the tests run it on the CPU backend."""
+    monkeypatch.setattr("jaxden.frame.DEVICE_CHECK_PLATFORMS", ("cpu", "gpu", "cuda", "tpu"))
+
+
 def test_a_valid_device_frame_comes_back_unchanged():
     frame = on_device(frame_np())
     assert frame.is_valid_on_device()
     assert frame.validated(where="t") is frame
     assert not frame_np().is_valid_on_device()  # NumPy fields: the NumPy path
+
+
+def test_the_device_path_is_for_accelerators_only(monkeypatch):
+    monkeypatch.setattr("jaxden.frame.DEVICE_CHECK_PLATFORMS", ("gpu", "cuda", "rocm", "tpu"))
+    assert not on_device(frame_np()).is_valid_on_device() or jax.default_backend() != "cpu"
 
 
 @pytest.mark.parametrize("spoil,nonfinite", [

@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import jaxden.frame
 from jaxden.errors import FrameError
 
 
@@ -41,11 +42,13 @@ def _variance_passes(var) -> jax.Array:
 
 
 def _check_variance_values(var, where: str) -> None:
-    """Variance must be finite and >= 0 (only checked on concrete arrays; a JAX array is
-    checked where it lives, and copied to the host only to word a failure)."""
+    """Variance must be finite and >= 0 (only checked on concrete arrays; a JAX array on an
+    accelerator is checked where it lives, and copied to the host only to word a failure)."""
     if not _is_concrete(var):
         return
-    if isinstance(var, jax.Array) and bool(_variance_passes(var)):
+    if (isinstance(var, jax.Array)
+            and all(d.platform in jaxden.frame.DEVICE_CHECK_PLATFORMS for d in var.devices())
+            and bool(_variance_passes(var))):
         return
     values = np.asarray(var)
     bad = ~np.isfinite(values) | (values < 0)
