@@ -285,12 +285,14 @@ def cluster_report(tmp_path_factory):
     return run_cluster_driver(tmp_path_factory.mktemp("ray"), "default")
 
 
+@pytest.mark.slow  # the module's Ray cluster driver: 115 s of setup on 2 cores
 @needs_namespace
 def test_ray_build_is_byte_identical_to_the_local_build(cluster_report):
     assert cluster_report["files"] == 32
     assert cluster_report["same_bytes"] and cluster_report["ray_verified"]
 
 
+@pytest.mark.slow  # the module's Ray cluster driver: 115 s of setup on 2 cores
 @needs_namespace
 def test_a_node_killed_mid_build_loses_nothing(cluster_report):
     assert cluster_report.get("killed_node"), "the node was never busy"
@@ -304,12 +306,14 @@ def test_a_node_killed_mid_build_loses_nothing(cluster_report):
     assert "(raylet)" not in cluster_report["driver_output"]
 
 
+@pytest.mark.slow  # the module's Ray cluster driver: 115 s of setup on 2 cores
 @needs_namespace
 def test_four_run_sweep_over_one_dataset_on_two_ray_workers(cluster_report):
     (sweep,) = cluster_report["sweeps"]
     assert sweep["code"] == 0 and sweep["runs"] == [f"seed={s}" for s in range(4)], sweep
 
 
+@pytest.mark.slow  # the module's Ray cluster driver: 115 s of setup on 2 cores
 @needs_namespace
 def test_no_free_cpu_is_an_error_and_ctrl_c_cancels(cluster_report):
     starved = cluster_report["starved"]
