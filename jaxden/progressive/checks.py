@@ -58,3 +58,18 @@ def _check_variance_values(var, where: str) -> None:
             f"{where}: variance must be finite and >= 0 but {int(bad.sum())} value(s) are not "
             f"(first at index {index}: {values[index]})"
         )
+
+
+def _check_spp(spp, lead: tuple, where: str):
+    """None, or the sample count as a float32 array broadcastable to the leading dims."""
+    if spp is None:
+        return None
+    spp = np.asarray(spp, np.float64)
+    if not np.all(np.isfinite(spp)) or np.any(spp <= 0):
+        raise FrameError(f"{where}: spp must be finite and > 0, got {spp}")
+    try:
+        np.broadcast_to(spp, lead)
+    except ValueError:
+        raise FrameError(f"{where}: spp of shape {spp.shape} does not match the leading "
+                         f"(batch) dims {lead} of the images") from None
+    return jnp.asarray(spp, jnp.float32)

@@ -10,9 +10,10 @@ import numpy as np
 
 from jaxden.errors import ConfigError
 from jaxden.frame import Frame
+from jaxden.progressive.checks import _check_spp
 from jaxden.progressive.heads import _mix
 from jaxden.progressive.mixer import MixerConfig, _inference_alpha, load_mixer
-from jaxden.progressive.tstat import TStatConfig, _check_spp, _consistent_alpha
+from jaxden.progressive.tstat import TStatConfig, _consistent_alpha
 
 # ------------------------------------------------------------------------------ inference
 

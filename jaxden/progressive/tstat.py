@@ -16,7 +16,7 @@ from jax.scipy.special import ndtr
 
 from jaxden.config import bounded
 from jaxden.errors import ConfigError, FrameError
-from jaxden.progressive.checks import _check_image, _check_same, _check_variance_values
+from jaxden.progressive.checks import _check_image, _check_same, _check_spp, _check_variance_values
 from jaxden.progressive.closed_form import _blur_shifted
 from jaxden.progressive.guard import _guard_alpha
 from jaxden.progressive.heads import _mix
@@ -309,21 +309,6 @@ def t_statistic_scaling(alpha, x, z, var, config: TStatConfig | None = None, **o
     _check_variance_values(var, "t_statistic_scaling")
     t = _t_statistic(jnp.asarray(x), jnp.asarray(z), jnp.asarray(var), config)
     return _scale_alpha(jnp.asarray(alpha), t, config)
-
-
-def _check_spp(spp, lead: tuple, where: str):
-    """None, or the sample count as a float32 array broadcastable to the leading dims."""
-    if spp is None:
-        return None
-    spp = np.asarray(spp, np.float64)
-    if not np.all(np.isfinite(spp)) or np.any(spp <= 0):
-        raise FrameError(f"{where}: spp must be finite and > 0, got {spp}")
-    try:
-        np.broadcast_to(spp, lead)
-    except ValueError:
-        raise FrameError(f"{where}: spp of shape {spp.shape} does not match the leading "
-                         f"(batch) dims {lead} of the images") from None
-    return jnp.asarray(spp, jnp.float32)
 
 
 def error_guard(alpha, x, y, var, config: TStatConfig | None = None, *, spp=None,
