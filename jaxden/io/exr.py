@@ -2,7 +2,9 @@
 
 Channel names follow :data:`jaxden.frame.CHANNELS` (``R,G,B``, ``variance.R/G/B``,
 ``albedo.R/G/B``, ``normal.X/Y/Z``, ``depth.Z``, ``position.X/Y/Z``, ``motion.X/Y``), so any
-EXR viewer shows ordinary named layers. Header attributes ``jaxden.spp``, ``jaxden.seed``,
+EXR viewer shows ordinary named layers. Files of other renderers are read through their
+conventions (:mod:`jaxden.io.conventions`: Cycles, pbrt-v4, Mitsuba), every part of a
+multi-part file included. Header attributes ``jaxden.spp``, ``jaxden.seed``,
 ``jaxden.scene`` and ``jaxden.version`` record provenance.
 
 Writes are atomic: the file is written to a temporary name in the same folder and renamed, so
@@ -207,30 +209,70 @@ def read_header(path: str | os.PathLike) -> dict[str, Any]:
     exr = _open(path, header_only=True)
     raw = exr.header()
     header = _plain_header(raw)
-    header["channels"] = sorted(c.name for c in raw["channels"])
+    names = []
+    for index, part in enumerate(exr.parts):
+        part_header = part.header
+        names += [_part_channel_name(index, part_header, c.name) for c in part_header["channels"]]
+        for key, value in _plain_header(part_header).items():
+            header.setdefault(key, value)
+    header["channels"] = sorted(names)
     lo, hi = raw["dataWindow"]
     header["size"] = (int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1))
-    header["parts"] = len(exr.parts)  # jaxden reads the first part of a multi-part file
+    header["parts"] = len(exr.parts)
     return header
+
+
+def _part_channel_name(index: int, header: Mapping[str, Any], name: str) -> str:
+    """A channel's name in the flat namespace of every part of a file: the first part's names
+    as they are; a later part's names prefixed with the part's name unless they already carry
+    it (Blender writes ``ViewLayer.Combined.R`` inside the part ``ViewLayer.Combined``)."""
+    part = header.get("name")
+    if index == 0 or not part or name.startswith(f"{part}."):
+        return name
+    return f"{part}.{name}"
+
+
+def _window(header: Mapping[str, Any]) -> tuple[int, int, int, int]:
+    (x0, y0), (x1, y1) = header["dataWindow"]
+    return int(x0), int(y0), int(x1), int(y1)
 
 
 def read_channels(
     path: str | os.PathLike, names: Iterable[str] | None = None
 ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """Read channels (all, or ``names``) as float32 (H, W) arrays, and the header.
+    """Read channels (all, or ``names``) of every part of the file as float32 (H, W) arrays, and
+    the header (a later part's channel names carry the part's name, as Blender writes them).
 
     Raises ExrError naming the missing channels and listing those present.
     """
     path = Path(path)
     native: dict[str, str] = {}
-    header = _open(path, header_only=True).header()
-    (x0, y0), (x1, y1) = header["dataWindow"]
-    check_exr_size(int(x1 - x0 + 1), int(y1 - y0 + 1), len(header["channels"]), str(path),
+    parts = [part.header for part in _open(path, header_only=True).parts]
+    x0, y0, x1, y1 = _window(parts[0])
+    for index, part in enumerate(parts[1:], 1):
+        if _window(part) != (x0, y0, x1, y1):
+            raise ExrError(
+                f"{path}: part {index} ({part.get('name', 'unnamed')!r}) has the data window "
+                f"{_window(part)}, the first part {(x0, y0, x1, y1)}: jaxden reads multi-part "
+                f"files whose parts cover the same pixels")
+    check_exr_size(x1 - x0 + 1, y1 - y0 + 1, sum(len(p["channels"]) for p in parts), str(path),
                    ExrError)
     try:
         with _native_output_held(native):  # the pixels are decoded here, noise and all
             exr = _open(path)
-            available = {name: channel.pixels for name, channel in exr.channels().items()}
+            available = {}
+            for index, part in enumerate(exr.parts):
+                for name, channel in part.channels.items():
+                    full = _part_channel_name(index, part.header, name)
+                    if full in available:
+                        raise ExrError(f"{path}: channel {full!r} appears in two parts")
+                    available[full] = channel.pixels
+            expected = {_part_channel_name(index, part, c.name)
+                        for index, part in enumerate(parts) for c in part["channels"]}
+            if not expected <= {name for name, pixels in available.items()
+                                if pixels is not None}:
+                # the binding drops a part whose pixels fail to decode (and only prints why)
+                raise RuntimeError("a part's pixels did not decode")
     except ExrError:
         raise
     except Exception as error:
@@ -239,9 +281,11 @@ def read_channels(
     wanted = list(available) if names is None else list(names)
     missing = [n for n in wanted if n not in available]
     if missing:
+        from jaxden.io.conventions import case_hints
+
         raise ExrError(
-            f"{path}: missing channel(s) {', '.join(missing)}; the file has "
-            f"{', '.join(sorted(available))}"
+            f"{path}: missing channel(s) {', '.join(missing)}{case_hints(missing, available)}; "
+            f"the file has {', '.join(sorted(available))}"
         )
     out = {}
     for name in wanted:
@@ -249,7 +293,11 @@ def read_channels(
         if array is None or array.ndim != 2:
             raise ExrError(f"{path}: channel '{name}' is not a full-resolution 2-D channel")
         out[name] = np.asarray(array, dtype=np.float32)
-    return out, _plain_header(exr.header())
+    header = {}
+    for part in exr.parts:  # the first part's attributes win
+        for key, value in _plain_header(part.header).items():
+            header.setdefault(key, value)
+    return out, header
 
 
 def write_frame(
@@ -303,6 +351,8 @@ def read_frame(
     channel_map: Mapping[str, Iterable[str]] | None = None,
     variance_is_sample_variance: bool = False,
     spp: float | None = None,
+    convention: str | None = None,
+    layer: str | None = None,
 ) -> Frame:
     """Read a Frame from an EXR, checking it.
 
@@ -314,9 +364,29 @@ def read_frame(
     ``variance_is_sample_variance``: the file stores the per-sample variance (and covariance),
     not that of the pixel mean; it is divided by spp (from ``spp`` or the header) on reading.
     ``spp``: overrides/supplies the sample count when the header has none.
+    ``convention``: the renderer whose channel names the file follows (``cycles``,
+    ``pbrt-v4``, ``mitsuba``, ``jaxden``; :data:`jaxden.io.conventions.CONVENTIONS`): the
+    fields, the variance's meaning and the header's sample count come from it; ``layer`` picks
+    the render layer of a layered (Cycles) file that holds several. ``channel_map`` wins.
     """
     path = Path(path)
+    all_channels, header = read_channels(path)
+    present = set(all_channels)
     mapping = {field: tuple(names) for field, names in CHANNELS.items()}
+    if convention is not None:
+        from jaxden.io.conventions import resolve
+
+        mapping, header_spp, kind = resolve(convention, present, header, layer=layer,
+                                            where=str(path))
+        if kind == "mean" and variance_is_sample_variance:
+            raise ExrError(f"{path}: a {convention} file stores the variance of the pixel mean; "
+                           f"it is not a per-sample variance (drop --sample-variance)")
+        variance_is_sample_variance = variance_is_sample_variance or kind == "sample"
+        header = {**header, "spp": header_spp}
+        if header_spp is None:
+            header.pop("spp")
+    elif layer is not None:
+        raise ExrError(f"{path}: layer= applies to a layered file's convention (--from cycles)")
     for field, names in (channel_map or {}).items():
         if field not in CHANNELS:
             raise ExrError(f"channel_map: unknown field '{field}'; fields are {', '.join(CHANNELS)}")
@@ -332,19 +402,13 @@ def read_frame(
             raise ExrError(f"require: unknown field '{field}'; fields are {', '.join(CHANNELS)}")
     if "color" not in required:
         required.insert(0, "color")
-    all_channels, header = read_channels(path)
-    present = set(all_channels)
-    missing_fields = [f for f in required if not set(mapping[f]) <= present]
+    missing_fields = [f for f in required if f not in mapping or not set(mapping[f]) <= present]
     if missing_fields:
-        details = "; ".join(
-            f"{f} needs {', '.join(c for c in mapping[f] if c not in present)}" for f in missing_fields
-        )
-        raise ExrError(
-            f"{path}: missing feature(s) {', '.join(missing_fields)} ({details}); the file has "
-            f"channels {', '.join(sorted(present))}"
-        )
+        raise ExrError(_missing_message(path, missing_fields, mapping, present, convention))
     fields: dict[str, Any] = {}
     for field in IMAGE_FIELDS:
+        if field not in mapping:
+            continue
         names = mapping[field]
         if set(names) <= present:
             fields[field] = np.stack([all_channels[c] for c in names], axis=-1)
@@ -380,6 +444,29 @@ def read_frame(
         return frame.validated(where=str(path), nonfinite=nonfinite)
     except FrameError as error:
         raise ExrError(str(error)) from None
+
+
+def _missing_message(path, fields, mapping, present, convention) -> str:
+    """One line: the missing fields, the channels each needs (or a convention's candidates),
+    a case-insensitive or close match where there is one, and the channels the file has."""
+    from jaxden.io.conventions import CONVENTIONS, case_hints
+
+    details, wanted = [], []
+    for field in fields:
+        if field in mapping:
+            names = [c for c in mapping[field] if c not in present]
+            details.append(f"{field} needs {', '.join(names)}")
+            wanted += names
+        else:
+            candidates = CONVENTIONS[convention].fields.get(field, ())
+            options = " or ".join(",".join(names) for names in candidates)
+            details.append(f"{field}: a {convention} file has "
+                           + (f"it as {options}" if candidates else
+                              f"no such channels ({CONVENTIONS[convention].note})"))
+            wanted += [name for names in candidates for name in names]
+    return (f"{path}: missing feature(s) {', '.join(fields)} ({'; '.join(details)})"
+            f"{case_hints(wanted, present)}; the file has channels "
+            f"{', '.join(sorted(present))}")
 
 
 def write_image(

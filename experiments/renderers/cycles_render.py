@@ -1,0 +1,80 @@
+"""Render a small Cycles scene headless with Blender's ``bpy`` (PyPI), as a multilayer EXR with
+the Denoising Data passes: the files a Blender user hands to jaxden (``--from cycles``).
+
+    pip install bpy   # Blender 5.0, Python 3.11, in its own venv
+    python experiments/renderers/cycles_render.py --spp 16 --seed 1 --size 32x24 \
+        --out tests/data/cycles/spheres-16spp-seed1.exr
+
+The scene: a diffuse floor, a glossy sphere, a small emissive sphere in view and a point
+light; Cycles on the CPU, fixed seed, no adaptive sampling and no denoising (the raw Monte
+Carlo mean). Blender writes one EXR part per pass (``ViewLayer.Combined``, ``ViewLayer.Depth``,
+``ViewLayer.Denoising Albedo`` / ``Normal`` / ``Depth``), and the sample count in the header
+attribute ``cycles.ViewLayer.samples``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def build_scene(spp: int, seed: int, width: int, height: int):
+    import bpy
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.render.engine = "CYCLES"
+    scene.cycles.device = "CPU"
+    scene.cycles.samples = spp
+    scene.cycles.seed = seed
+    scene.cycles.use_denoising = False
+    scene.cycles.use_adaptive_sampling = False
+    scene.render.resolution_x, scene.render.resolution_y = width, height
+    scene.render.resolution_percentage = 100
+    bpy.ops.mesh.primitive_plane_add(size=10)
+    bpy.ops.mesh.primitive_uv_sphere_add(radius=1, location=(-0.6, 0, 1))
+    glossy = bpy.data.materials.new("glossy")
+    glossy.use_nodes = True
+    shader = glossy.node_tree.nodes["Principled BSDF"]
+    shader.inputs["Roughness"].default_value = 0.15
+    shader.inputs["Metallic"].default_value = 1.0
+    bpy.context.object.data.materials.append(glossy)
+    bpy.ops.mesh.primitive_uv_sphere_add(radius=0.15, location=(1.2, 0.5, 0.6))
+    lamp = bpy.data.materials.new("lamp")
+    lamp.use_nodes = True
+    emission = lamp.node_tree.nodes["Principled BSDF"]
+    emission.inputs["Emission Color"].default_value = (1.0, 0.8, 0.6, 1.0)
+    emission.inputs["Emission Strength"].default_value = 50.0
+    bpy.context.object.data.materials.append(lamp)
+    bpy.ops.object.light_add(type="POINT", location=(2, -2, 4))
+    bpy.context.object.data.energy = 500
+    bpy.ops.object.camera_add(location=(0, -6, 3), rotation=(1.2, 0, 0))
+    scene.camera = bpy.context.object
+    layer = scene.view_layers[0]
+    layer.cycles.denoising_store_passes = True
+    layer.use_pass_z = True
+    settings = scene.render.image_settings
+    settings.media_type = "MULTI_LAYER_IMAGE"  # Blender 5.0; before: file_format only
+    settings.file_format = "OPEN_EXR_MULTILAYER"
+    settings.color_depth = "32"
+    return scene
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--spp", type=int, default=16)
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--size", default="32x24", help="WIDTHxHEIGHT")
+    parser.add_argument("--out", required=True)
+    args = parser.parse_args(argv)
+    width, height = (int(v) for v in args.size.lower().split("x"))
+    import bpy
+
+    scene = build_scene(args.spp, args.seed, width, height)
+    scene.render.filepath = args.out
+    bpy.ops.render.render(write_still=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,146 @@
+"""Other renderers' EXR files: every part of a multi-part file, layered names, the channel
+conventions of Cycles, pbrt-v4 and Mitsuba (jaxden.io.conventions), and the messages when a
+channel is missing or named under another case.
+
+The Cycles files in tests/data/cycles/ are real: Blender 5.0.1 (``bpy`` from PyPI) rendered
+them with experiments/renderers/cycles_render.py (32 x 24, 16 spp, seeds 1 and 2). The pbrt-v4
+and Mitsuba files are written here with the channel names their sources and films use.
+"""
+
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+import pytest
+
+from jaxden.errors import ExrError
+from jaxden.io.conventions import CONVENTIONS, resolve
+from jaxden.io.exr import read_channels, read_frame, read_header, write_channels
+
+CYCLES = Path(__file__).parent / "data" / "cycles"
+CYCLES_FILE = CYCLES / "spheres-16spp-seed1.exr"
+SHAPE = (6, 7)
+
+
+def _ramp(seed: int, low: float = 0.1) -> np.ndarray:
+    return np.random.default_rng(seed).uniform(low, 1.0, SHAPE).astype(np.float32)
+
+
+def _part(channels: dict, name: str, window=None) -> "OpenEXR.Part":
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    if window is not None:
+        header["dataWindow"] = window
+        header["displayWindow"] = (np.array([0, 0], np.int32),
+                                   np.array([SHAPE[1] - 1, SHAPE[0] - 1], np.int32))
+    return OpenEXR.Part(header, dict(channels), name=name)  # the binding rewrites the dict
+
+
+def test_cycles_file_reads_with_its_convention():
+    header = read_header(CYCLES_FILE)
+    assert header["parts"] == 5
+    assert "ViewLayer.Denoising Albedo.R" in header["channels"]
+    frame = read_frame(CYCLES_FILE, convention="cycles", require=("color", "albedo", "normal"))
+    channels, _ = read_channels(CYCLES_FILE)
+    np.testing.assert_array_equal(frame.color[..., 0], channels["ViewLayer.Combined.R"])
+    np.testing.assert_array_equal(frame.albedo[..., 2], channels["ViewLayer.Denoising Albedo.B"])
+    np.testing.assert_array_equal(frame.normal[..., 1], channels["ViewLayer.Denoising Normal.Y"])
+    np.testing.assert_array_equal(frame.depth[..., 0], channels["ViewLayer.Denoising Depth.Z"])
+    assert float(frame.spp) == 16.0  # from cycles.ViewLayer.samples
+    assert frame.variance is None  # Cycles writes none
+    # The normal is a mean of unit normals over the pixel's samples (0 where a sample sees
+    # the background), so at most 1 long, and 1 where every sample hits the flat floor.
+    length = np.linalg.norm(frame.normal, axis=-1)
+    assert length.max() <= 1 + 1e-3 and np.mean(length > 0.999) > 0.3
+    assert frame.albedo.min() >= 0  # not <= 1: Cycles gives a seen emitter's colour there
+
+
+def test_cycles_variance_is_refused_with_the_way_to_get_it():
+    with pytest.raises(ExrError, match=r"variance: a cycles file has no such channels.*merge"):
+        read_frame(CYCLES_FILE, convention="cycles", require=("color", "variance"))
+
+
+def test_a_name_under_another_case_gets_a_did_you_mean():
+    names = ("viewlayer.combined.R", "ViewLayer.Combined.G", "ViewLayer.Combined.B")
+    with pytest.raises(ExrError, match=r"did you mean 'ViewLayer.Combined.R' for "
+                                       r"'viewlayer.combined.R'"):
+        read_frame(CYCLES_FILE, channel_map={"color": names})
+
+
+def test_unknown_convention_suggests_the_close_one():
+    with pytest.raises(ExrError, match=r"did you mean 'cycles'"):
+        read_frame(CYCLES_FILE, convention="cylces")
+
+
+def test_later_parts_get_their_part_name(tmp_path):
+    path = tmp_path / "parts.exr"
+    rgb = {c: _ramp(i) for i, c in enumerate("RGB")}
+    diffuse = {c: 2 * _ramp(i) for i, c in enumerate("RGB")}
+    OpenEXR.File([_part(rgb, "rgba"), _part(diffuse, "diffuse")]).write(str(path))
+    channels, _ = read_channels(path)
+    assert sorted(channels) == ["B", "G", "R", "diffuse.B", "diffuse.G", "diffuse.R"]
+    np.testing.assert_array_equal(channels["diffuse.G"], diffuse["G"])
+    frame = read_frame(path, channel_map={"albedo": ("diffuse.R", "diffuse.G", "diffuse.B")})
+    np.testing.assert_array_equal(frame.albedo[..., 0], diffuse["R"])
+
+
+def test_parts_over_other_pixels_are_refused(tmp_path):
+    path = tmp_path / "windows.exr"
+    whole = (np.array([0, 0], np.int32), np.array([SHAPE[1] - 1, SHAPE[0] - 1], np.int32))
+    half = (np.array([0, 0], np.int32), np.array([SHAPE[1] - 1, SHAPE[0] // 2 - 1], np.int32))
+    small = {"Y": np.ones((SHAPE[0] // 2, SHAPE[1]), np.float32)}
+    OpenEXR.File([_part({c: _ramp(1) for c in "RGB"}, "rgba", whole),
+                  _part(small, "mask", half)]).write(str(path))
+    with pytest.raises(ExrError, match=r"part 1 \('mask'\) has the data window"):
+        read_channels(path)
+
+
+def test_pbrt_v4_gbuffer_layout(tmp_path):
+    """pbrt-v4's GBufferFilm: R,G,B, Albedo.*, Nsx..., Px/Py/Pz, Variance.* per sample and
+    the samplesPerPixel attribute: the variance is divided by the sample count."""
+    path = tmp_path / "pbrt.exr"
+    channels = {"R": _ramp(1), "G": _ramp(2), "B": _ramp(3),
+                "Albedo.R": _ramp(4), "Albedo.G": _ramp(5), "Albedo.B": _ramp(6),
+                "Nsx": np.zeros(SHAPE, np.float32), "Nsy": np.zeros(SHAPE, np.float32),
+                "Nsz": np.ones(SHAPE, np.float32), "Nx": np.ones(SHAPE, np.float32),
+                "Ny": np.zeros(SHAPE, np.float32), "Nz": np.zeros(SHAPE, np.float32),
+                "Px": _ramp(7), "Py": _ramp(8), "Pz": 3 * _ramp(9),
+                "Variance.R": _ramp(10), "Variance.G": _ramp(11), "Variance.B": _ramp(12)}
+    write_channels(path, channels, attributes={"samplesPerPixel": 64})
+    frame = read_frame(path, convention="pbrt-v4", require=("color", "variance", "normal"))
+    assert float(frame.spp) == 64.0
+    np.testing.assert_allclose(frame.variance[..., 1], channels["Variance.G"] / 64, rtol=1e-6)
+    np.testing.assert_array_equal(frame.normal[..., 2], 1.0)  # the shading normal, Ns
+    np.testing.assert_array_equal(frame.depth[..., 0], channels["Pz"])
+    with pytest.raises(ExrError, match="stores the variance of the pixel mean"):
+        read_frame(path, convention="jaxden", variance_is_sample_variance=True)
+
+
+def test_mitsuba_aov_layout(tmp_path):
+    path = tmp_path / "mitsuba.exr"
+    channels = {"R": _ramp(1), "G": _ramp(2), "B": _ramp(3),
+                "albedo.R": _ramp(4), "albedo.G": _ramp(5), "albedo.B": _ramp(6),
+                "sh_normal.X": _ramp(7), "sh_normal.Y": _ramp(8), "sh_normal.Z": _ramp(9),
+                "depth.T": _ramp(10)}
+    write_channels(path, channels)
+    frame = read_frame(path, convention="mitsuba", require=("color", "albedo", "normal", "depth"))
+    np.testing.assert_array_equal(frame.normal[..., 0], channels["sh_normal.X"])
+    np.testing.assert_array_equal(frame.depth[..., 0], channels["depth.T"])
+
+
+def test_layers_must_be_chosen_when_a_file_holds_several():
+    present = [f"{layer}.Combined.{c}" for layer in ("Front", "Back") for c in "RGB"]
+    with pytest.raises(ExrError, match="layers found: Back, Front; choose one with --layer"):
+        resolve("cycles", present, {})
+    mapping, spp, kind = resolve("cycles", present, {"cycles.Back.samples": "8"}, layer="Back")
+    assert mapping["color"] == ("Back.Combined.R", "Back.Combined.G", "Back.Combined.B")
+    assert spp == 8.0 and kind == "none"
+    with pytest.raises(ExrError, match="no render layer 'Side'"):
+        resolve("cycles", present, {}, layer="Side")
+
+
+def test_every_convention_names_colour_and_a_known_variance_kind():
+    for name, convention in CONVENTIONS.items():
+        assert convention.name == name
+        assert "color" in convention.fields
+        assert convention.variance in ("mean", "sample", "none")
+        assert (convention.variance == "none") == ("variance" not in convention.fields)
