@@ -1,10 +1,17 @@
-"""Every number in README.md's results tables equals the JSON file in experiments/results/ it
-comes from, at the README's rounding.
+"""Every number in README.md, in its results table and in its prose, equals the JSON file in
+experiments/results/ it comes from, at the README's rounding.
 
-The README's markdown tables are parsed; SOURCES maps each table row to the JSON values its
-numbers quote, in the order they appear in the cell. Only numbers with a decimal point are
-quotes: labels such as "WSKP-6", "3..13" or "(4096)" are not. A number edited in the README, a
-row or number added without a source here, or a JSON file regenerated with other values fails.
+The results table under "## Results" is parsed: HEADLINE maps each row (its "result" and "data"
+cells) to the JSON values its "value" cell quotes, in order, and the row's "file" cell must name
+exactly those files. Only numbers with a decimal point are quotes there: labels such as
+"WSKP-6", "3..13" or "32..4096" are not.
+
+The prose (everything outside tables and fenced code blocks, whitespace collapsed) is scanned for
+decimal numbers (also glued to a letter, as in "x0.883") and percentages ("13 %"). Each must lie
+inside one of the PROSE phrases, which map a short quoted phrase to the JSON values of the
+numbers in it, in order, or inside one of the NOT_QUOTES phrases (numbers that are not
+measurements). A number edited in the README, a row or number added without a source here, a
+phrase reworded, or a JSON file regenerated with other values fails.
 """
 
 import json
@@ -16,13 +23,11 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 README = ROOT / "README.md"
 RESULTS = ROOT / "experiments" / "results"
+#: A quoted number in a table cell: a decimal number standing alone.
 DECIMAL = re.compile(r"(?<![\w.])\d+\.\d+(?![\w.])")
-
-
-def _worst_crop_over_mc(report: dict) -> float:
-    """PD / MC RMSE at the top spp of the worst crop of a pd_report.py report."""
-    return max(crop["pd_over_mc_rmse_at_max_spp"]
-               for crop in report["summary"]["per_crop"].values())
+#: A number in prose that must have a source: a percentage, or any decimal number (also after a
+#: letter, "x0.883"), but not a part of a version or a range ("0.1.0", "2..1024").
+PROSE_NUMBER = re.compile(r"(?<![\d.])\d+(?:\.\d+)?(?= ?%)|(?<![\d.])\d+\.\d+(?!\.?\d)")
 
 
 def _key(*path):
@@ -34,85 +39,133 @@ def _key(*path):
     return get
 
 
-def _pd(name: str, column: str, base: str = "oidn"):
-    """The headline ratios of experiments/results/pd-BASE-NAME.json quoted in one column."""
-    file = f"pd-{base}-{name}.json"
-    headline = ("summary", "headline")
-    if column == "oracle":
-        return [(file, _key(*headline, "oracle_over_denoiser", "rmse")),
-                (file, _key(*headline, "oracle_over_denoiser", "relmse"))]
-    if column == "top spp":
-        worst = _worst_crop_over_mc
-        worst.path = "max over summary/per_crop/*/pd_over_mc_rmse_at_max_spp"
-        return [(file, _key(*headline, "pd_over_mc_at_max_spp", "rmse")), (file, worst)]
-    return [(file, _key(*headline, "pd_over_denoiser", column))]
+def _percent_over_one(get):
+    """(value - 1) in percent: a ratio of 1.133 quoted as "13 %"."""
+    def percent(data):
+        return (get(data) - 1.0) * 100.0
+    percent.path = f"({get.path} - 1) x 100"
+    return percent
 
 
-# Benchmarks: first cell of the row -> {column: [(file, value getter), ...]}
-BENCHMARKS = {
-    "`jaxden bench decoder`": {"result": [("bench-decoder.json", _key("memory_ratio")),
-                                          ("bench-decoder.json", _key("time_ratio"))]},
-    "`jaxden bench denoisers`": {"result": [
-        ("bench-denoisers.json", _key("wskp6_over_oidn")),
-        ("bench-denoisers.json", _key("wskp3_over_oidn")),
-        ("bench-denoisers.json", _key("kp_over_oidn")),
-        ("bench-denoisers.json", _key("unet_over_oidn")),
-        ("bench-denoisers.json", _key("wskp6_over_kp")),
-        ("bench-denoisers.json", _key("wskp6_network_over_kp"))]},
-    "`jaxden bench sharding`": {"result": [("bench-sharding.json", _key("unet_ratio")),
-                                           ("bench-sharding.json", _key("wskp_ratio"))]},
-    "`jaxden bench sure`": {"result": [
-        ("bench-sure.json", _key("jvp_k1_over_forward")),
-        ("bench-sure.json", _key("jvp_over_fd_k4")),
-        ("bench-sure-h100.json", _key("jvp_k1_over_forward")),
-        ("bench-sure-h100.json", _key("jvp_over_fd_k4"))]},
-    "`jaxden bench progressive`": {"result": [
-        ("bench-progressive.json", _key("pd_over_oidn")),
-        ("bench-progressive.json", _key("pd_single_over_oidn")),
-        ("bench-progressive.json", _key("mixer_over_oidn")),
-        ("bench-progressive.json", _key("tstat_over_oidn")),
-        ("bench-progressive.json", _key("closed_form_over_oidn")),
-        ("bench-progressive.json", _key("pd_wskp6_over_wskp6")),
-        ("bench-progressive.json", _key("pd_wskp6_closed_form_k1_over_wskp6"))]},
-    "`docs/scaling_bench.py`": {"result": [("scaling-ray-local.json", _key("ray_over_local"))]},
-    "`jaxden bench render`": {"result": [
-        ("bench-render.json", _key("ratio")),
-        ("bench-render.json", _key("ratio_legacy_features"))]},
-}
-
-# Progressive denoising: (set, start of the mixer cell) -> report name; the set is carried down
-# from the row that names it.
-PD_ROWS = {
-    ("test-high", "**shipped `oidn-pd`**"): "test-high-shipped",
-    ("test-high", "the same weights on the plain closed form"): "test-high-shipped-stops-none",
-    ("test-high", "`--mixer closed-form:stops=1`"): "test-high-closed-form-stops1",
-    ("test-high", "`--mixer closed-form`"): "test-high-closed-form",
-    ("test-high", "oracle (8 x 8 tiles)"): "test-high-shipped",
-    ("test", "**shipped `oidn-pd`**"): "test-shipped",
-    ("test", "the same weights on the plain closed form"): "test-shipped-stops-none",
-    ("test", "`--mixer closed-form:stops=1`"): "test-closed-form-stops1",
-    ("test", "`--mixer closed-form`"): "test-closed-form",
-    ("test", "oracle (8 x 8 tiles)"): "test-shipped",
-}
+def _worst_crop_over_mc(report: dict) -> float:
+    """PD / MC RMSE at the top spp of the worst crop of a PD report."""
+    return max(crop["pd_over_mc_rmse_at_max_spp"]
+               for crop in report["summary"]["per_crop"].values())
 
 
-#: PD over WSKP-6: first cell of the row (the set) -> report name (pd-wskp6-NAME.json).
-PD_WSKP6_ROWS = {"progressive sequence": "sequence", "pd-test-high": "test-high",
-                 "out of distribution": "ood-first-hit"}
-
-#: The real-time tables: README section -> the file their rows quote (rows by method label).
-RT_FILE = "rt-table1.json"
+_worst_crop_over_mc.path = "max over summary/per_crop/*/pd_over_mc_rmse_at_max_spp"
 
 
-def _rt(section: str, label: str, metric: str, index: int):
-    """Entry ``index`` (0 mean, 1 standard deviation) of ``section/label/metric`` in RT_FILE."""
+def _pd(file: str, ratio: str, *metrics: str):
+    """summary/headline/RATIO/METRIC of a PD report, for each metric."""
+    return [(file, _key("summary", "headline", ratio, metric)) for metric in metrics]
+
+
+def _rt(label: str, metric: str):
+    """The mean over seeds of ``metric`` of ``label`` at 1 spp in rt-table1.json."""
     def get(data):
-        return data[section][label][metric][index]
-    get.path = f"{section}/{label}/{metric}[{index}]"
+        return data["per_frame"][label][metric][0]
+    get.path = f"per_frame/{label}/{metric}[0]"
     return get
 
 
-def tables_under(heading: str, text: str | None = None) -> list[dict]:
+OIDN_HIGH = "pd-oidn-test-high-shipped.json"
+OIDN_TEST = "pd-oidn-test-shipped.json"
+
+#: The results table: (result cell, data cell) -> [(file, value getter), ...] in the order the
+#: value cell quotes them.
+HEADLINE = {
+    ("PD(OIDN) / OIDN with the shipped `oidn-pd`: RMSE, relMSE, FLIP",
+     "test-high: 8 held-out crops, 32..4096 spp"):
+        _pd(OIDN_HIGH, "pd_over_denoiser", "rmse", "relmse", "flip"),
+    ("the same", "test: the same crops, 2..1024 spp"):
+        _pd(OIDN_TEST, "pd_over_denoiser", "rmse", "relmse", "flip"),
+    ("PD(OIDN) / MC, RMSE at 4096 spp: crop mean; worst crop", "test-high"):
+        _pd(OIDN_HIGH, "pd_over_mc_at_max_spp", "rmse") + [(OIDN_HIGH, _worst_crop_over_mc)],
+    ("8 x 8-tile oracle / OIDN (a bound, not a method): RMSE, relMSE", "test-high"):
+        _pd(OIDN_HIGH, "oracle_over_denoiser", "rmse", "relmse"),
+    ("PD(WSKP-6) / WSKP-6 with the shipped `wskp-6-pd`: RMSE, relMSE, FLIP",
+     "pd-test-high: 8 held-out crops, 32..4096 spp"):
+        _pd("pd-wskp6-test-high.json", "pd_over_denoiser", "rmse", "relmse", "flip"),
+    ("the same, without the error guard", "a held-out 256 x 256 frame, 2..4096 spp"):
+        _pd("pd-wskp6-sequence.json", "pd_over_denoiser", "rmse", "relmse", "flip"),
+    ("PSNR (dB) at 1 spp: WSKP-6 (2 seeds), KP 13 x 13 (2 seeds), OIDN 2",
+     "rt-test: 24 held-out crops"): [
+        ("rt-table1.json", _rt("WSKP-6", "psnr")),
+        ("rt-table1.json", _rt("KP (13x13)", "psnr")),
+        ("rt-table1.json", _rt("OIDN 2 (pretrained, 'high')", "psnr"))],
+    ("inference time, 1280 x 720: WSKP-6 / KP; WSKP-6 / OIDN", "one frame"): [
+        ("bench-denoisers.json", _key("wskp6_over_kp")),
+        ("bench-denoisers.json", _key("wskp6_over_oidn"))],
+    ("SURE by `jax.jvp` (one probe) / one WSKP-6 forward, 1280 x 720", "one frame"): [
+        ("bench-sure.json", _key("jvp_k1_over_forward"))],
+    ("PD(WSKP-6) / one WSKP-6 forward; PD(OIDN) / one OIDN call, 1280 x 720", "one frame"): [
+        ("bench-progressive.json", _key("pd_wskp6_over_wskp6")),
+        ("bench-progressive.json", _key("pd_over_oidn"))],
+    ("box-sum kernel decoder / unfold decoder, 6 kernels 3..13: memory, time", "1280 x 720"): [
+        ("bench-decoder.json", _key("memory_ratio")),
+        ("bench-decoder.json", _key("time_ratio"))],
+}
+
+#: README prose: a phrase (as in the README, whitespace collapsed; its numbers stand for any
+#: number) -> [(file, value getter), ...] for the numbers in it, in order.
+PROSE = {
+    "raises its RMSE by 4 % and its relMSE by 13 % on average over 2..1024 spp": [
+        ("oidn-no-features.json",
+         _percent_over_one(_key("summary", "mean_over_spp", "none", "rmse"))),
+        ("oidn-no-features.json",
+         _percent_over_one(_key("summary", "mean_over_spp", "none", "relmse")))],
+    "bring OIDN's RMSE to 0.934 of that with the legacy ones on average over 2..1024 spp and to "
+    "0.826 at 1024 spp": [
+        ("oidn-aux-features.json",
+         _key("summary", "mean_over_spp", "specular-chain:1024:clean", "rmse")),
+        ("oidn-aux-features.json",
+         _key("summary", "per_spp", "1024", "ratio", "specular-chain:1024:clean", "rmse"))],
+}
+
+#: Prose numbers that are not measurements: phrase -> why.
+NOT_QUOTES = {
+    "Python >= 3.11": "the Python version the package supports",
+}
+
+
+def result_file(name: str) -> Path:
+    """experiments/results/NAME, or the one file of that name in a subfolder of it (results are
+    grouped by family)."""
+    if (RESULTS / name).is_file():
+        return RESULTS / name
+    found = sorted(RESULTS.rglob(name))
+    assert len(found) == 1, f"experiments/results: {len(found)} files named {name}"
+    return found[0]
+
+
+def _collapse(text: str) -> str:
+    return " ".join(text.split())
+
+
+def _phrase_pattern(phrase: str) -> re.Pattern:
+    """``phrase`` as a pattern in which each of its numbers matches any number (a group), so
+    that an edited number is reported with its value rather than as a missing phrase."""
+    parts, last = [], 0
+    for match in PROSE_NUMBER.finditer(phrase):
+        parts += [re.escape(phrase[last:match.start()]), r"(\d+(?:\.\d+)?)"]
+        last = match.end()
+    return re.compile("".join(parts) + re.escape(phrase[last:]))
+
+
+def prose(text: str | None = None) -> str:
+    """README.md without its tables and fenced code blocks, whitespace collapsed."""
+    lines, fenced = [], False
+    for line in (README.read_text() if text is None else text).splitlines():
+        if line.lstrip().startswith("```"):
+            fenced = not fenced
+            continue
+        if not fenced and not line.lstrip().startswith("|"):
+            lines.append(line)
+    return _collapse("\n".join(lines))
+
+
+def tables_under(heading: str, text: str | None = None) -> list[list[dict]]:
     """The markdown tables of README.md under ``heading`` (up to the next heading of any level),
     as lists of {column name: cell} rows."""
     lines = (README.read_text() if text is None else text).splitlines()
@@ -135,73 +188,60 @@ def tables_under(heading: str, text: str | None = None) -> list[dict]:
     return tables
 
 
-def quotes(text: str | None = None) -> list[tuple[str, str, list]]:
-    """(where, README cell, [(file, getter), ...]) for every quoting cell of the results
-    tables; a row without a source is an error here."""
-    out = []
-    (bench,) = tables_under("### Benchmarks", text)
-    assert {row["benchmark"] for row in bench} == set(BENCHMARKS), "benchmark rows changed"
-    for row in bench:
-        for column, sources in BENCHMARKS[row["benchmark"]].items():
-            out.append((f"{row['benchmark']} / {column}", row[column], sources))
-    (pd,) = tables_under("### Progressive denoising of OIDN", text)
-    columns = list(pd[0])
-    rmse, relmse, flip, top = columns[2:6]
-    current_set, seen = None, set()
-    for row in pd:
-        if row["set"]:
-            current_set = row["set"].split(",")[0]
-        key = next((k for k in PD_ROWS if k[0] == current_set and row["mixer"].startswith(k[1])),
-                   None)
-        assert key is not None, f"PD table row without a source: {current_set} / {row['mixer']}"
-        seen.add(key)
-        name = PD_ROWS[key]
-        if key[1].startswith("oracle"):
-            out.append((f"{current_set} / oracle", f"{row[rmse]} {row[relmse]}",
-                        _pd(name, "oracle")))
-            assert not DECIMAL.findall(row[flip] + row[top]), "oracle FLIP / top-spp: no source"
+def quotes(text: str | None = None) -> tuple[list[tuple[str, list[str], list]], list[str]]:
+    """([(where, [README numbers], [(file, getter), ...]), ...], [problems found on the way]):
+    every quoting row of the results table and every sourced prose phrase; rows, phrases and
+    prose numbers without a source are problems."""
+    out, problems = [], []
+    (table,) = tables_under("## Results", text)
+    seen = set()
+    for row in table:
+        key = (row["result"], row["data"])
+        if key not in HEADLINE:
+            problems.append(f"results table row without a source: {key}")
             continue
-        for column, source in ((rmse, "rmse"), (relmse, "relmse"), (flip, "flip"),
-                               (top, "top spp")):
-            out.append((f"{current_set} / {row['mixer']} / {column}", row[column],
-                        _pd(name, source)))
-    assert seen == set(PD_ROWS), f"PD table rows missing: {set(PD_ROWS) - seen}"
-    (wskp6,) = tables_under("### Progressive denoising of WSKP-6", text)
-    columns = list(wskp6[0])
-    assert {row[columns[0]].split(" (")[0] for row in wskp6} == set(PD_WSKP6_ROWS), \
-        "PD(WSKP-6) table rows changed"
-    for row in wskp6:
-        name = PD_WSKP6_ROWS[row[columns[0]].split(" (")[0]]
-        for column, source in zip(columns[1:5], ("rmse", "relmse", "flip", "top spp")):
-            out.append((f"PD(WSKP-6) / {name} / {column}", row[column],
-                        _pd(name, source, base="wskp6")))
-    per_frame, temporal = tables_under("### Weight-sharing kernel prediction", text)
-    metrics = {"PSNR (dB)": "psnr", "SSIM": "ssim", "relMSE": "relmse", "FLIP": "flip"}
-    for section, rows in (("per_frame", per_frame), ("temporal", temporal)):
-        for row in rows:
-            for column, metric in metrics.items():
-                cell = row[column]
-                sources = [(RT_FILE, _rt(section, row["method"], metric, 0))]
-                if "±" in cell:
-                    sources.append((RT_FILE, _rt(section, row["method"], metric, 1)))
-                out.append((f"real-time / {row['method']} / {column}", cell, sources))
-    return out
+        seen.add(key)
+        sources = HEADLINE[key]
+        named = set(re.findall(r"`([^`]+\.json)`", row["file"]))
+        if named != {file for file, _ in sources}:
+            problems.append(f"results table row {key}: file cell names {sorted(named)}, "
+                            f"its numbers come from {sorted({f for f, _ in sources})}")
+        out.append((f"results table / {row['result']} / {row['data']}",
+                    DECIMAL.findall(row["value"]), sources))
+    problems += [f"results table row missing: {key}" for key in HEADLINE if key not in seen]
+
+    body = prose(text)
+    covered = []
+    for phrase, sources in PROSE.items():
+        matches = list(_phrase_pattern(phrase).finditer(body))
+        if len(matches) != 1:
+            problems.append(f"prose phrase found {len(matches)} times (expected once): {phrase!r}")
+            continue
+        covered.append(matches[0].span())
+        out.append((f"prose / {phrase!r}", list(matches[0].groups()), sources))
+    for phrase in NOT_QUOTES:
+        covered += [m.span() for m in re.finditer(re.escape(phrase), body)]
+    for match in PROSE_NUMBER.finditer(body):
+        if not any(start <= match.start() and match.end() <= end for start, end in covered):
+            context = body[max(0, match.start() - 60):match.end() + 20]
+            problems.append(f"prose number {match.group()!r} without a source (add its phrase "
+                            f"to PROSE): ...{context}...")
+    return out, problems
 
 
 def check(text: str | None = None) -> list[str]:
-    """Every mismatch between a README quote and its JSON value, as a message."""
-    problems, cache = [], {}
-    for where, cell, sources in quotes(text):
-        numbers = DECIMAL.findall(cell)
+    """Every mismatch between a README number and its JSON value, as a message."""
+    found, problems = quotes(text)
+    cache = {}
+    for where, numbers, sources in found:
         if len(numbers) != len(sources):
-            problems.append(f"{where}: {len(numbers)} numbers in {cell!r}, "
-                            f"{len(sources)} sources")
+            problems.append(f"{where}: {len(numbers)} numbers {numbers}, {len(sources)} sources")
             continue
         for number, (file, get) in zip(numbers, sources):
             if file not in cache:
-                cache[file] = json.loads((RESULTS / file).read_text())
+                cache[file] = json.loads(result_file(file).read_text())
             value = get(cache[file])
-            decimals = len(number.split(".")[1])
+            decimals = len(number.split(".")[1]) if "." in number else 0
             if f"{value:.{decimals}f}" != number:
                 problems.append(f"{where}: README says {number}, experiments/results/{file} "
                                 f"{get.path} = {value:.6g} ({value:.{decimals}f})")
@@ -212,25 +252,66 @@ def test_readme_numbers_match_their_json():
     assert check() == []
 
 
-def test_an_edited_readme_number_is_caught():
+def test_an_edited_table_number_is_caught():
     text = README.read_text()
-    edited = text.replace("| 0.866 | 0.908 | 0.891 |", "| 0.866 | 0.909 | 0.891 |", 1)
+    edited = text.replace("| 0.866, 0.908, 0.891 |", "| 0.866, 0.909, 0.891 |", 1)
     assert edited != text
     problems = check(edited)
     assert len(problems) == 1 and "README says 0.909" in problems[0]
     assert "pd-oidn-test-high-shipped.json" in problems[0]
 
 
-def test_a_number_without_a_source_is_caught():
+def test_an_edited_prose_number_is_caught():
     text = README.read_text()
-    edited = text.replace("memory 0.046, time 0.034", "memory 0.046, time 0.034, peak 0.5", 1)
+    edited = text.replace("to 0.826 at 1024 spp", "to 0.816 at 1024 spp", 1)
+    assert edited != text
+    problems = check(edited)
+    assert len(problems) == 1 and "README says 0.816" in problems[0]
+    assert "oidn-aux-features.json" in problems[0]
+    edited = text.replace("relMSE by 13 %", "relMSE by 12 %", 1)
+    assert edited != text
+    problems = check(edited)
+    assert len(problems) == 1 and "README says 12" in problems[0]
+
+
+def test_a_reworded_prose_phrase_is_caught():
+    text = README.read_text()
+    edited = text.replace("raises its RMSE by 4 %", "raises the RMSE by 4 %", 1)
+    assert edited != text
+    problems = check(edited)
+    assert any("found 0 times" in p for p in problems)
+    assert any("'4' without a source" in p for p in problems)
+
+
+@pytest.mark.parametrize("sentence", ["It is 1.5x faster than a plain render.",
+                                      "OIDN's error falls by x0.883 with them.",
+                                      "SURE is within 3 % of the true error."])
+def test_a_prose_number_without_a_source_is_caught(sentence):
+    text = README.read_text()
+    edited = text.replace("It is safe to run again.", f"It is safe to run again. {sentence}", 1)
+    assert edited != text
+    problems = check(edited)
+    assert len(problems) == 1 and "without a source" in problems[0]
+
+
+def test_a_table_number_without_a_source_is_caught():
+    text = README.read_text()
+    edited = text.replace("| 0.046, 0.034 |", "| 0.046, 0.034, 0.5 |", 1)
     assert edited != text
     assert any("3 numbers" in p for p in check(edited))
 
 
+def test_a_table_row_naming_another_file_is_caught():
+    text = README.read_text()
+    edited = text.replace("| 2.08 | `bench-sure.json` |", "| 2.08 | `bench-sure-h100.json` |", 1)
+    assert edited != text
+    assert any("file cell names" in p for p in check(edited))
+
+
 def test_every_cited_json_exists():
-    files = {file for _, _, sources in quotes() for file, _ in sources}
-    assert files and all((RESULTS / file).is_file() for file in files)
+    found, _ = quotes()
+    files = {file for _, _, sources in found for file, _ in sources}
+    assert files and all(result_file(file).is_file() for file in files)
 
 
 @pytest.mark.parametrize("text,numbers", [("WSKP-6 0.37, WSKP-3 0.23", ["0.37", "0.23"]),
@@ -238,3 +319,10 @@ def test_every_cited_json_exists():
                                           ("6 kernels 3..13, 1280x720", [])])
 def test_only_decimal_numbers_are_quotes(text, numbers):
     assert DECIMAL.findall(text) == numbers
+
+
+@pytest.mark.parametrize("text,numbers", [("by 4 % and 13% and 2.5 %", ["4", "13", "2.5"]),
+                                          ("x0.883 and 0.742x", ["0.883", "0.742"]),
+                                          ("jaxden 0.1.0, 2..1024 spp, 1280x720, 64 spp", [])])
+def test_prose_numbers(text, numbers):
+    assert PROSE_NUMBER.findall(text) == numbers
