@@ -24,6 +24,7 @@ from pathlib import Path
 
 from jaxden.cli.options import (
     add_channels_option,
+    add_convention_options,
     add_overwrite_input_option,
     channel_map,
     check_finite_result,
@@ -39,7 +40,7 @@ from jaxden.errors import CheckpointError, ConfigError, FrameError
 def cmd_denoise(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from jaxden.cli.options import exr_outputs, feature_notice
+    from jaxden.cli.options import convention_options, exr_outputs, feature_notice
     from jaxden.denoise.registry import load_denoiser
     from jaxden.io.exr import read_frame, write_image
 
@@ -49,7 +50,8 @@ def cmd_denoise(args: argparse.Namespace) -> int:
     required = denoiser.definition.required(denoiser.config)
     mapping = channel_map(args) or {}
     frame = read_frame(args.input, require=(*required, *(f for f in mapping if f not in required)),
-                       nonfinite=args.nonfinite, channel_map=mapping or None)
+                       nonfinite=args.nonfinite, channel_map=mapping or None,
+                       **convention_options(args))
     feature_notice(frame, denoiser, args.input)
     image = np.asarray(denoiser(frame))
     check_finite_result(image, "the denoised image",
@@ -257,6 +259,7 @@ def add_commands(sub) -> None:
     p.add_argument("--nonfinite", choices=("error", "zero"), default="error",
                    help="NaN/inf in the input: refuse (default) or replace by 0")
     add_channels_option(p)
+    add_convention_options(p)
     add_overwrite_input_option(p)
     p.set_defaults(func=cmd_denoise)
 

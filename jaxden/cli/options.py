@@ -80,6 +80,26 @@ def add_channels_option(parser: argparse.ArgumentParser) -> None:
              f"{', '.join(CHANNELS)})")
 
 
+def add_convention_options(parser: argparse.ArgumentParser) -> None:
+    """``--from RENDERER`` and ``--layer NAME``: read the input by another renderer's channel
+    conventions (:mod:`jaxden.io.conventions`)."""
+    from jaxden.io.conventions import CONVENTIONS
+
+    parser.add_argument(
+        "--from", dest="convention", choices=tuple(CONVENTIONS), default=None,
+        help="the renderer that wrote the input: its channel names for colour, albedo, normal, "
+             "depth and variance, the variance's meaning and the header's sample count "
+             "(--channels wins where given)")
+    parser.add_argument("--layer", default=None,
+                        help="the render layer of a layered file (--from cycles) holding several")
+
+
+def convention_options(args: argparse.Namespace) -> dict:
+    """The ``convention`` and ``layer`` keywords of :func:`jaxden.io.exr.read_frame`."""
+    return {"convention": getattr(args, "convention", None),
+            "layer": getattr(args, "layer", None)}
+
+
 def channel_map(args: argparse.Namespace) -> dict[str, tuple[str, ...]] | None:
     """The ``channel_map`` of :func:`jaxden.io.exr.read_frame` from ``--channels`` (and
     ``--variance-channels``); None when neither is given."""
@@ -168,14 +188,21 @@ def read_input_frame(args: argparse.Namespace, who: str):
         channel_map=mapping,
         variance_is_sample_variance=args.sample_variance,
         spp=args.spp,
+        **convention_options(args),
     )
     if frame.variance is None:
         names = ", ".join((mapping or {}).get("variance", ("variance.R", "variance.G",
                                                               "variance.B")))
         header = read_header(args.input)
         found = ", ".join(header["channels"])
-        if header["parts"] > 1:
-            found += f" in the first of its {header['parts']} parts, the one jaxden reads"
+        if getattr(args, "convention", None) not in (None, "jaxden") and "variance" not in (
+                mapping or {}):
+            raise FrameError(
+                f"{args.input}: {who} needs SURE, and SURE needs the variance of the pixel "
+                f"mean, which a {args.convention} file does not hold: render the frame K >= 2 "
+                f"times with different seeds and merge them (jaxden merge R1.exr .. RK.exr "
+                f"--from {args.convention} --out X.exr), or name its variance channels with "
+                f"--channels variance=R,G,B")
         raise FrameError(
             f"{args.input}: {who} needs SURE, and SURE needs the variance of the pixel mean "
             f"(channels {names}), which the file lacks (it has {found}); name your renderer's "
@@ -209,6 +236,7 @@ def sure_input_options(parser: argparse.ArgumentParser, *, probes_from_mixer: bo
     parser.add_argument("--probe-batch", type=positive_int, default=None,
                         help="probes per jvp pass (1 bounds the memory for big images)")
     add_channels_option(parser)
+    add_convention_options(parser)
     parser.add_argument("--variance-channels", type=_channel_names, default=None,
                         metavar="R,G,B",
                         help="names of the variance channels if not variance.R/G/B (the same "

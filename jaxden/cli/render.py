@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from jaxden.cli.options import exr_outputs, parse_size, positive_int
+from jaxden.cli.options import add_convention_options, exr_outputs, parse_size, positive_int
 from jaxden.errors import JaxdenError
 from jaxden.render.scene_xml import parse_parameters
 
@@ -80,6 +80,29 @@ def _render_buffers(args: argparse.Namespace, out: Path) -> int:
     return 0
 
 
+def cmd_merge(args: argparse.Namespace) -> int:
+    """K independent renders of one frame -> one EXR with the variance of its mean."""
+    from jaxden.cli.options import convention_options
+    from jaxden.data.merge import merge_renders
+    from jaxden.io.exr import read_frame, write_frame
+
+    (out,) = exr_outputs(("--out", args.out), inputs=tuple(args.renders))
+    if len(set(map(str, (Path(r).resolve() for r in args.renders)))) != len(args.renders):
+        raise JaxdenError("merge: a render is named twice")
+    frames = [read_frame(path, nonfinite="error", **convention_options(args))
+              for path in args.renders]
+    merged = merge_renders(frames, names=args.renders)
+    pooled = all(f.variance is not None for f in frames)
+    write_frame(out, merged, attributes={
+        "buffers": ";".join(str(Path(r)) for r in args.renders),
+        "variance_source": (f"pooled from {len(frames)} renders' own variances" if pooled else
+                            f"spread of {len(frames)} independent renders "
+                            f"({len(frames) - 1} degrees of freedom)")})
+    print(f"wrote {args.out} ({len(frames)} renders merged"
+          + ("" if merged.spp is None else f", {float(merged.spp):g} spp") + ")")
+    return 0
+
+
 def add_commands(sub) -> None:
     p = sub.add_parser("scenes", help="list the built-in scenes")
     p.set_defaults(func=cmd_scenes)
@@ -103,4 +126,11 @@ def add_commands(sub) -> None:
                         "scene's <default>)")
     p.add_argument("--out", required=True, help="output .exr")
     p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("merge", help="K independent renders of one frame (different seeds) -> "
+                                     "one frame with the variance of its mean")
+    p.add_argument("renders", nargs="+", help="the renders' EXR files (K >= 2)")
+    add_convention_options(p)
+    p.add_argument("--out", required=True, help="output .exr (jaxden's layout)")
+    p.set_defaults(func=cmd_merge)
 
