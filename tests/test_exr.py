@@ -248,8 +248,13 @@ def test_covariance_must_be_a_covariance_of_the_variance(tmp_path):
         frame.replace(variance=None).validated()
     # a file storing the per-sample (co)variance: both are divided by spp on reading
     path = tmp_path / "per-sample.exr"
-    exr.write_frame(path, frame.replace(variance=frame.variance * 16,
-                                        covariance=frame.covariance * 16))
+    per_sample = frame.replace(variance=frame.variance * 16, covariance=frame.covariance * 16)
+    exr.write_frame(path, per_sample)
+    with pytest.raises(ExrError, match="jaxden wrote this file"):  # it holds that of the mean
+        exr.read_frame(path, variance_is_sample_variance=True)
+    channels = {name: np.asarray(getattr(per_sample, field))[..., i]  # as another renderer
+                for field in per_sample.features() for i, name in enumerate(CHANNELS[field])}
+    exr.write_channels(path, channels, attributes={"spp": float(per_sample.spp)})
     back = exr.read_frame(path, variance_is_sample_variance=True)
     np.testing.assert_allclose(back.covariance, frame.covariance, rtol=1e-6)
     np.testing.assert_allclose(back.variance, frame.variance, rtol=1e-6)

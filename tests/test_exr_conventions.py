@@ -144,3 +144,50 @@ def test_every_convention_names_colour_and_a_known_variance_kind():
         assert "color" in convention.fields
         assert convention.variance in ("mean", "sample", "none")
         assert (convention.variance == "none") == ("variance" not in convention.fields)
+
+
+def _jaxden_frame(spp=16.0, seed=0):
+    from jaxden.frame import Frame
+
+    rng = np.random.default_rng(seed)
+    variance = rng.uniform(1e-9, 1e-3, (*SHAPE, 3)).astype(np.float32)  # below half's range
+    corr = rng.uniform(-0.9, 0.9, (*SHAPE, 3)).astype(np.float32)
+    covariance = corr * np.sqrt(variance * np.roll(variance, -1, axis=-1))
+    return Frame(color=rng.uniform(0, 4, (*SHAPE, 3)).astype(np.float32), variance=variance,
+                 covariance=covariance, spp=np.float32(spp))
+
+
+def test_half_files_keep_variance_and_covariance_exact(tmp_path):
+    """write_frame(half=True) (`jaxden render --half`) stores colour and features in float16
+    but the variance and covariance in float32, so every jaxden command reads it back."""
+    from jaxden.io.exr import write_frame
+
+    frame = _jaxden_frame()
+    write_frame(tmp_path / "h.exr", frame, half=True)
+    back = read_frame(tmp_path / "h.exr", require=("color", "variance", "covariance"))
+    np.testing.assert_array_equal(back.variance, frame.variance)
+    np.testing.assert_array_equal(back.covariance, frame.covariance)
+    np.testing.assert_allclose(back.color, frame.color, rtol=1e-3)  # half: 11 bits
+    assert not np.array_equal(back.color, frame.color)
+
+
+def test_spp_that_contradicts_the_header_is_refused(tmp_path):
+    from jaxden.io.exr import write_frame
+
+    write_frame(tmp_path / "f.exr", _jaxden_frame(spp=16))
+    with pytest.raises(ExrError, match="its header says 16 spp and --spp says 64"):
+        read_frame(tmp_path / "f.exr", spp=64)
+    assert float(read_frame(tmp_path / "f.exr", spp=16).spp) == 16
+    assert float(read_frame(tmp_path / "f.exr", spp=64, spp_override=True).spp) == 64
+
+
+def test_one_spp_input_is_told_it_needs_two(tmp_path, capsys):
+    from jaxden.cli import main
+    from jaxden.frame import Frame
+    from jaxden.io.exr import write_frame
+
+    write_frame(tmp_path / "one.exr", Frame(color=np.ones((*SHAPE, 3), np.float32),
+                                            spp=np.float32(1)))
+    assert main(["sure", str(tmp_path / "one.exr"), "--denoiser", "oidn",
+                 "--out", str(tmp_path / "s.exr")]) == 2
+    assert "one sample per pixel cannot estimate" in capsys.readouterr().err

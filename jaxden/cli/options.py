@@ -188,6 +188,7 @@ def read_input_frame(args: argparse.Namespace, who: str):
         channel_map=mapping,
         variance_is_sample_variance=args.sample_variance,
         spp=args.spp,
+        spp_override=args.override_spp,
         **convention_options(args),
     )
     if frame.variance is None:
@@ -195,6 +196,11 @@ def read_input_frame(args: argparse.Namespace, who: str):
                                                               "variance.B")))
         header = read_header(args.input)
         found = ", ".join(header["channels"])
+        if frame.spp is not None and float(frame.spp) < 2:
+            raise FrameError(
+                f"{args.input}: {who} needs SURE, and SURE needs the variance of the pixel "
+                f"mean, which one sample per pixel cannot estimate: render >= 2 spp, or merge "
+                f"K >= 2 renders with different seeds (jaxden merge R1.exr .. RK.exr --out X.exr)")
         if getattr(args, "convention", None) not in (None, "jaxden") and "variance" not in (
                 mapping or {}):
             raise FrameError(
@@ -244,7 +250,9 @@ def sure_input_options(parser: argparse.ArgumentParser, *, probes_from_mixer: bo
     parser.add_argument("--sample-variance", action="store_true",
                         help="the file stores the per-sample variance: divide it by spp")
     parser.add_argument("--spp", type=positive_float, default=None,
-                        help="samples per pixel, when the header has no jaxden.spp")
+                        help="samples per pixel, when the header states none")
+    parser.add_argument("--override-spp", action="store_true",
+                        help="let --spp replace the sample count the header states")
     parser.add_argument("--nonfinite", choices=("error", "zero"), default="error",
                         help="NaN/inf or negative variance: refuse (default) or repair (NaN -> 0, "
                              "variance clipped at 0; the authors' policy)")

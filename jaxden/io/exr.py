@@ -31,6 +31,10 @@ from jaxden.limits import check_exr_size
 from jaxden.frame import CHANNELS, IMAGE_FIELDS, Frame, NonFinitePolicy
 
 ATTRIBUTE_PREFIX = "jaxden."
+#: Key that :func:`read_channels` sets in the header of a file with jaxden's attributes.
+WRITTEN_BY_JAXDEN = "written_by_jaxden"
+#: Channels written in float32 even by ``write_frame(half=True)``.
+PRECISE_CHANNELS = frozenset(CHANNELS["variance"] + CHANNELS["covariance"])
 _FIELDS_BY_CHANNEL_COUNT = {"color": 3, "variance": 3}
 
 
@@ -297,6 +301,8 @@ def read_channels(
     for part in exr.parts:  # the first part's attributes win
         for key, value in _plain_header(part.header).items():
             header.setdefault(key, value)
+        if f"{ATTRIBUTE_PREFIX}version" in part.header:  # write_frame and write_image
+            header[WRITTEN_BY_JAXDEN] = True
     return out, header
 
 
@@ -327,8 +333,9 @@ def write_frame(
         array = getattr(frame, field)
         for index, channel in enumerate(CHANNELS[field]):
             channels[channel] = array[..., index]
-    if half is True:
-        half_names: bool | list[str] = True
+    if half is True:  # the variance and covariance stay float32: in half, small variances
+        # round to 0 while their covariance does not, and SURE needs them to 3 digits
+        half_names: bool | list[str] = [c for c in channels if c not in PRECISE_CHANNELS]
     elif half:
         half_fields = set(half)
         half_names = [c for f in half_fields if f in CHANNELS for c in CHANNELS[f]]
@@ -353,6 +360,7 @@ def read_frame(
     spp: float | None = None,
     convention: str | None = None,
     layer: str | None = None,
+    spp_override: bool = False,
 ) -> Frame:
     """Read a Frame from an EXR, checking it.
 
@@ -363,7 +371,8 @@ def read_frame(
     ``{"variance": ("color_var.R", "color_var.G", "color_var.B")}``.
     ``variance_is_sample_variance``: the file stores the per-sample variance (and covariance),
     not that of the pixel mean; it is divided by spp (from ``spp`` or the header) on reading.
-    ``spp``: overrides/supplies the sample count when the header has none.
+    ``spp``: supplies the sample count when the header has none; one that contradicts the
+    header is an ExrError unless ``spp_override``.
     ``convention``: the renderer whose channel names the file follows (``cycles``,
     ``pbrt-v4``, ``mitsuba``, ``jaxden``; :data:`jaxden.io.conventions.CONVENTIONS`): the
     fields, the variance's meaning and the header's sample count come from it; ``layer`` picks
@@ -387,6 +396,9 @@ def read_frame(
             header.pop("spp")
     elif layer is not None:
         raise ExrError(f"{path}: layer= applies to a layered file's convention (--from cycles)")
+    elif variance_is_sample_variance and header.get(WRITTEN_BY_JAXDEN):
+        raise ExrError(f"{path}: jaxden wrote this file, and its variance channels hold the "
+                       f"variance of the pixel mean already (drop --sample-variance)")
     for field, names in (channel_map or {}).items():
         if field not in CHANNELS:
             raise ExrError(f"channel_map: unknown field '{field}'; fields are {', '.join(CHANNELS)}")
@@ -418,7 +430,8 @@ def read_frame(
                 f"{path}: feature '{field}' is incomplete: has {', '.join(have)} but not "
                 f"{', '.join(c for c in names if c not in present)}"
             )
-    sample_count = spp if spp is not None else header.get("spp")
+    header_spp = header.get("spp")
+    sample_count = spp if spp is not None else header_spp
     if sample_count is not None:
         try:
             sample_count = float(sample_count)
@@ -428,6 +441,14 @@ def read_frame(
             source = "spp=" if spp is not None else "header attribute jaxden.spp"
             raise ExrError(f"{path}: {source} must be a positive sample count, got "
                            f"{sample_count:g}")
+    if spp is not None and header_spp is not None and not spp_override:
+        try:
+            agrees = bool(np.isclose(float(header_spp), float(spp), rtol=1e-6))
+        except (TypeError, ValueError):
+            agrees = False
+        if not agrees:
+            raise ExrError(f"{path}: its header says {header_spp} spp and --spp says {spp:g}; "
+                           f"drop --spp, or pass --override-spp if the header is wrong")
     if variance_is_sample_variance and "variance" in fields:
         if sample_count is None:
             raise ExrError(
