@@ -1,0 +1,186 @@
+"""Intel Open Image Denoise as a pure JAX function, with Intel's own weights
+(:mod:`jaxden.denoise.oidn_weights`): differentiable, jittable, batched, on any XLA device.
+
+    params, spec = load_oidn(albedo=True, normal=True, clean_aux=True, quality="high")
+    y = oidn_denoise(params, spec, color, albedo, normal)        # (..., H, W, 3)
+
+What OIDN 2.5's ``RT`` filter does with ``hdr=True`` (read from its source; checked against
+pyoidn on this CPU, tests/test_oidn_jax.py):
+- **which weights**: colour only ``rt_hdr``, with albedo ``rt_hdr_alb``, with albedo and normal
+  ``rt_hdr_calb_cnrm`` when the features are clean (``clean_aux``), else ``rt_hdr_alb_nrm``;
+  quality ``high`` takes the ``_large`` blob where one exists, ``fast`` the ``_small`` one;
+- **input scale** (auto-exposure, unless ``input_scale`` is given): the image in bins of
+  ceil(H / 16) x ceil(W / 16), per bin the mean luminance (0.212671 R + 0.715160 G + 0.072169
+  B, NaN as 0, clamped at 0), the mean of log2 over bins brighter than 1e-8, scale 0.18 / 2^mean
+  (1 when no bin is);
+- **transfer**: colour times the scale through the perceptual-uniform curve PU, normalised by
+  PU(65504); albedo clamped to [0, 1]; normal clamped to [-1, 1] and mapped to n / 2 + 1/2;
+  NaN as 0 everywhere;
+- **padding**: to multiples of 16 at the bottom and right, zeros in the transformed domain;
+- **output**: clamped at 0, the inverse transfer, divided by the scale, cropped.
+OIDN tiles frames above 2160^2 padded pixels with overlapping tiles; this function runs the
+whole frame at once (identical away from OIDN's tile seams).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxden.denoise.nn.oidn_net import OIDNUNet, layers_of
+from jaxden.errors import ConfigError, FrameError
+
+QUALITIES = ("high", "balanced", "fast")
+# The perceptual-uniform (PU) curve of OIDN's HDR transfer function.
+_PU_A, _PU_B, _PU_C, _PU_D = 1.41283765e3, 1.64593172, 4.31384981e-1, -2.94139609e-3
+_PU_E, _PU_F, _PU_G = 1.92653254e-1, 6.26026094e-3, 9.98620152e-1
+_PU_Y0, _PU_Y1 = 1.57945760e-06, 3.22087631e-02  # breaks of the forward curve
+_PU_X0, _PU_X1 = 2.23151711e-03, 3.70974749e-01  # and of its inverse
+HDR_MAX = 65504.0
+LUMINANCE = (0.212671, 0.715160, 0.072169)
+
+
+def pu_forward(y):
+    y = jnp.asarray(y)
+    return jnp.where(y <= _PU_Y0, _PU_A * y,
+                     jnp.where(y <= _PU_Y1, _PU_B * jnp.power(jnp.maximum(y, 0.0), _PU_C) + _PU_D,
+                               _PU_E * jnp.log(y + _PU_F) + _PU_G))
+
+
+def pu_inverse(x):
+    x = jnp.asarray(x)
+    return jnp.where(x <= _PU_X0, x / _PU_A,
+                     jnp.where(x <= _PU_X1,
+                               jnp.power(jnp.maximum((x - _PU_D) / _PU_B, 0.0), 1.0 / _PU_C),
+                               jnp.exp((x - _PU_G) / _PU_E) - _PU_F))
+
+
+PU_NORM = float(pu_forward(np.float32(HDR_MAX)))
+
+
+@dataclasses.dataclass(frozen=True)
+class OIDNSpec:
+    """Which of OIDN's networks and inputs: the blob, its size and layer widths."""
+
+    blob: str
+    size: str  # "base" or "large"
+    widths: tuple[int, ...]
+    albedo: bool
+    normal: bool
+
+
+def blob_name(albedo: bool, normal: bool, clean_aux: bool, quality: str,
+              available) -> str:
+    """OIDN's choice of weights for an HDR ``RT`` filter with these inputs."""
+    if quality not in QUALITIES:
+        raise ConfigError(f"OIDN quality must be one of {', '.join(QUALITIES)}, got {quality!r}")
+    if normal and not albedo:
+        raise ConfigError("OIDN takes a normal only together with an albedo")
+    base = "rt_hdr" + ("" if not albedo else "_calb_cnrm" if normal and clean_aux
+                       else "_alb_nrm" if normal else "_alb")
+    suffix = {"high": "_large", "fast": "_small"}.get(quality)
+    return base + suffix if suffix and base + suffix in available else base
+
+
+def load_oidn(*, albedo: bool = False, normal: bool = False, clean_aux: bool = False,
+              quality: str = "high", blobs=None):
+    """``(params, spec)`` of OIDN's network for these inputs, from the installed library's
+    weights (``blobs``: :func:`jaxden.denoise.oidn_weights.load_blobs`, loaded when None)."""
+    from jaxden.denoise.oidn_weights import load_blobs
+
+    blobs = load_blobs() if blobs is None else blobs
+    name = blob_name(albedo, normal, clean_aux, quality, blobs)
+    tensors = blobs[name]
+    size = "large" if "enc_conv1a.weight" in tensors else "base"
+    layers = layers_of(size)
+    missing = [layer for layer, _ in layers if f"{layer}.weight" not in tensors]
+    if missing:
+        raise ConfigError(f"OIDN weights {name}: no tensors for {', '.join(missing)}")
+    params = {layer: {"kernel": jnp.asarray(np.transpose(tensors[f"{layer}.weight"],
+                                                         (2, 3, 1, 0))),  # oihw -> hwio
+                      "bias": jnp.asarray(tensors[f"{layer}.bias"])}
+              for layer, _ in layers}
+    widths = tuple(int(tensors[f"{layer}.bias"].shape[0]) for layer, _ in layers)
+    channels = tensors[f"{layers[0][0]}.weight"].shape[1]
+    expected = 3 * (1 + albedo + normal)
+    if channels != expected:
+        raise ConfigError(f"OIDN weights {name} take {channels} input channels, not {expected}")
+    return {"params": params}, OIDNSpec(name, size, widths, albedo, normal)
+
+
+def _bin_matrix(length: int) -> np.ndarray:
+    """(bins, length) 0/1 matrix of OIDN's auto-exposure bins along one axis."""
+    bins = max(1, math.ceil(length / 16))
+    matrix = np.zeros((bins, length), np.float32)
+    for i in range(bins):
+        matrix[i, i * length // bins:(i + 1) * length // bins] = 1.0
+    return matrix
+
+
+def auto_exposure(color):
+    """OIDN's input scale of one image (H, W, 3) (see the module docstring)."""
+    height, width = color.shape[-3:-1]
+    rows, cols = _bin_matrix(height), _bin_matrix(width)
+    clean = jnp.maximum(jnp.nan_to_num(color, nan=0.0), 0.0)
+    luminance = clean @ jnp.asarray(LUMINANCE, color.dtype)
+    sums = jnp.asarray(rows) @ luminance @ jnp.asarray(cols).T
+    counts = np.outer(rows.sum(1), cols.sum(1))
+    mean = sums / counts
+    valid = mean > 1e-8
+    log_mean = jnp.sum(jnp.where(valid, jnp.log2(jnp.where(valid, mean, 1.0)), 0.0)) / \
+        jnp.maximum(jnp.sum(valid), 1)
+    return jnp.where(jnp.any(valid), 0.18 / jnp.exp2(log_mean), 1.0)
+
+
+def _round_up(n: int, multiple: int = 16) -> int:
+    return (n + multiple - 1) // multiple * multiple
+
+
+@functools.partial(jax.jit, static_argnames=("spec",))
+def _denoise_one(params, spec: OIDNSpec, color, albedo, normal, scale):
+    height, width = color.shape[:2]
+    x = jnp.clip(jnp.nan_to_num(color * scale, nan=0.0), 0.0, np.finfo(np.float32).max)
+    parts = [pu_forward(x) / PU_NORM]
+    if spec.albedo:
+        parts.append(jnp.clip(jnp.nan_to_num(albedo, nan=0.0), 0.0, 1.0))
+    if spec.normal:
+        parts.append(jnp.clip(jnp.nan_to_num(normal, nan=0.0), -1.0, 1.0) * 0.5 + 0.5)
+    inputs = jnp.concatenate(parts, axis=-1)
+    padded = jnp.pad(inputs, ((0, _round_up(height) - height), (0, _round_up(width) - width),
+                              (0, 0)))
+    net = OIDNUNet(spec.size, spec.widths)
+    out = net.apply(params, padded[None])[0, :height, :width]
+    out = jnp.maximum(jnp.nan_to_num(out, nan=0.0), 0.0)
+    return pu_inverse(out * PU_NORM) / scale
+
+
+def oidn_denoise(params, spec: OIDNSpec, color, albedo=None, normal=None, *, input_scale=None):
+    """OIDN's HDR denoising of ``color`` (..., H, W, 3), float32, with the features ``spec``
+    takes (albedo / normal of the same shape); ``input_scale`` None: OIDN's auto-exposure per
+    image. Differentiable in every input (the auto-exposure scale included)."""
+    color = jnp.asarray(color, jnp.float32)
+    if color.ndim < 3 or color.shape[-1] != 3:
+        raise FrameError(f"OIDN needs colour of shape (..., H, W, 3), got {color.shape}")
+    for name, wanted, value in (("albedo", spec.albedo, albedo), ("normal", spec.normal, normal)):
+        if wanted and (value is None or jnp.shape(value) != color.shape):
+            raise FrameError(f"OIDN weights {spec.blob} need {name} of shape {color.shape}, got "
+                             f"{None if value is None else jnp.shape(value)}")
+    lead = color.shape[:-3]
+    flat = color.reshape((-1,) + color.shape[-3:])
+    features = [None if value is None or not wanted else
+                jnp.asarray(value, jnp.float32).reshape(flat.shape)
+                for wanted, value in ((spec.albedo, albedo), (spec.normal, normal))]
+    if input_scale is None:
+        scales = jax.vmap(auto_exposure)(flat)
+    else:
+        scales = jnp.broadcast_to(jnp.asarray(input_scale, jnp.float32), lead).reshape(-1)
+    zeros = jnp.zeros_like(flat)
+    run = jax.vmap(lambda c, a, n, s: _denoise_one(params, spec, c, a, n, s))
+    out = run(flat, zeros if features[0] is None else features[0],
+              zeros if features[1] is None else features[1], scales)
+    return out.reshape(color.shape)
