@@ -128,3 +128,16 @@ def test_differentiable_and_batched(blobs):
     batch = np.stack([color, 2 * color])
     np.testing.assert_allclose(oidn_denoise(params, spec, batch)[1],
                                oidn_denoise(params, spec, 2 * color), rtol=1e-5, atol=1e-6)
+
+
+def test_a_weight_on_the_wrong_layer_shows(blobs):
+    """Two layers of one shape swapped (enc_conv5b and dec_conv3b of rt_hdr, both 96 x 96 x
+    3 x 3) move the output far beyond the tolerance: the test above would catch a mis-mapping."""
+    color = _scene(20, 18, seed=3)[0]
+    params, spec = load_oidn(blobs=blobs)
+    swapped = {"params": dict(params["params"])}
+    inner = swapped["params"]
+    inner["enc_conv5b"], inner["dec_conv3b"] = inner["dec_conv3b"], inner["enc_conv5b"]
+    good = np.asarray(oidn_denoise(params, spec, color))
+    bad = np.asarray(oidn_denoise(swapped, spec, color))
+    assert _relative_rmse(bad, good) > 100 * TOLERANCE
