@@ -6,7 +6,8 @@ KP-2 (5 layers, 7 x 7), the U-Net and OIDN ('high' quality,
 pyoidn on the same CPU). The JAX models run in their inference (deploy) form, jitted and
 compiled before timing, with freshly initialised weights (inference time does not depend on
 the weights' values). Each is timed alternately with the others, median of the repeats.
-Keys ``<model>_over_oidn`` = model time / OIDN time, ``<model>_over_kp`` = model time / KP's
+OIDN in JAX with Intel's weights (``oidnjax``) is timed beside them. Keys
+``<model>_over_oidn`` = model time / OIDN time, ``<model>_over_kp`` = model time / KP's
 (the WSKP paper's target: WSKP-6 <= 0.5 KP) and ``wskp6_network_over_kp``: WSKP-6's
 ImportanceNet alone (its 6 layers, no kernel decoding) / KP, the floor of ``wskp6_over_kp``
 for any decoder (the two models share that backbone; KP's last layer and 13 x 13 filter are
@@ -21,6 +22,9 @@ from jaxden.bench import bench_frame, median_times, register
 
 MODELS = {"wskp3": "wskp3", "wskp6": "wskp", "wskp_mr": "wskp_mr", "kp": "kp", "kp1": "kp1",
           "kp2": "kp2", "unet": "unet"}
+#: Also time OIDN in JAX (Intel's weights, :mod:`jaxden.denoise.oidn_jax`) against pyoidn,
+#: the same network and inputs (albedo, normal, clean features, quality high).
+OIDN_JAX = True
 #: (width, height) and repeats of ``quick`` (the tests make it smaller still).
 QUICK_SIZE, QUICK_REPEATS = (320, 180), 3
 
@@ -42,6 +46,8 @@ def bench_denoisers(quick: bool) -> dict:
         runners[key] = (lambda f=function: jax.block_until_ready(f(device_frame)))
     oidn = make_denoiser("oidn")
     runners["oidn"] = lambda: oidn(frame)
+    if OIDN_JAX:
+        runners["oidnjax"] = _oidn_jax_runner(frame)
     if "wskp6" in MODELS:
         from jaxden.denoise.nn.wskp import RepVGGStack, network_inputs
 
@@ -52,7 +58,8 @@ def bench_denoisers(quick: bool) -> dict:
         network = jax.jit(lambda f: net.apply(wskp6.params, network_inputs(f, config.tonemap)))
         runners["wskp6_network"] = lambda: jax.block_until_ready(network(device_frame))
     median = median_times(runners, repeats)
-    result: dict = {f"{key}_over_oidn": median[key] / median["oidn"] for key in MODELS}
+    result: dict = {f"{key}_over_oidn": median[key] / median["oidn"]
+                    for key in (*MODELS, *(["oidnjax"] if OIDN_JAX else []))}
     result.update({f"{key}_over_kp": median[key] / median["kp"] for key in MODELS
                    if key != "kp" and "kp" in median})
     if "wskp6_network" in median and "kp" in median:
@@ -62,3 +69,19 @@ def bench_denoisers(quick: bool) -> dict:
                    "devices": len(jax.devices()), "oidn_quality": "high"})
     assert np.isfinite(list(median.values())).all()
     return result
+
+
+def _oidn_jax_runner(frame):
+    """OIDN-JAX on the bench frame, jitted and compiled before timing."""
+    import jax
+
+    from jaxden.denoise.oidn_jax import load_oidn, oidn_denoise
+
+    params, spec = load_oidn(albedo=True, normal=True, clean_aux=True)
+    inputs = [jax.device_put(np.clip(np.asarray(value, np.float32), low, 1.0)) if low is not None
+              else jax.device_put(np.asarray(value, np.float32))
+              for value, low in ((frame.color, None), (frame.albedo, 0.0), (frame.normal, -1.0))]
+    function = jax.jit(lambda c, a, n: oidn_denoise(params, spec, c, a, n))
+    jax.block_until_ready(function(*inputs))
+    return lambda: jax.block_until_ready(function(*inputs))
+
