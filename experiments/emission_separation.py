@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 from pathlib import Path
 
@@ -38,13 +37,9 @@ TOP = 50  # worst pixels off the emitters whose share of the error is reported
 
 
 def commit() -> str:
-    def git(*args: str) -> str:
-        return subprocess.run(["git", *args], cwd=REPO, text=True, capture_output=True,
-                              check=False).stdout.strip()
+    from jaxden.provenance import git_commit
 
-    dirty = git("status", "--porcelain", "--untracked-files=no", "--", ".",
-                ":(exclude)experiments/results")
-    return (git("rev-parse", "--short", "HEAD") or "unknown") + ("+dirty" if dirty else "")
+    return git_commit()
 
 
 def render(spp: int, seed: int, frames: Path | None):

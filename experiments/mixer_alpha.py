@@ -65,10 +65,9 @@ def evaluate(data: Path, crops, spp, mixers, denoiser: str = "oidn", seed: int =
     import jax
     import jax.numpy as jnp
 
+    from jaxden.data.crops import iter_crops
     from jaxden.denoise.registry import load_denoiser
-    from jaxden.progressive.heads import mix
     from jaxden.progressive.mixer import _mixer_alpha, _mixer_swap_args, closed_form_alpha
-    from jaxden.progressive.report import iter_crops
     from jaxden.progressive.tstat import _gaussian_sigma, consistent_mix
     from jaxden.sure.denoiser import denoise_with_sure
 
@@ -191,15 +190,17 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="output path without suffix")
     args = parser.parse_args(argv)
 
-    from pd_report import provenance, write_report
+    from jaxden.evaluate import dataset_provenance
+    from jaxden.provenance import result_provenance, run_identity, write_result
 
-    info = provenance(args, {"mixers": args.mixer, "crops": args.crop,
-                             "denoiser": args.denoiser})
+    info = result_provenance(run_identity(), dataset_provenance(args.data, None),
+                             seed=args.seed, probes=4, mixers=args.mixer, crops=args.crop,
+                             denoiser=args.denoiser)
     rows = evaluate(args.data, args.crop, args.spp, args.mixer, denoiser=args.denoiser,
                     seed=args.seed, worst=args.worst_pixels)
     weights = first_layer_weights(args.mixer)
     name = "OIDN" if args.denoiser == "oidn" else args.denoiser
-    write_report(args.out, {"provenance": info, "rows": rows, "first_layer_weights": weights},
+    write_result(args.out, {"provenance": info, "rows": rows, "first_layer_weights": weights},
                  markdown(rows, args.mixer, weights, name))
     return 0
 

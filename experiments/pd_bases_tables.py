@@ -37,7 +37,7 @@ SWEEP = "pd-mixers"
 #: The same mixers with SURE from the colour covariance (pd-mixers-cov.toml): extra PD rows.
 SWEEP_COV = "pd-mixers-cov"
 #: Eq. 9 alone (the closed-form mixer, no network) over each base with SURE from the colour
-#: covariance: pd_report.py reports under $JAXDEN_HOME/runs/pd-closed-form (queue.sh).
+#: covariance: `jaxden evaluate pd` results under $JAXDEN_HOME/runs/pd-closed-form (queue.sh).
 CLOSED_FORM = "runs/pd-closed-form"
 #: (run name, inputs / base label, table) of the bases, in the paper's order.
 BASES = (("unet-hdr", "U-Net: HDR", 1), ("unet-hdr-var", "U-Net: HDR, VAR", 1),
@@ -77,7 +77,7 @@ def load_results(home: Path, sweep: str = SWEEP) -> dict[str, dict]:
 
 
 def load_reports(home: Path, folder: str = CLOSED_FORM) -> dict[str, dict]:
-    """``{base run name: the summary of its pd_report.py JSON}`` for the reports in
+    """``{base run name: the summary of its `jaxden evaluate pd` JSON}`` for the reports in
     ``home / folder`` (named after the base's run)."""
     out = {}
     for path in sorted((home / folder).glob("*.json")):
@@ -275,8 +275,7 @@ def table4(results: dict[str, dict]) -> str:
 
 def convergence(sources: dict[str, dict[str, dict]]) -> tuple[str, dict]:
     """One log-log RMSE panel per base with any mixer: MC, the base, PD over it per mixer."""
-    sys.path.insert(0, str(REPO / "experiments"))
-    from pd_figure import svg_plot
+    from jaxden.evaluate.plot import svg_plot
 
     legends = {"pd": ("PD(base)", "#d62728"),
                "covariance_sure": ("PD(base), covariance SURE", "#2ca02c"),

@@ -1,7 +1,7 @@
 """The paper's Figures 2 and 10 on our data: SURE against the true error, convergence plots
 and a progressive image series.
 
-    # error vs spp (log-log), mean over the test crops, from pd_report.py's JSON (no rendering)
+    # error vs spp (log-log), mean over the test crops, from `jaxden evaluate pd`'s JSON (no rendering)
     python experiments/pd_figure.py convergence \
         --report experiments/results/pd-oidn-test-high-shipped.json \
         --out experiments/results/fig10-convergence-high
@@ -16,7 +16,7 @@ and a progressive image series.
     python experiments/pd_figure.py sure --report experiments/results/sure-fig2.json \
         --out experiments/results/fig2-sure
 
-The base denoiser is named as the mixers' model cards name it (``ship_mixer.denoiser_label``):
+The base denoiser is named as the mixers' model cards name it (``jaxden.evaluate.denoiser_label``):
 OIDN for ``oidn``, WSKP-6 for ``wskp-6``, a checkpoint by its folder's name; ``convergence``
 takes it from the report's provenance, ``images`` from ``--denoiser``.
 
@@ -36,21 +36,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from ship_mixer import denoiser_label
 
-
-def convergence_methods(denoiser: str = "OIDN") -> tuple[tuple[str, str, str], ...]:
-    """The convergence curves (key, legend, colour) for a base denoiser's label."""
-    return (("mc", "MC", "#7f7f7f"), ("denoiser", denoiser, "#1f77b4"),
-            ("pd", f"PD({denoiser})", "#d62728"), ("oracle", "oracle mix (8x8 tiles)", "#2ca02c"))
-
-
-METHODS = convergence_methods()
-PANELS = (("rmse", "RMSE"), ("relmse", "relMSE"))
+from jaxden.evaluate import denoiser_label
+from jaxden.evaluate.plot import METHODS, PANELS, convergence_methods, svg_plot
 
 
 def mean_curves(rows) -> dict:
-    """{metric: {method: [(spp, mean over crops), ...]}} from pd_report rows."""
+    """{metric: {method: [(spp, mean over crops), ...]}} from the rows of a PD result."""
     levels = sorted({row["spp"] for row in rows})
     curves = {}
     for metric, _ in PANELS:
@@ -59,71 +51,6 @@ def mean_curves(rows) -> dict:
                                           if r["spp"] == spp]))) for spp in levels]
             for method, _, _ in METHODS}
     return curves
-
-
-def _log_ticks(lo: float, hi: float) -> list[float]:
-    return [10.0**k for k in range(int(np.floor(np.log10(lo))), int(np.ceil(np.log10(hi))) + 1)]
-
-
-def svg_plot(curves: dict, title: str, panels=PANELS, methods=METHODS,
-             dashed=("oracle",)) -> str:
-    """Log-log panels side by side (``panels``: (key, label) pairs, one per panel; ``methods``:
-    (key, legend, colour) per curve; ``dashed``: the keys drawn dashed), as an SVG document
-    (no plotting dependency)."""
-    pw, ph, ml, mr, mt, mb = 360, 280, 62, 14, 36, 46
-    width = len(panels) * (pw + ml + mr)
-    height = ph + mt + mb + 22 * len(methods)
-    out = [(f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
-            f'font-family="sans-serif" font-size="12">'),
-           f'<rect width="{width}" height="{height}" fill="white"/>',
-           f'<text x="{width / 2}" y="18" text-anchor="middle" font-size="14">{title}</text>']
-    for p, (metric, label) in enumerate(panels):
-        ox = p * (pw + ml + mr) + ml
-        data = curves[metric]
-        spps = [s for s, _ in next(iter(data.values()))]
-        values = [v for series in data.values() for _, v in series if v > 0]
-        x0, x1 = np.log2(min(spps)), np.log2(max(spps))
-        ticks = _log_ticks(min(values), max(values))
-        y0, y1 = np.log10(ticks[0]), np.log10(ticks[-1])
-
-        def px(spp, x0=x0, x1=x1, ox=ox):
-            return ox + (np.log2(spp) - x0) / max(x1 - x0, 1e-9) * pw
-
-        def py(v, y0=y0, y1=y1):
-            return mt + ph - (np.log10(v) - y0) / max(y1 - y0, 1e-9) * ph
-
-        out.append(f'<rect x="{ox}" y="{mt}" width="{pw}" height="{ph}" fill="none" '
-                   f'stroke="black"/>')
-        for t in ticks:
-            y = py(t)
-            out.append(f'<line x1="{ox}" y1="{y:.1f}" x2="{ox + pw}" y2="{y:.1f}" '
-                       f'stroke="#ddd"/>')
-            out.append(f'<text x="{ox - 4}" y="{y + 4:.1f}" text-anchor="end">{t:.0e}</text>')
-        for s in spps:
-            x = px(s)
-            out.append(f'<line x1="{x:.1f}" y1="{mt}" x2="{x:.1f}" y2="{mt + ph}" '
-                       f'stroke="#eee"/>')
-            out.append(f'<text x="{x:.1f}" y="{mt + ph + 16}" text-anchor="middle">{s}</text>')
-        out.append(f'<text x="{ox + pw / 2}" y="{mt + ph + 34}" text-anchor="middle">'
-                   f'samples per pixel</text>')
-        out.append(f'<text x="{ox + 8}" y="{mt + 16}">{label} (mean over crops)</text>')
-        for method, _, colour in methods:
-            points = " ".join(f"{px(s):.1f},{py(v):.1f}" for s, v in data[method] if v > 0)
-            dash = ' stroke-dasharray="5,3"' if method in dashed else ""
-            out.append(f'<polyline points="{points}" fill="none" stroke="{colour}" '
-                       f'stroke-width="2"{dash}/>')
-            for s, v in data[method]:
-                if v > 0:
-                    out.append(f'<circle cx="{px(s):.1f}" cy="{py(v):.1f}" r="2.5" '
-                               f'fill="{colour}"/>')
-    for i, (method, name, colour) in enumerate(methods):
-        y = mt + ph + mb + 14 + 22 * i
-        dash = ' stroke-dasharray="5,3"' if method in dashed else ""
-        out.append(f'<line x1="{ml}" y1="{y - 4}" x2="{ml + 30}" y2="{y - 4}" '
-                   f'stroke="{colour}" stroke-width="2"{dash}/>')
-        out.append(f'<text x="{ml + 38}" y="{y}">{name}</text>')
-    out.append("</svg>")
-    return "\n".join(out) + "\n"
 
 
 def _write_plot(out: Path, svg: str, curves: dict, report_path, report: dict) -> None:
@@ -163,14 +90,14 @@ SURE_DIAG = ("sure_diag", "denoised: SURE, per-channel (the paper's)", "#ff7f0e"
 
 
 def sure_methods(report: dict) -> tuple:
-    """The curves a pd_report.py sure JSON has: SURE_METHODS, plus SURE_DIAG when every row
+    """The curves a `jaxden evaluate sure` JSON has: SURE_METHODS, plus SURE_DIAG when every row
     has the per-channel SURE beside the covariance one."""
     rows = [r for group in report["rows"].values() for r in group]
     return SURE_METHODS + ((SURE_DIAG,) if rows and all("sure_diag" in r for r in rows) else ())
 
 
 def sure_curves(report: dict) -> dict:
-    """{denoiser: {curve: [(spp, mean over crops), ...]}} from a pd_report.py sure JSON."""
+    """{denoiser: {curve: [(spp, mean over crops), ...]}} from a `jaxden evaluate sure` JSON."""
     curves = {}
     for denoiser, rows in report["rows"].items():
         levels = sorted({row["spp"] for row in rows})
@@ -187,7 +114,7 @@ def cmd_sure(args) -> None:
                if any(k not in r for rows in report["rows"].values() for r in rows)]
     if missing:
         raise SystemExit(f"{args.report}: rows lack {missing}: a report from before they were "
-                         "recorded; rerun pd_report.py sure")
+                         "recorded; rerun jaxden evaluate sure")
     curves = sure_curves(report)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -201,15 +128,16 @@ def cmd_sure(args) -> None:
 
 def cmd_images(args) -> None:
     import jax
-    from pd_report import _weights_identity, provenance
 
     from jaxden import metrics
+    from jaxden.data.crops import iter_crops
     from jaxden.denoise.registry import load_denoiser
+    from jaxden.evaluate import dataset_provenance, weights_identity
     from jaxden.fileio import atomic_write_text
     from jaxden.io.png import preview, write_png
     from jaxden.progressive.mixer import load_mixer
     from jaxden.progressive.pipeline import progressive_denoise
-    from jaxden.progressive.report import iter_crops
+    from jaxden.provenance import result_provenance, run_identity
 
     if args.mixer is None:
         from jaxden.progressive.pipeline import SHIPPED_MIXERS
@@ -229,8 +157,10 @@ def cmd_images(args) -> None:
     missing = sorted(set(args.spp) - {spp for spp, _ in inputs})
     if missing:
         raise SystemExit(f"{args.data}: crop {args.crop} has no inputs at spp {missing}")
-    source = provenance(args, {"denoiser": args.denoiser, "mixer": _weights_identity(args.mixer),
-                               "crop": crop.id, "scene": crop.scene})
+    source = result_provenance(run_identity(), dataset_provenance(args.data, None),
+                               seed=args.seed, probes=args.probes or 4,
+                               denoiser=args.denoiser, mixer=weights_identity(args.mixer),
+                               crop=crop.id, scene=crop.scene)
     model = load_denoiser(args.denoiser)
     params, config = load_mixer(args.mixer)
     ref = np.asarray(reference.color, np.float64)
@@ -284,13 +214,13 @@ def _vstack(rows):
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("convergence", help="error vs spp from a pd_report.py JSON")
+    p = sub.add_parser("convergence", help="error vs spp from a jaxden evaluate pd JSON")
     p.add_argument("--report", required=True)
     p.add_argument("--title", default=None)
     p.add_argument("--out", required=True, help="output path without suffix")
     p.set_defaults(run=cmd_convergence)
     p = sub.add_parser("sure", help="Figure 2: SURE and the input's variance against the "
-                                    "true errors, per spp, from a pd_report.py sure JSON")
+                                    "true errors, per spp, from a jaxden evaluate sure JSON")
     p.add_argument("--report", required=True)
     p.add_argument("--out", required=True, help="output path without suffix")
     p.add_argument("--title", default=None)

@@ -115,7 +115,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
     from jaxden.paths import portable
-    from jaxden.provenance import file_sha256, package_version, run_identity, write_report
+    from jaxden.provenance import file_sha256, package_version, run_identity, write_result
 
     rows = measure(args.data, args.denoiser, tuple(args.spp))
     result = {"rows": rows, "denoiser": args.denoiser, "own_chi2": OWN_CHI2,
@@ -125,7 +125,7 @@ def main(argv=None) -> int:
         "dataset": {"path": portable(str(args.data)),
                     "manifest_sha256": file_sha256(args.data / "manifest.json")},
         "versions": {n: package_version(n) for n in ("pyoidn", "jax")}}
-    write_report(args.out, result, render_markdown(rows, args.denoiser))
+    write_result(args.out, result, render_markdown(rows, args.denoiser))
     return 0
 
 

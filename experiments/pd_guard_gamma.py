@@ -146,7 +146,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
     from jaxden.paths import portable
-    from jaxden.provenance import file_sha256, package_version, run_identity, write_report
+    from jaxden.provenance import file_sha256, package_version, run_identity, write_result
 
     rows, excess, shipped, gammas = measure(args.data, args.denoiser, tuple(args.gamma),
                                            args.split)
@@ -157,7 +157,7 @@ def main(argv=None) -> int:
         "dataset": {"path": portable(str(args.data)),
                     "manifest_sha256": file_sha256(args.data / "manifest.json")},
         "versions": {n: package_version(n) for n in ("pyoidn", "jax")}}
-    write_report(args.out, result, render_markdown(rows, excess, gammas, shipped, args.denoiser))
+    write_result(args.out, result, render_markdown(rows, excess, gammas, shipped, args.denoiser))
     return 0
 
 

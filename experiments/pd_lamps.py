@@ -81,7 +81,8 @@ def lamp_pixels(frame, reference, lamp, extras, alpha_t, alpha_g, config, z, cou
     import jax.numpy as jnp
     from scipy.ndimage import maximum_filter
 
-    from jaxden.progressive.closed_form import _blur_2d, _gaussian_taps
+    from jaxden.progressive.closed_form import blur_2d as _blur_2d
+    from jaxden.progressive.closed_form import gaussian_taps as _gaussian_taps
     from jaxden.progressive.tstat import _gaussian_sigma, t_statistic
 
     x, var = np.asarray(frame.color), np.asarray(frame.variance)
@@ -196,7 +197,7 @@ def table(result: dict) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     from jaxden.paths import expand_path
-    from jaxden.provenance import package_version, run_identity, write_report
+    from jaxden.provenance import package_version, run_identity, write_result
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--spp", type=int, nargs="+", default=[8, 64, 1024, 4096])
@@ -217,7 +218,7 @@ def main(argv: list[str] | None = None) -> None:
         "scene": "small-lights", "size": list(SIZE), "seed": args.seed, "spp": args.spp,
         "reference_spp": args.reference_spp, "reference_seed": args.reference_seed,
         "probe_seed": args.probe_seed}
-    write_report(args.out, result, table(result))
+    write_result(args.out, result, table(result))
 
 
 if __name__ == "__main__":

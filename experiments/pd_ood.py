@@ -1,7 +1,7 @@
 """Where and why progressive denoising loses to its base denoiser: per-scene diagnosis of a
-PD report (``experiments/pd_report.py pd``), made for the out-of-distribution set.
+PD result (``jaxden evaluate pd``), made for the out-of-distribution set.
 
-    python experiments/pd_report.py pd --data $JAXDEN_HOME/data/ood --denoiser oidn \\
+    jaxden evaluate pd --data $JAXDEN_HOME/data/ood --denoiser oidn \\
         --mixer oidn-pd --mixer-set closed_form_stops=1 --spp 16 32 64 128 256 512 1024 \\
         --out experiments/results/pd-oidn-ood-shipped
     python experiments/pd_ood.py experiments/results/pd-oidn-ood-shipped.json \\
@@ -25,7 +25,7 @@ from collections import defaultdict
 from pathlib import Path
 
 BOUND = 1.01
-#: The t-statistic forms of a pd_report row, as :func:`markdown` names them.
+#: The t-statistic forms of a PD result's row, as :func:`markdown` names them.
 T_FORMS = {"pd": "PD as configured", "pd_pc": "PD with the per-channel t",
            "pd_shared": "PD with the shared (channel-summed, authors') t"}
 
@@ -36,7 +36,7 @@ def _gmean(values) -> float:
 
 
 def diagnose(report: dict) -> dict:
-    """Per (scene, spp) cells, per-scene and per-set summaries of a pd_report JSON."""
+    """Per (scene, spp) cells, per-scene and per-set summaries of a `jaxden evaluate pd` JSON."""
     cells = []
     for row in report["rows"]:
         den_mse = row["denoiser_mse_nc"]
@@ -64,7 +64,7 @@ def diagnose(report: dict) -> dict:
             "cells_over_bound": sum(max(c["rmse"], c["relmse"]) > BOUND for c in group),
             "cells": len(group),
         }
-    # The set, per spp: the mean over crops of each metric, as pd_report's tables.
+    # The set, per spp: the mean over crops of each metric, as the PD result's tables.
     by_spp = defaultdict(list)
     for row in report["rows"]:
         by_spp[row["spp"]].append(row)
@@ -111,7 +111,7 @@ def markdown(result: dict, command: str) -> str:
     lines += ["", f"Over all cells: PD/den {o['rmse_gmean']:.3f} in RMSE and "
               f"{o['relmse_gmean']:.3f} in relMSE (geometric means), worst {o['worst']:.3f}; "
               f"{o['cells_over_bound']} of {o['cells']} cells over the bound. Set means per "
-              f"spp (as pd_report's table): worst {o['set_mean_worst']:.3f}.", "",
+              f"spp (as the PD result's table): worst {o['set_mean_worst']:.3f}.", "",
               *(f"- {T_FORMS[m]}: {f['cells_over_bound']} of {f['cells']} cells over the bound "
                 f"(worst {f['worst']:.3f})" for m, f in result.get("t_forms", {}).items()),
               "",
@@ -132,7 +132,7 @@ def markdown(result: dict, command: str) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("report", help="a pd_report.py pd JSON")
+    parser.add_argument("report", help="a jaxden evaluate pd JSON")
     parser.add_argument("--out", help="output path without suffix (.md and .json)")
     args = parser.parse_args(argv)
     result = diagnose(json.loads(Path(args.report).read_text()))

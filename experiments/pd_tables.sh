@@ -4,7 +4,8 @@
 # mixer outside the training distribution (both OOD variants, with pd_ood.py's diagnosis) and
 # the model card of oidn-pd, which quotes the two held-out reports:
 #   experiments/pd_tables.sh [NAME MIXER]
-# Rows, each one pd_report.py report per set (experiments/results/pd-oidn-{test,test-high}-ROW):
+# Rows, each one `jaxden evaluate pd` result per set
+# (experiments/results/pd-oidn-{test,test-high}-ROW):
 #   shipped              the shipped mixer oidn-pd as shipped
 #   shipped-stops-none   the same weights on the plain closed form (closed_form_stops=none)
 #   closed-form-stops1   the closed-form mixer with brightness strata, no network
@@ -13,8 +14,8 @@
 #                        retrained-stops1 "$JAXDEN_HOME/runs/mixer-oidn-cflogit-stops1"
 # Every report also holds MC, OIDN and the 8 x 8-tile oracle. All rows of a set must be on one
 # build of it: a report already made on the same build (same manifest hash) with the same
-# mixer, config and options is kept (pd_report.py --keep-current), any other is made again, so
-# the script resumes after an interruption and refreshes everything after a rebuild or a
+# mixer, config and options is kept (jaxden evaluate pd --keep-current), any other is made
+# again, so the script resumes after an interruption and refreshes everything after a rebuild or a
 # re-ship. Data: $JAXDEN_HOME/data/test-chain and test-high-chain (dataset-test.toml and
 # dataset-test-high.toml built with name=test-chain / name=test-high-chain), data/ood and
 # data/ood-first-hit (dataset-ood.toml; experiments/README.md).
@@ -30,18 +31,19 @@ fi
 
 current() {  # current OUT DATA: OUT.json exists and was made on DATA's build
   "$python" - "$1.json" "$2/manifest.json" <<'PY'
-import hashlib, json, sys
+import json, sys
 from pathlib import Path
+from jaxden.provenance import file_sha256
 report, manifest = Path(sys.argv[1]), Path(sys.argv[2])
 ok = report.is_file() and json.loads(report.read_text())["provenance"]["dataset"][
-    "manifest_sha256"] == hashlib.sha256(manifest.read_bytes()).hexdigest()
+    "manifest_sha256"] == file_sha256(manifest)
 sys.exit(0 if ok else 1)
 PY
 }
 
-report() {  # report DATA OUT ARGS...: pd_report.py pd unless OUT is current
+report() {  # report DATA OUT ARGS...: jaxden evaluate pd unless OUT is current
   local data=$1 out=$2; shift 2
-  "$python" experiments/pd_report.py pd --data "$data" --denoiser oidn "$@" --out "$out" \
+  "$python" -m jaxden.cli evaluate pd --data "$data" --denoiser oidn "$@" --out "$out" \
     --keep-current
 }
 

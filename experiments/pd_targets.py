@@ -1,5 +1,5 @@
 """Progressive denoising's promise, checked image by image on finished PD reports
-(experiments/pd_report.py pd ... --out X): at the top spp PD is at or below MC, and at every
+(jaxden evaluate pd ... --out X): at the top spp PD is at or below MC, and at every
 spp PD is at most a factor above the better of MC and its denoiser.
 
     python experiments/pd_targets.py experiments/results/pd-stress-oidn.json ... \
@@ -9,7 +9,7 @@ Per report and image (a crop of the test set; on the stress set a whole frame):
 - top spp: PD's noise-corrected MSE against MC's, passing when PD <= MC + the noise margin of
   the row (``pd_vs_mc_margin``: twice the standard deviation that the noise of the render and
   of the reference puts into the difference of the two errors,
-  :func:`jaxden.progressive.report.noise_margin`);
+  :func:`jaxden.evaluate.pd.noise_margin`);
 - every spp: PD / min(MC, denoiser) in RMSE (from the noise-corrected MSE) and in relMSE; the
   worst spp is listed, passing at <= --factor (1.05).
 """
@@ -86,7 +86,7 @@ def table(results: dict[str, list[dict]], factor: float) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    from jaxden.provenance import run_identity, write_report
+    from jaxden.provenance import run_identity, write_result
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("reports", type=Path, nargs="+", help="PD report .json files")
@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> None:
         results[path.stem] = check(report, args.factor)
         sources[path.stem] = {"file": str(path), "commit": report["provenance"]["commit"],
                               "command": report["provenance"]["command"]}
-    write_report(args.out, {"images": results,
+    write_result(args.out, {"images": results,
                             "provenance": {**run_identity(argv), "reports": sources}},
                  table(results, args.factor))
 

@@ -4,7 +4,7 @@
 # 1 spp there is no variance, so no PD) and on the held-out pd-test-high set, plot the
 # sequence's convergence, measure it on the out-of-distribution scenes (data/ood-first-hit),
 # and re-ship with the reports in the model card. A report made on the same data build with the
-# same mixer and options is kept (pd_report.py --keep-current).
+# same mixer and options is kept (jaxden evaluate pd --keep-current).
 #   experiments/pd_wskp6.sh
 # Needs (experiments/queue.sh): $JAXDEN_HOME/runs/mixer-wskp6-4k (mixer-wskp6.toml on data/pd-rt4k),
 # $JAXDEN_HOME/data/pd-sequence and $JAXDEN_HOME/data/pd-test-high. SURE probe seed 0, one probe
@@ -21,12 +21,12 @@ R=experiments/results
 ship=("$python" experiments/ship_mixer.py --workdir "$H/runs/mixer-wskp6-4k" --name wskp-6-pd
       --config experiments/configs/mixer-wskp6.toml --set tstat.per_channel=true)
 "${ship[@]}"
-"$python" experiments/pd_report.py pd --data "$H/data/pd-sequence" --denoiser wskp-6 \
+"$python" -m jaxden.cli evaluate pd --data "$H/data/pd-sequence" --denoiser wskp-6 \
   --mixer wskp-6-pd --spp 2 4 8 16 32 64 128 256 512 1024 2048 4096 --out "$R/pd-wskp6-sequence" --keep-current
-"$python" experiments/pd_report.py pd --data "$H/data/pd-test-high" --denoiser wskp-6 \
+"$python" -m jaxden.cli evaluate pd --data "$H/data/pd-test-high" --denoiser wskp-6 \
   --mixer wskp-6-pd --out "$R/pd-wskp6-test-high" --keep-current
 # outside the training distribution (the OOD scenes with WSKP-6's first-hit features)
-"$python" experiments/pd_report.py pd --data "$H/data/ood-first-hit" --denoiser wskp-6 \
+"$python" -m jaxden.cli evaluate pd --data "$H/data/ood-first-hit" --denoiser wskp-6 \
   --mixer wskp-6-pd --spp 16 32 64 128 256 512 1024 --out "$R/pd-wskp6-ood-first-hit" \
   --keep-current
 "$python" experiments/pd_ood.py "$R/pd-wskp6-ood-first-hit.json" \

@@ -7,6 +7,10 @@
 # progressive-denoising tables over the JAX bases), then what regenerates finished results.
 set -uo pipefail
 cd "$(dirname "$0")/.."
+# Run this checkout's jaxden even when .venv holds an editable install of another checkout
+# (a queue worktree sharing the main checkout's .venv would otherwise import the main one's
+# working copy, edits in progress included).
+export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 H="${JAXDEN_HOME:-$HOME/jaxden-work}"
 J=.venv/bin/jaxden
 X=(env XLA_FLAGS=--xla_force_host_platform_device_count=2)
@@ -54,7 +58,7 @@ B="$H/runs/sweeps/pd-bases"
 step data-pd-rt $J dataset build experiments/configs/dataset-pd-rt.toml --out "$H/data/pd-rt"
 closed_form() {  # closed_form BASE
   mkdir -p "$H/runs/pd-closed-form"
-  .venv/bin/python experiments/pd_report.py pd --data "$H/data/pd-test-high" \
+  .venv/bin/python -m jaxden.cli evaluate pd --data "$H/data/pd-test-high" \
     --denoiser "$B/$1" --mixer closed-form --mixer-set sure_covariance=true \
     --tstat per_channel=true --probes 1 --keep-current --out "$H/runs/pd-closed-form/$1"
 }
@@ -86,7 +90,7 @@ for base in unet-hdr-alb-nrm kp5 wskp6; do base_steps "$base"; done
 step sweep-pd-bases "${X[@]}" $J sweep experiments/sweeps/pd-bases.toml --workdir "$B"
 step sweep-pd-mixers-cov "${X[@]}" $J sweep experiments/sweeps/pd-mixers-cov.toml \
   --workdir "$H/runs/sweeps/pd-mixers-cov"
-step sure-pd-bases .venv/bin/python experiments/pd_report.py sure \
+step sure-pd-bases .venv/bin/python -m jaxden.cli evaluate sure \
   --data "$H/data/pd-test-high" --denoiser wskp-6 --denoiser "$B/unet-hdr" \
   --denoiser "$B/unet-hdr-var" --denoiser "$B/unet-hdr-alb-nrm" \
   --denoiser "$B/unet-hdr-alb-nrm-var" --denoiser "$B/kp5" --denoiser "$B/wskp6" \

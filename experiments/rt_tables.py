@@ -96,8 +96,7 @@ def reference_rows(home: Path, cache: Path) -> dict:
     """The noisy input's and OIDN's scores on the same data (cached: they do not change)."""
     if cache.is_file():
         return json.loads(cache.read_text())
-    sys.path.insert(0, str(REPO))
-    from jaxden.denoise import report
+    from jaxden.evaluate import denoise as report
 
     out = {}
     test = home / "data" / "rt-test"

@@ -8,6 +8,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 jaxden=${JAXDEN:-.venv/bin/jaxden}
+python=${PYTHON:-.venv/bin/python}
 suffix=${BENCH_SUFFIX:-}
 names=("$@")
 [ ${#names[@]} -gt 0 ] || names=(render decoder denoisers sharding sure progressive)
@@ -16,17 +17,17 @@ for name in "${names[@]}"; do
   echo "== jaxden bench $name --json"
   log=$(mktemp)
   "$jaxden" bench "$name" --json | tee "$log"
-  python3 - "$name" "$log" "$suffix" <<'PY'
-import json, os, platform, subprocess, sys, datetime
+  "$python" - "$name" "$log" "$suffix" <<'PY'
+import json, os, sys
+from jaxden.provenance import git_commit, machine, today
 name, log, suffix = sys.argv[1], sys.argv[2], sys.argv[3]
 result = json.loads(open(log).read().strip().splitlines()[-1])
-commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
 result["_provenance"] = {
     "command": (f"JAXDEN_BENCH_FRAME={os.environ['JAXDEN_BENCH_FRAME']} "
                 if os.environ.get("JAXDEN_BENCH_FRAME") else "") + f"jaxden bench {name} --json",
-    "commit": commit,
-    "date": datetime.date.today().isoformat(),
-    "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.platform()}",
+    "commit": git_commit(dirty=False),
+    "date": today(),
+    "machine": machine(),
     "load_average_1min_after": os.getloadavg()[0],
 }
 with open(f"experiments/results/bench-{name}{suffix}.json", "w") as handle:

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 from pathlib import Path
 
@@ -24,11 +23,9 @@ WEIGHTS = REPO / "jaxden" / "weights"
 
 
 def _commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, text=True,
-                              capture_output=True, check=False).stdout.strip() or "unknown"
-    except OSError:
-        return "unknown"
+    from jaxden.provenance import git_commit
+
+    return git_commit(dirty=False)
 
 
 def _quality(result: dict) -> list[str]:
@@ -54,7 +51,6 @@ def _quality(result: dict) -> list[str]:
 
 
 def ship(workdir: Path, name: str, sweep_file: str | None) -> Path:
-    sys.path.insert(0, str(REPO))
     import importlib.metadata as metadata
 
     from jaxden.checkpoint import save_weights
@@ -129,7 +125,7 @@ def ship(workdir: Path, name: str, sweep_file: str | None) -> Path:
         + (f" --sweep {sweep_file}" if sweep_file else "") + "`.",
         "",
         "**Measured quality** (held-out sets of other scenes and seeds; PSNR / SSIM "
-        "tone-mapped, relMSE / FLIP linear HDR; `jaxden.denoise.report`):",
+        "tone-mapped, relMSE / FLIP linear HDR; `jaxden.evaluate.denoise`):",
         "",
         "| data | PSNR (dB) | SSIM | relMSE | FLIP | input PSNR |",
         "|---|---:|---:|---:|---:|---:|",

@@ -35,12 +35,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import hashlib
 import json
 import re
-import subprocess
 import sys
 from pathlib import Path
+
+from jaxden.evaluate import denoiser_label
+from jaxden.provenance import file_sha256, git_commit, package_version
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_TRAIN_CONFIG = "experiments/configs/mixer-oidn.toml"
@@ -50,29 +51,7 @@ DEFAULT_DATASET_CONFIG = "experiments/configs/dataset-default.toml"
 def pyoidn_version() -> str:
     """The installed pyoidn's version (its package metadata: pyoidn has no ``__version__``),
     or "not installed"."""
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        return version("pyoidn")
-    except PackageNotFoundError:
-        return "not installed"
-
-
-def denoiser_label(spec) -> str:
-    """How cards and figures name a base denoiser (``MixerConfig.denoiser``, pd_report.py's
-    ``--denoiser``): ``oidn`` -> OIDN; a shipped or registered name in capitals (``wskp-6`` ->
-    WSKP-6); a checkpoint folder or weights file by its own name."""
-    spec = str(spec)
-    if spec == "oidn":
-        return "OIDN"
-    path = Path(spec)
-    if "/" in spec or path.suffix == ".msgpack" or path.exists():
-        return path.stem if path.suffix == ".msgpack" else path.name
-    return spec.upper()
-
-
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    return package_version("pyoidn")
 
 
 def base_denoiser(spec: str) -> dict:
@@ -173,7 +152,7 @@ def _denoiser_text(mc: dict, base: dict, versions: dict) -> str:
     else:
         details = []
         if base["shipped"] is not None:
-            sha = versions.get("denoiser_weights_sha256") or _sha256(base["shipped"])
+            sha = versions.get("denoiser_weights_sha256") or file_sha256(base["shipped"])
             details.append(f"`jaxden/weights/{base['spec']}.msgpack`, sha256 `{sha[:16]}...`")
         if base["model"]:
             details.append(f"model `{base['model']}`: {base['description']}")
@@ -240,8 +219,7 @@ def _training_facts(workdir: Path) -> dict:
         "val_loss_final": evals[-1]["val_loss"],
         "val_baseline_loss": evals[-1].get("val_baseline_loss"),
         "val_metric": config["optim"]["loss"],
-        "dataset_manifest_sha256": hashlib.sha256(manifest.read_bytes()).hexdigest()
-        if manifest.is_file() else None,
+        "dataset_manifest_sha256": file_sha256(manifest) if manifest.is_file() else None,
         "dataset_config": json.loads(manifest.read_text())["config"] if manifest.is_file() else None,
     }
 
@@ -471,7 +449,7 @@ def main(argv=None) -> int:
                         help="weights name in jaxden/weights/ (default: NAME with --reship, "
                              "else the base denoiser's name + '-pd', e.g. oidn-pd)")
     parser.add_argument("--report", action="append", default=[],
-                        help="pd_report.py pd JSON for the card (repeatable)")
+                        help="jaxden evaluate pd JSON for the card (repeatable)")
     parser.add_argument("--swap-average", action="store_true",
                         help="ship with MixerConfig.swap_average = true (inference option)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -498,8 +476,7 @@ def main(argv=None) -> int:
     from jaxden.fileio import atomic_write_text
     from jaxden.progressive.mixer import MixerConfig, load_mixer, save_mixer
 
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                            text=True, cwd=ROOT).stdout.strip()
+    commit = git_commit(dirty=False)
     meta, card_text = {}, ""
     if args.reship:
         shipped = WEIGHTS_DIR / f"{args.reship}.msgpack"
@@ -532,7 +509,7 @@ def main(argv=None) -> int:
             versions["pyoidn_version_trained"] = trained_with
     if not oidn and (meta.get("denoiser_weights_sha256") or base["shipped"] is not None):
         versions["denoiser_weights_sha256"] = (meta.get("denoiser_weights_sha256")
-                                               or _sha256(base["shipped"]))
+                                               or file_sha256(base["shipped"]))
     config_file = args.config or meta.get("train_config_file")
     config_file = config_file or committed_train_config(facts["train_config"])
     if config_file is None:

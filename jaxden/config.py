@@ -1,7 +1,8 @@
 """TOML configuration files <-> frozen dataclasses.
 
 Every configurable part of jaxden (datasets, training, sweeps) is a frozen dataclass; a TOML
-file is validated into it by :func:`load_config` and written back by :func:`dump_config`.
+file is validated into it by :func:`load_config` and written back by :func:`dump_config`
+(the writing side lives in :mod:`jaxden.config_write`; import it from here).
 Nested dataclasses are TOML tables, tuples and lists are arrays, and the supported leaf types
 are ``int``, ``float`` (an integer is accepted), ``str``, ``bool``, ``pathlib.Path`` (as a
 string), ``Literal[...]`` choices, ``Optional[X]`` / ``X | None`` and other unions (tried in
@@ -22,7 +23,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import difflib
-import json
+import functools
 import math
 import os
 import re
@@ -33,20 +34,30 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal, TypeVar, Union
 
+from jaxden.config_write import (
+    config_diff,
+    config_to_dict,
+    dump_config,
+    save_config,
+    toml_value,
+)
 from jaxden.errors import ConfigError
 
 T = TypeVar("T")
 
 __all__ = [
+    "bounded",
+    "check_fields",
+    "check_ranges",
     "config_diff",
     "config_to_dict",
     "dump_config",
     "load_config",
     "parse_override",
     "save_config",
+    "toml_value",
 ]
 
-_BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
 _NONE_STRINGS = ("none", "null")
 
 
@@ -144,25 +155,29 @@ MAX_INT = 2**53
 
 
 def bounded(default: Any = dataclasses.MISSING, *, low: float | None = None,
-            high: float | None = None, low_open: bool = False, unit: str = "",
-            **field_options) -> Any:
-    """A dataclass field whose value must lie in [low, high] (``low_open``: (low, high]),
+            high: float | None = None, low_open: bool = False, high_open: bool = False,
+            unit: str = "", **field_options) -> Any:
+    """A dataclass field whose value must lie in [low, high] (``low_open`` / ``high_open``:
+    without that end),
     checked by :func:`load_config` for every source (TOML, ``key=value`` overrides, compact
-    CLI specs) and by :func:`check_ranges` in ``__post_init__``; None passes (optional)."""
-    metadata = {"range": (low, high, low_open, unit)}
+    CLI specs) and, for a config built in Python, by :func:`check_fields` in its
+    ``__post_init__``; None passes (optional). The declaration is the one place the range is
+    written: ``__post_init__`` checks only what involves several fields."""
+    metadata = {"range": (low, high, low_open, high_open, unit)}
     if default is dataclasses.MISSING:
         return dataclasses.field(metadata=metadata, **field_options)
     return dataclasses.field(default=default, metadata=metadata, **field_options)
 
 
-def _range_text(low, high, low_open: bool, unit: str) -> str:
+def _range_text(low, high, low_open: bool, high_open: bool, unit: str) -> str:
     def show(value, infinite):
         if value is None:
             return infinite
         return str(value) if isinstance(value, int) else f"{value:g}"
 
     left = "(" if low_open else "["
-    text = f"{left}{show(low, '-inf')}, {show(high, 'inf')}]"
+    right = ")" if high_open else "]"
+    text = f"{left}{show(low, '-inf')}, {show(high, 'inf')}{right}"
     return text + (f" ({unit})" if unit else "")
 
 
@@ -173,18 +188,46 @@ def check_ranges(instance: Any) -> None:
         bounds = field.metadata.get("range")
         if bounds is None:
             continue
-        low, high, low_open, unit = bounds
+        low, high, low_open, high_open, unit = bounds
         value = getattr(instance, field.name)
         values = value if isinstance(value, (tuple, list)) else (value,)
         for item in values:
             if item is None or isinstance(item, bool) or not isinstance(item, (int, float)):
                 continue
             too_low = low is not None and (item <= low if low_open else item < low)
-            too_high = high is not None and item > high
+            too_high = high is not None and (item >= high if high_open else item > high)
             if too_low or too_high or not math.isfinite(item):
                 raise ConfigError(
                     f"{type(instance).__name__}.{field.name}: {item!r} is outside the valid "
-                    f"range {_range_text(low, high, low_open, unit)}")
+                    f"range {_range_text(low, high, low_open, high_open, unit)}")
+
+
+@functools.cache
+def _field_types(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def check_fields(instance: Any) -> None:
+    """Raise ConfigError for a field of a config dataclass instance whose value does not fit
+    its declaration: its type (a choice of a ``Literal``, a bool, an int, a finite float, a
+    nested config, ...) and its :func:`bounded` range. What :func:`load_config` checks for a
+    TOML file, for a config built in Python: call it first in ``__post_init__``."""
+    cls = type(instance)
+    types_ = _field_types(cls)
+    source = _Source(origin=f"{cls.__name__} object")
+    for field in dataclasses.fields(instance):
+        tp = types_[field.name]
+        value = getattr(instance, field.name)
+        if dataclasses.is_dataclass(tp):
+            if not isinstance(value, tp):
+                raise ConfigError(f"{cls.__name__}.{field.name}: expected a {tp.__name__}, "
+                                  f"found {_found(value)}")
+            continue
+        try:
+            _convert(tp, value, source, (field.name,))
+        except _Mismatch as mismatch:
+            raise ConfigError(f"{cls.__name__}.{field.name}: {mismatch}") from None
+    check_ranges(instance)
 
 
 def _convert(tp: Any, value: Any, source: _Source, path: tuple[str, ...]) -> Any:
@@ -434,154 +477,3 @@ def load_config(
         return _build(cls, data, src, ())
     except _Mismatch as mismatch:  # only when the top level is not a table: cannot happen
         raise ConfigError(f"{src.origin}: {mismatch}") from None
-
-
-# ----------------------------------------------------------------------------- dumping
-def config_to_dict(config: Any) -> dict[str, Any]:
-    """The config as plain JSON-able data: tables as dicts, tuples as lists, paths as strings."""
-
-    def plain(value: Any) -> Any:
-        if dataclasses.is_dataclass(value) and not isinstance(value, type):
-            return {
-                f.name: plain(getattr(value, f.name)) for f in dataclasses.fields(value) if f.init
-            }
-        if isinstance(value, Mapping):
-            return {str(k): plain(v) for k, v in value.items()}
-        if isinstance(value, (list, tuple)):
-            return [plain(v) for v in value]
-        if isinstance(value, os.PathLike):
-            return os.fspath(value)
-        return value
-
-    if not (dataclasses.is_dataclass(config) and not isinstance(config, type)):
-        raise TypeError(f"config_to_dict needs a dataclass instance, got {config!r}")
-    return plain(config)
-
-
-def config_diff(a: Mapping[str, Any], b: Mapping[str, Any], prefix: str = "") -> list[str]:
-    """Keys whose values differ between two plain config dicts, as 'key: a -> b' lines."""
-    lines = []
-    for key in sorted(set(a) | set(b), key=str):
-        name = f"{prefix}{key}"
-        if key not in a:
-            lines.append(f"{name}: (absent) -> {json.dumps(b[key])}")
-        elif key not in b:
-            lines.append(f"{name}: {json.dumps(a[key])} -> (absent)")
-        elif isinstance(a[key], Mapping) and isinstance(b[key], Mapping):
-            lines.extend(config_diff(a[key], b[key], prefix=f"{name}."))
-        elif a[key] != b[key]:
-            lines.append(f"{name}: {json.dumps(a[key])} -> {json.dumps(b[key])}")
-    return lines
-
-
-_ESCAPES = {'"': '\\"', "\\": "\\\\", "\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f", "\r": "\\r"}
-
-
-def _toml_string(text: str) -> str:
-    """A TOML basic string: quotes, backslashes and every control character escaped (TOML
-    forbids raw U+0000-U+001F and U+007F; JSON's escaping would let U+007F through)."""
-    out = []
-    for char in text:
-        code = ord(char)
-        if char in _ESCAPES:
-            out.append(_ESCAPES[char])
-        elif code < 0x20 or code == 0x7F:
-            out.append(f"\\u{code:04x}")
-        elif 0xD800 <= code <= 0xDFFF:
-            raise ConfigError(f"cannot write the string {text!r} as TOML: it has a lone surrogate")
-        else:
-            out.append(char)
-    return '"' + "".join(out) + '"'
-
-
-def _toml_key(key: str) -> str:
-    return key if _BARE_KEY.fullmatch(key) else _toml_string(key)
-
-
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        if math.isnan(value):
-            return "nan"
-        if math.isinf(value):
-            return "inf" if value > 0 else "-inf"
-        text = repr(value)  # shortest round-tripping form; always has '.', 'e' or 'inf'
-        return text if any(c in text for c in ".en") else text + ".0"
-    if isinstance(value, str):
-        return _toml_string(value)
-    if isinstance(value, os.PathLike):
-        return _toml_value(os.fspath(value))
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        items = [
-            f"{_toml_key(f.name)} = {_toml_value(getattr(value, f.name))}"
-            for f in dataclasses.fields(value)
-            if f.init and (getattr(value, f.name) is not None or f.default is not None)
-        ]
-        return "{" + ", ".join(items) + "}"
-    if isinstance(value, Mapping):
-        pairs = (f"{_toml_key(str(k))} = {_toml_value(v)}" for k, v in value.items())
-        return "{" + ", ".join(pairs) + "}"
-    if value is None:
-        return '"none"'
-    raise TypeError(f"cannot write {value!r} ({type(value).__name__}) as TOML")
-
-
-def _is_table(value: Any) -> bool:
-    return (dataclasses.is_dataclass(value) and not isinstance(value, type)) or isinstance(
-        value, Mapping
-    )
-
-
-def _dump_table(obj: Any, path: tuple[str, ...], out: list[str]) -> None:
-    if isinstance(obj, Mapping):
-        entries = [(str(k), v, None) for k, v in obj.items()]
-    else:
-        entries = [
-            (f.name, getattr(obj, f.name), f) for f in dataclasses.fields(obj) if f.init
-        ]
-    tables = []
-    for name, value, field in entries:
-        if _is_table(value):
-            tables.append((name, value))
-            continue
-        if value is None:
-            if field is None or field.default is None or field.default is dataclasses.MISSING:
-                continue  # omitted key = the default None
-            out.append(f"{_toml_key(name)} = \"none\"")
-            continue
-        out.append(f"{_toml_key(name)} = {_toml_value(value)}")
-    for name, value in tables:
-        sub = path + (name,)
-        if out:
-            out.append("")
-        out.append("[" + ".".join(_toml_key(p) for p in sub) + "]")
-        _dump_table(value, sub, out)
-
-
-def dump_config(config: Any, *, header: str | None = None) -> str:
-    """The config as TOML text that :func:`load_config` reads back to an equal config.
-
-    ``header``: optional comment lines put at the top (each prefixed with '# ').
-    """
-    if not (dataclasses.is_dataclass(config) and not isinstance(config, type)):
-        raise TypeError(f"dump_config needs a dataclass instance, got {config!r}")
-    out: list[str] = []
-    if header:
-        out.extend(f"# {line}".rstrip() for line in header.splitlines())
-        out.append("")
-    _dump_table(config, (), out)
-    return "\n".join(out).rstrip() + "\n"
-
-
-def save_config(config: Any, path: str | os.PathLike, *, header: str | None = None) -> None:
-    """Write ``dump_config(config)`` to ``path`` atomically (temporary file, then rename)."""
-    path = Path(path)
-    text = dump_config(config, header=header)
-    from jaxden.fileio import atomic_write_text
-
-    atomic_write_text(path, text)

@@ -1,12 +1,19 @@
-"""Where a result comes from: the command and commit a run started at, package versions, file
-hashes, and the atomic writer of a result's .json + .md pair. Every script that writes into
-experiments/results/ records these, so each number can be traced to the command that made it.
+"""Where a result comes from: the command and git commit a run started at, the machine, package
+versions, the data build and file hashes, and the atomic writer of a result's .json + .md pair.
+
+Every writer of results (``jaxden evaluate``, ``jaxden sweep``'s summaries, the scripts under
+experiments/ and the shipped weights' records) takes these from here, so each number can be
+traced to the command, code and data that made it. A leaf module: it imports nothing of
+jaxden's but :mod:`jaxden.paths` and :mod:`jaxden.fileio`, so every floor may use it.
 """
 
 from __future__ import annotations
 
+import datetime
 import hashlib
 import json
+import os
+import platform
 import shlex
 import subprocess
 import sys
@@ -14,10 +21,20 @@ from pathlib import Path
 
 #: The repository root of a source checkout (an editable install); git runs there.
 ROOT = Path(__file__).resolve().parent.parent
+#: Paths whose changes do not make a run "+dirty": finished results being rewritten, and
+#: re-shipped weights and cards (a result names the weights it used by their sha256).
+CLEAN_EXCLUDES = ("experiments/results", "jaxden/weights")
+#: The packages whose versions a result records.
+VERSIONED_PACKAGES = ("pyoidn", "mitsuba", "jax")
 
 
-def file_sha256(path: str | Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+def file_sha256(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
+    """The sha256 of a file's bytes (hex), read in ``chunk``-byte blocks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        while block := handle.read(chunk):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def package_version(name: str) -> str:
@@ -30,27 +47,73 @@ def package_version(name: str) -> str:
         return "not installed"
 
 
-def run_identity(argv: list[str] | None = None) -> dict:
-    """The command line (``argv``: default sys.argv[1:], after the script's name) and the git
-    commit a run started at; code changes make it "+dirty", finished results being rewritten
-    do not (nor re-shipped weights and cards: a report names the weights it used by their
-    sha256 and the inference settings it ran)."""
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                            text=True, cwd=ROOT, check=False).stdout.strip()
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
-                            ":(exclude)experiments/results", ":(exclude)jaxden/weights"],
-                           capture_output=True, text=True, cwd=ROOT, check=False).stdout.strip()
+def versions(names: tuple[str, ...] = VERSIONED_PACKAGES) -> dict[str, str]:
+    """``{package: version}`` of ``names`` (:func:`package_version`)."""
+    return {name: package_version(name) for name in names}
+
+
+def machine() -> str:
+    """The machine a result was measured on: architecture, CPU count, platform."""
+    return f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.platform()}"
+
+
+def today() -> str:
+    return datetime.date.today().isoformat()
+
+
+def _git(*args: str) -> str:
+    try:
+        return subprocess.run(["git", *args], capture_output=True, text=True, cwd=ROOT,
+                              timeout=10, check=False).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return ""
+
+
+def git_commit(*, dirty: bool = True, excludes: tuple[str, ...] = CLEAN_EXCLUDES) -> str:
+    """The short git commit of the checkout ("unknown" outside one); with ``dirty``,
+    "+dirty" when a tracked file outside ``excludes`` has uncommitted changes."""
+    commit = _git("rev-parse", "--short", "HEAD") or "unknown"
+    if dirty and _git("status", "--porcelain", "--untracked-files=no", "--", ".",
+                      *(f":(exclude){path}" for path in excludes)):
+        commit += "+dirty"
+    return commit
+
+
+def run_identity(argv: list[str] | None = None, program: str | None = None) -> dict:
+    """The command line and the git commit (:func:`git_commit`) a run started at.
+
+    ``program``: the command's words before ``argv`` (default ``python experiments/<the
+    running script's name>``); ``argv``: default ``sys.argv[1:]``. Paths under $JAXDEN_HOME
+    are written as ``$JAXDEN_HOME/...`` (:func:`jaxden.paths.portable`)."""
     from jaxden.paths import portable
 
     argv = sys.argv[1:] if argv is None else argv
-    return {"command": portable(f"python experiments/{Path(sys.argv[0]).name} "
-                                + shlex.join(argv)),
-            "commit": commit + ("+dirty" if dirty else "")}
+    program = program or f"python experiments/{Path(sys.argv[0]).name}"
+    return {"command": portable(f"{program} {shlex.join(argv)}".rstrip()),
+            "commit": git_commit()}
 
 
-def write_report(out: Path, result: dict, table: str) -> None:
+def dataset_identity(directory, manifest_file, config: dict, split: str | None) -> dict:
+    """Which build of a dataset a result was measured on: its folder, the split, the sha256 of
+    its manifest (a rebuild changes it) and the dataset config the manifest records."""
+    return {"dir": str(directory), "split": split, "manifest_sha256": file_sha256(manifest_file),
+            "config": config}
+
+
+def result_provenance(identity: dict, dataset: dict | None = None, **extra) -> dict:
+    """A result's ``provenance`` entry: the run's ``identity`` (:func:`run_identity`), the
+    date, the machine, the package versions, the ``dataset`` (:func:`dataset_identity`) and
+    ``extra`` (seeds, weights, options), in that order."""
+    out = {**identity, "date": today(), "machine": machine(), "versions": versions()}
+    if dataset is not None:
+        out["dataset"] = dataset
+    return {**out, **extra}
+
+
+def write_result(out: str | os.PathLike, result: dict, table: str, *,
+                 echo: bool = True) -> None:
     """OUT.json (``result``, with a ``provenance`` entry) and OUT.md (``table`` under a
-    generated-by line), both written atomically; the table is printed too."""
+    generated-by line), both written atomically; with ``echo`` the table is printed too."""
     from jaxden.fileio import atomic_write_text
 
     out = Path(out)
@@ -60,5 +123,6 @@ def write_report(out: Path, result: dict, table: str) -> None:
     header = (f"<!-- generated by: {result['provenance']['command']} "
               f"(commit {result['provenance']['commit']}) -->\n")
     atomic_write_text(out.with_suffix(".md"), header + table + "\n")
-    print(table)
-    print(f"\nwrote {out.with_suffix('.json')} and {out.with_suffix('.md')}")
+    if echo:
+        print(table)
+        print(f"\nwrote {out.with_suffix('.json')} and {out.with_suffix('.md')}")

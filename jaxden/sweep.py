@@ -17,7 +17,7 @@ A sweep file (TOML, e.g. ``experiments/sweeps/pd-ablations.toml``)::
     denoise = ["$JAXDEN_HOME/data/rt-test"]   # denoiser runs: PSNR, SSIM, relMSE, FLIP
     denoise_spp = [1]                      #   at these input spp (default 1)
     sequences = ["$JAXDEN_HOME/data/rt-seq"]  # denoiser runs: per frame and with temporal
-                                           #   accumulation (jaxden.denoise.report)
+                                           #   accumulation (jaxden.evaluate.denoise)
 
 Paths may use ``~`` and ``$JAXDEN_HOME`` (default ``~/jaxden-work``), here and in overrides
 such as ``data.dataset=$JAXDEN_HOME/data/rt``.
@@ -55,7 +55,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Literal
 
-from jaxden.config import _toml_value, config_to_dict, load_config
+from jaxden.config import config_to_dict, load_config, toml_value
 from jaxden.errors import ConfigError
 
 __all__ = ["EvaluateConfig", "Run", "SweepConfig", "load_sweep", "plan_runs", "run_sweep",
@@ -74,13 +74,13 @@ NAME_AXIS = "name"
 class EvaluateConfig:
     """What to measure after each run's training (mixer runs: the PD report per dataset)."""
 
-    pd: tuple[str, ...] = ()  # dataset folders for jaxden.progressive.report.evaluate_progressive
+    pd: tuple[str, ...] = ()  # dataset folders for jaxden.evaluate's "pd" evaluator
     spp: tuple[int, ...] | None = None
     split: str = "test"
     probes: int = 4
     seed: int = 0
     denoiser: str = ""  # default: the mixer's own denoiser
-    # Denoiser runs (WSKP, KP, U-Net, ...): jaxden.denoise.report on these datasets at these
+    # Denoiser runs (WSKP, KP, U-Net, ...): jaxden.evaluate.denoise on these datasets at these
     # spp (Tables 1/6 of the WSKP paper), and on sequence sets (frame by frame and after
     # temporal accumulation).
     denoise: tuple[str, ...] = ()
@@ -180,7 +180,7 @@ def plan_runs(config: SweepConfig, axes: dict[str, list[Any]]) -> list[Run]:
             raise ConfigError(f"two runs of the sweep get the same folder name {name!r}: make "
                               f"the axis values distinct")
         seen.add(name)
-        overrides = (*config.overrides, *(f"{k}={_toml_value(v)}" for k, v in named.items()))
+        overrides = (*config.overrides, *(f"{k}={toml_value(v)}" for k, v in named.items()))
         runs.append(Run(name, values, overrides))
     return runs
 
@@ -201,6 +201,7 @@ def select_runs(runs: list[Run], only: Sequence[str], path) -> list[Run]:
 def _run_one(task: tuple[str, str, tuple[str, ...], dict, dict[str, Any], bool]) -> dict:
     """Train, evaluate and record one run (module level: the local executor pickles it)."""
     _worker_setup()
+    from jaxden.evaluate import evaluate_run
     from jaxden.fileio import atomic_write_text
     from jaxden.train.config import load_train_config
     from jaxden.train.loop import train_and_evaluate
@@ -214,42 +215,7 @@ def _run_one(task: tuple[str, str, tuple[str, ...], dict, dict[str, Any], bool])
     if previous is not None:
         return {**previous, "skipped": True}
     train = train_and_evaluate(train_config, run_dir, progress=progress)
-    evaluations = {}
-    if evaluate["pd"]:
-        if train_config.model != "mixer":
-            raise ConfigError(f"[evaluate] pd needs mixer runs; run {run_dir.name} trains "
-                              f"{train_config.model!r}")
-        from jaxden.progressive import report as pdreport
-        from jaxden.progressive.mixer import load_mixer
-
-        params, mixer_config = load_mixer(run_dir)
-        denoiser = evaluate["denoiser"] or mixer_config.denoiser
-        for dataset in evaluate["pd"]:
-            rows = pdreport.evaluate_progressive(
-                dataset, denoiser, (params, mixer_config), split=evaluate["split"],
-                seed=evaluate["seed"], num_probes=evaluate["probes"],
-                spp=None if evaluate["spp"] is None else tuple(evaluate["spp"]))
-            summary = pdreport.summarize_progressive(rows)
-            evaluations[f"pd:{dataset}"] = {"headline": summary["headline"],
-                                            "max_spp": summary["max_spp"],
-                                            "crops": summary["crops"],
-                                            "per_spp": summary["per_spp"],
-                                            "per_crop": summary["per_crop"]}
-    if evaluate.get("denoise") or evaluate.get("sequences"):
-        if train_config.model == "mixer":
-            raise ConfigError(f"[evaluate] denoise / sequences need denoiser runs; run "
-                              f"{run_dir.name} trains a mixer (use pd)")
-        from jaxden.denoise import report as denoise_report
-        from jaxden.denoise.registry import load_denoiser
-
-        model = load_denoiser(run_dir)
-        for dataset in evaluate.get("denoise", ()):
-            rows = denoise_report.evaluate_denoiser(
-                dataset, model, split=evaluate["split"], spp=tuple(evaluate["denoise_spp"]))
-            evaluations[f"den:{dataset}"] = denoise_report.summarize(rows)
-        for dataset in evaluate.get("sequences", ()):
-            rows = denoise_report.evaluate_sequences(dataset, model)
-            evaluations[f"seq:{dataset}"] = denoise_report.summarize(rows)
+    evaluations = evaluate_run(run_dir, evaluate, train_config.model)  # jaxden.evaluate
     result = {"run": run_dir.name, "values": values, "overrides": list(overrides),
               "config": resolved, "evaluate": evaluate,
               "train": {k: v for k, v in train.items() if isinstance(v, (int, float, str))},
@@ -324,7 +290,7 @@ def _absolute_overrides(train_config, overrides: tuple[str, ...]) -> tuple[str, 
     worker in another folder (a Ray node) must read the caller's dataset."""
     dataset = train_config.data.dataset
     if dataset and not Path(dataset).is_absolute():
-        return (*overrides, f"data.dataset={_toml_value(str(Path(dataset).absolute()))}")
+        return (*overrides, f"data.dataset={toml_value(str(Path(dataset).absolute()))}")
     return overrides
 
 
@@ -406,25 +372,15 @@ def run_sweep(path: str | Path, workdir: str | Path, overrides=(), *, executor: 
 
 def _provenance(path, workdir, overrides) -> dict[str, str]:
     """What made a summary: the sweep command (as run from the current folder), the git commit
-    of the code (best effort; '+dirty' with uncommitted changes to tracked files) and the date."""
-    import datetime
+    of the code (:func:`jaxden.provenance.git_commit`: '+dirty' with uncommitted changes to
+    tracked files outside results and weights) and the date."""
     import shlex
-    import subprocess
 
-    def git(*args: str) -> str:
-        try:
-            return subprocess.run(["git", *args], capture_output=True, text=True, timeout=10,
-                                  cwd=Path(__file__).resolve().parent, check=False).stdout.strip()
-        except (OSError, subprocess.SubprocessError):
-            return ""
+    from jaxden.provenance import git_commit, today
 
-    commit = git("rev-parse", "--short", "HEAD") or "unknown"
-    if git("status", "--porcelain", "--untracked-files=no", "--", ".."):
-        commit += "+dirty"
     command = shlex.join(["jaxden", "sweep", str(path), "--workdir", str(workdir),
                           *map(str, overrides)])
-    return {"command": command, "commit": commit,
-            "date": datetime.date.today().isoformat()}
+    return {"command": command, "commit": git_commit(), "date": today()}
 
 
 def _metrics(result: dict) -> dict[str, float]:

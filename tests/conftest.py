@@ -75,7 +75,7 @@ def _release_mitsuba_scenes():
     *every* registered instance, not just the rendered scene's. When jaxden's caches held up to
     14 scenes, later test files' renders traced ~350 instances instead of ~25 and compiled
     kernels that the on-disk cache had never seen (5-11 s per Mitsuba test in the full suite,
-    0.1-2 s alone). The caches now hold one scene each (render.core, data.builder) and
+    0.1-2 s alone). The caches now hold one scene each (render.core, render.scene_cache) and
     render.load holds sensors only; clearing them keeps test files independent all the same.
     """
     yield
@@ -84,7 +84,7 @@ def _release_mitsuba_scenes():
     caches = [getattr(sys.modules.get("jaxden.render.load"), "_loaded", None),
               getattr(sys.modules.get("jaxden.render.core"), "_spec_scenes", None),
               getattr(sys.modules.get("jaxden.render.core"), "_integrator_cache", None),
-              getattr(sys.modules.get("jaxden.data.builder"), "_SCENE_CACHE", None)]
+              getattr(sys.modules.get("jaxden.render.scene_cache"), "_SCENE_CACHE", None)]
     for cache in caches:
         if cache:
             cache.clear()  # reference counting frees the objects (measured: 0 left per module)

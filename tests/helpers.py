@@ -1,7 +1,7 @@
 """Pieces that several test modules share: a tiny KP training config, the tiny Mitsuba-free
 dataset, a small tmpfs, running ``jaxden`` in process and reading its error line, the
-subprocess environment, snapshots and Hypothesis mutations of JSON files, and reading a run's
-checkpoints and metrics log.
+subprocess environment, snapshots and Hypothesis mutations of JSON files, reading a run's
+checkpoints and metrics log, and loading a script of experiments/ by its file.
 
 A plain module, not a conftest: pytest puts tests/ on sys.path (there is no __init__.py), so
 a test module imports it as ``helpers``. Fixtures stay in the test modules (pytest does not
@@ -74,13 +74,30 @@ def build_tiny_dataset(out: Path, overrides: Sequence[str] = ()) -> Path:
     """Build experiments/configs/dataset-tiny.toml (with ``overrides``) into ``out`` without
     Mitsuba (``synthetic_render``), serially; returns ``out``."""
     from jaxden.config import load_config
-    from jaxden.data.builder import build_dataset, synthetic_render
+    from jaxden.data.builder import build_dataset
     from jaxden.data.config import DatasetConfig
+    from jaxden.render.synthetic import synthetic_render
 
     config = load_config(ROOT / "experiments" / "configs" / "dataset-tiny.toml", DatasetConfig,
                          overrides)
     build_dataset(config, out, executor="serial", render_fn=synthetic_render, progress=False)
     return out
+
+
+# ------------------------------------------------------------------ experiment scripts
+def load_script(name: str):
+    """The script experiments/NAME.py as a module, loaded from its file (no sys.path entry:
+    the scripts are clients of the package and import no other script)."""
+    import importlib.util
+    import sys
+
+    key = f"experiments_{name}"
+    if key not in sys.modules:
+        spec = importlib.util.spec_from_file_location(key, ROOT / "experiments" / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[key] = module  # before running it: dataclasses look their module up
+        spec.loader.exec_module(module)
+    return sys.modules[key]
 
 
 # ---------------------------------------------------------------------------- full disk

@@ -23,8 +23,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from jaxden import cli
-from jaxden.data.builder import synthetic_render
 from jaxden.io.exr import write_channels, write_frame
+from jaxden.render.synthetic import synthetic_render
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENE = """<scene version="3.0.0">

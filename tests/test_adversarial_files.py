@@ -163,7 +163,7 @@ def test_metrics_log_drops_a_cut_last_line_and_later_steps(tmp_path):
     """What a kill mid-write leaves (the last line without its newline, not JSON) is dropped
     on resume, with the entries after the resumed checkpoint; a complete last line without
     a newline is kept; nothing is kept when the run starts over (no checkpoint)."""
-    from jaxden.train.loop import MetricsLog
+    from jaxden.train.workdir import MetricsLog
 
     log = tmp_path / "metrics.jsonl"
     full = [{"step": 0, "val_loss": 1.0}, {"step": 1, "loss": 0.5}, {"step": 2, "loss": 0.25},
@@ -194,7 +194,7 @@ def test_metrics_log_appends_whole_lines_or_nothing(full_disk):
     """On a full disk an entry is not half written: the error names the file and the log
     ends as before."""
     from jaxden.errors import OutputError
-    from jaxden.train.loop import MetricsLog
+    from jaxden.train.workdir import MetricsLog
 
     log = full_disk / "metrics.jsonl"
     metrics = MetricsLog(log, 0)

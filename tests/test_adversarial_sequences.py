@@ -2,7 +2,7 @@
 JSON, of the wrong shape or types, with a path leaving the folder, a frame index out of place
 or an unfinished build, and frame files that are missing or changed. Every entry point that
 reads a sequence set - the resumed build (``jaxden dataset sequences``), the evaluation that
-``jaxden sweep`` runs (``jaxden.denoise.report.evaluate_sequences``) and ``jaxden sweep``
+``jaxden sweep`` runs (``jaxden.evaluate.denoise.evaluate_sequences``) and ``jaxden sweep``
 itself - either succeeds or gives one line ``jaxden: error: ...`` naming the file and the field
 (exit 2, no traceback), and leaves the folder as it was (a build that succeeds re-renders the
 set byte for byte). Hypothesis mutates the manifest (types, values, deleted keys, renamed
@@ -64,7 +64,7 @@ def _identity():
 def evaluate(folder: Path) -> str | None:
     """``evaluate_sequences`` on ``folder``: None when it succeeds, else its one-line error
     (anything but a JaxdenError fails the test)."""
-    from jaxden.denoise.report import evaluate_sequences
+    from jaxden.evaluate.denoise import evaluate_sequences
 
     try:
         rows = evaluate_sequences(folder, _identity())

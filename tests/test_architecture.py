@@ -105,3 +105,84 @@ def test_cycle_detector_finds_a_planted_cycle(tmp_path):
 def test_module_size(name):
     lines = len(module_names(PACKAGE)[name].read_text().splitlines())
     assert lines <= MAX_LINES, f"{name} has {lines} lines (one concept per module: <= {MAX_LINES})"
+
+
+# ------------------------------------------------------------------------- private names
+#: At most this many private names (``_name``) may be imported from another jaxden module: a
+#: private name used elsewhere says the boundary is in the wrong place (docs/DESIGN).
+MAX_PRIVATE_IMPORTS = 10
+
+
+def private_imports(root: Path) -> list[str]:
+    """``"module: from X import _name"`` for every private name a module under ``root``
+    imports from another jaxden module (also inside functions, also over several lines)."""
+    found = []
+    for name, path in module_names(root).items():
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if not isinstance(node, ast.ImportFrom):
+                continue
+            module = node.module or ""
+            if not (node.level or module == root.name or module.startswith(root.name + ".")):
+                continue
+            found += [f"{name}: from {'.' * node.level}{module} import {alias.name}"
+                      for alias in node.names
+                      if alias.name.startswith("_") and not alias.name.startswith("__")]
+    return found
+
+
+def test_few_private_names_cross_modules():
+    found = private_imports(PACKAGE)
+    assert len(found) <= MAX_PRIVATE_IMPORTS, (
+        f"{len(found)} private names imported across modules (at most "
+        f"{MAX_PRIVATE_IMPORTS}): make shared helpers public where they live:\n"
+        + "\n".join(found))
+
+
+def test_private_import_counter_sees_lazy_and_multiline_imports(tmp_path):
+    pkg = tmp_path / "jaxden"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("def _h():\n    pass\n")
+    (pkg / "b.py").write_text("from jaxden.a import (\n    _h,\n)\n\n\ndef f():\n"
+                              "    from jaxden.a import _h as h, __doc__\n    return h\n")
+    assert private_imports(pkg) == ["jaxden.b: from jaxden.a import _h"] * 2
+
+
+# ----------------------------------------------------------------------- model-name branches
+#: Where no code may branch on a model's name: a model is looked up in the one name ->
+#: definition table (jaxden.train.tasks), never compared with a name.
+NO_MODEL_BRANCHES = ("train", "sweep.py")
+
+
+def model_name_branches(path: Path) -> list[str]:
+    """``"file:line"`` of every comparison of a ``.model`` attribute with a string literal
+    (``config.model == "mixer"``, ``"mixer" != train.model``, ``model in ("a", "b")``)."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if not isinstance(node, ast.Compare):
+            continue
+        sides = [node.left, *node.comparators]
+        names = [s for s in sides if isinstance(s, ast.Attribute) and s.attr == "model"]
+        literals = [s for s in sides if isinstance(s, ast.Constant) and isinstance(s.value, str)
+                    or isinstance(s, (ast.Tuple, ast.List, ast.Set)) and any(
+                        isinstance(e, ast.Constant) and isinstance(e.value, str) for e in s.elts)]
+        if names and literals:
+            found.append(f"{path.name}:{node.lineno}")
+    return found
+
+
+def test_no_model_name_branches():
+    paths = []
+    for part in NO_MODEL_BRANCHES:
+        target = PACKAGE / part
+        paths += sorted(target.rglob("*.py")) if target.is_dir() else [target]
+    found = [branch for path in paths for branch in model_name_branches(path)]
+    assert not found, ("branches on a model name (look the model up in "
+                       "jaxden.train.tasks.get_trainable instead): " + ", ".join(found))
+
+
+def test_model_branch_detector(tmp_path):
+    path = tmp_path / "m.py"
+    path.write_text('if config.model == "mixer":\n    pass\nok = config.model == other\n'
+                    'bad = "kp" != run.model\nalso = train.model in ("a", "b")\n')
+    assert model_name_branches(path) == ["m.py:1", "m.py:4", "m.py:5"]

@@ -24,8 +24,8 @@ ALL = ("decoder", "denoisers", "progressive", "render", "sharding", "sure")
 
 @pytest.fixture(scope="module")
 def frame_file(tmp_path_factory):
-    from jaxden.data.builder import synthetic_render
     from jaxden.io.exr import write_frame
+    from jaxden.render.synthetic import synthetic_render
 
     path = tmp_path_factory.mktemp("bench") / "frame.exr"
     write_frame(path, synthetic_render("bench", 4, seed=1, size=FRAME_SIZE))
@@ -97,6 +97,7 @@ def test_denoisers_bench_one_model(tiny, capsys, monkeypatch):
     from jaxden.bench import denoisers
 
     monkeypatch.setattr(denoisers, "MODELS", {"kp": "kp"})
+    monkeypatch.setattr(denoisers, "OIDN_JAX", False)
     result = run_json("denoisers", capsys)
     assert_ratios(result, ["kp_over_oidn"])
     assert (result["width"], result["height"]) == FRAME_SIZE
@@ -108,7 +109,7 @@ def test_denoisers_bench(tiny, capsys):
     from jaxden.bench import denoisers
 
     result = run_json("denoisers", capsys)
-    assert_ratios(result, [f"{key}_over_oidn" for key in denoisers.MODELS]
+    assert_ratios(result, [f"{key}_over_oidn" for key in (*denoisers.MODELS, "oidnjax")]
                   + [f"{key}_over_kp" for key in denoisers.MODELS if key != "kp"])
     assert (result["width"], result["height"]) == FRAME_SIZE
     for key in (*denoisers.MODELS, "oidn"):

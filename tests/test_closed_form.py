@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from jaxden import progressive as P
-from jaxden.progressive.mixer import _inference_alpha
 from jaxden.errors import CheckpointError, ConfigError, FrameError
+from jaxden.progressive.mixer import inference_alpha
 from jaxden.sure.stein import sure
 
 
@@ -134,11 +134,11 @@ def test_closed_form_spec_config_and_errors(tmp_path):
     assert P.mixer_init(jax.random.PRNGKey(0), config) == {}
     for spec, message in [("closed-form:width=3", "KEY one of sigma, per_channel"),
                           ("closed-form:sigma", "KEY=VALUE"),
-                          ("closed-form:sigma=0", "closed_form_sigma: expected a number > 0"),
+                          ("closed-form:sigma=0", r"closed_form_sigma: 0.0 is outside the valid range \(0, 256\]"),
                           ("closed-form:per_channel=2", "closed_form_per_channel")]:
         with pytest.raises(ConfigError, match=message):
             P.load_mixer(spec)
-    with pytest.raises(ConfigError, match="unknown mixer kind 'tree'"):
+    with pytest.raises(ConfigError, match="kind: expected one of 'network', 'closed_form', found 'tree'"):
         P.MixerConfig(kind="tree")
     with pytest.raises(CheckpointError, match="no such checkpoint"):
         P.load_mixer(str(tmp_path / "closed-form"))  # a path is not the spec
@@ -189,7 +189,7 @@ def test_closed_form_logit_head_starts_at_the_closed_form_and_corrects_it():
     got = np.asarray(P.mixer_alpha(flat, config, x, y, var, sure_map))
     np.testing.assert_allclose(got, np.broadcast_to(want, got.shape), atol=2e-6)
     averaged = dataclasses.replace(config, swap_average=True)
-    got = np.asarray(_inference_alpha(flat, x, y, var, sure_map, averaged, True))
+    got = np.asarray(inference_alpha(flat, x, y, var, sure_map, averaged, True))
     np.testing.assert_allclose(got, np.broadcast_to(want, got.shape), atol=4e-6)
     shifted = {"params": {**params["params"],
                           "conv_out": {"kernel": zero["kernel"],
@@ -238,7 +238,7 @@ def test_closed_form_logit_bound_is_a_trust_region_around_the_closed_form():
     flat = {"params": {**params["params"], "conv_out": zero}}
     want = np.clip(np.asarray(P.closed_form_alpha(x, y, var, sure_map, sigma=2.0)), 1e-4,
                    1 - 1e-4)
-    got = np.asarray(_inference_alpha(flat, x, y, var, sure_map, config, True))
+    got = np.asarray(inference_alpha(flat, x, y, var, sure_map, config, True))
     np.testing.assert_allclose(got, np.broadcast_to(want, got.shape), atol=4e-6)
     loud = {"params": {**params["params"], "conv_out": {
         "kernel": zero["kernel"], "bias": np.array([1e3, -1e3, 0.0], np.float32)}}}
@@ -248,10 +248,10 @@ def test_closed_form_logit_bound_is_a_trust_region_around_the_closed_form():
 
 
 @pytest.mark.parametrize("fields, match", [
-    ({"head": "closed_form_logit", "logit_bound": 0.0}, "logit_bound: expected a number > 0"),
+    ({"head": "closed_form_logit", "logit_bound": 0.0}, r"logit_bound: 0.0 is outside the valid range \(0, 100\]"),
     ({"head": "closed_form_logit", "logit_bound": float("nan")}, "logit_bound"),
     ({"head": "closed_form_logit", "logit_bound": True}, "logit_bound"),
-    ({"head": "closed_form_logit", "logit_eps": 0.5}, r"logit_eps: expected a number in \(0, 0.5\)"),
+    ({"head": "closed_form_logit", "logit_eps": 0.5}, r"logit_eps: 0.5 is outside the valid range \(0, 0.5\)"),
     ({"head": "closed_form_logit", "logit_eps": 0}, "logit_eps"),
     ({"logit_bound": 2.0}, "apply only to head = 'closed_form_logit'"),
     ({"head": "sigmoid", "logit_eps": 1e-4}, "apply only to head"),

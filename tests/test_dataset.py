@@ -22,10 +22,10 @@ from jaxden.data import (
     plan_dataset,
     verify_dataset,
 )
-from jaxden.data.builder import synthetic_render
 from jaxden.data.layout import LOCK_NAME, sha256_file
 from jaxden.errors import ConfigError, DatasetError
 from jaxden.executor import ExecutorError, make_executor
+from jaxden.render.synthetic import synthetic_render
 
 CONFIGS = Path(__file__).resolve().parents[1] / "experiments" / "configs"
 
@@ -637,7 +637,7 @@ KILL_SCRIPT = """
 import sys, time
 from pathlib import Path
 from jaxden.data import build_dataset, DatasetConfig, ProceduralConfig, SplitConfig
-from jaxden.data.builder import synthetic_render
+from jaxden.render.synthetic import synthetic_render
 
 block_at, marker = int(sys.argv[2]), Path(sys.argv[3])
 calls = 0

@@ -412,7 +412,7 @@ def test_cycles_channels_on_the_command_line(tmp_path, capsys):
 # ------------------------------------------------------------------------------ datasets
 def with_emission(scene, spp, seed=0, size=None, *, crop=None):
     """The synthetic renderer with an emission channel (a lamp in each crop's corner)."""
-    from jaxden.data.builder import synthetic_render
+    from jaxden.render.synthetic import synthetic_render
 
     frame = synthetic_render(scene, spp, seed, size, crop=crop)
     emission = np.zeros_like(frame.color)
@@ -426,7 +426,6 @@ def test_datasets_record_the_emission_and_older_ones_still_load(tmp_path):
     import dataclasses
 
     from jaxden.data import DatasetLoader, build_dataset
-    from jaxden.data.builder import synthetic_render
     from jaxden.data.config import DatasetConfig
     from jaxden.data.verify import (
         check_emission_recorded,
@@ -434,6 +433,7 @@ def test_datasets_record_the_emission_and_older_ones_still_load(tmp_path):
         verify_dataset,
     )
     from jaxden.io.exr import read_frame, read_header
+    from jaxden.render.synthetic import synthetic_render
 
     config = DatasetConfig(name="e", scenes=("s",), size=(16, 16), crop_size=8,
                            crops_per_scene=1, spp=(2, 4), reference_spp=8, seed=1)

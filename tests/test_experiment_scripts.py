@@ -1,5 +1,7 @@
-"""The experiment scripts that stay in experiments/ (pd_report, pd_figure, mixer_alpha,
-ship_mixer, relmse_crops, pd_ood), tested without data or renders."""
+"""The experiment scripts that stay in experiments/ (pd_figure, mixer_alpha, ship_mixer,
+relmse_crops, pd_ood, ...) and what they share through the package (provenance, the SURE
+check, the cross-fitted oracle), tested without data or renders. The scripts are loaded from
+their files (helpers.load_script); none imports another."""
 
 import json
 import math
@@ -11,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import load_script
 
-sys.path.insert(0, str(Path(__file__).parent.parent / "experiments"))
-import pd_figure  # the experiment scripts are part of the repository: no skip
+pd_figure = load_script("pd_figure")  # the experiment scripts are part of the repository: no skip
 
 
 def _rows():
@@ -51,7 +53,7 @@ def test_svg_plot_is_valid_and_maps_log_values_to_ticks():
 
 
 def test_mixer_alpha_worst_pixels_finds_the_largest_errors():
-    import mixer_alpha
+    mixer_alpha = load_script("mixer_alpha")
 
     truth = np.zeros((4, 5, 3))
     x = np.ones((4, 5, 3))
@@ -68,7 +70,7 @@ def test_mixer_alpha_worst_pixels_finds_the_largest_errors():
 
 
 def test_ship_mixer_card_describes_the_head():
-    import ship_mixer
+    ship_mixer = load_script("ship_mixer")
 
     bounded = ship_mixer._head_text({"head": "closed_form_logit", "logit_bound": 4.0,
                                      "logit_eps": 1e-4, "closed_form_sigma": 12.0})
@@ -90,7 +92,7 @@ def test_ship_mixer_reship_sets_inference_fields_and_keeps_the_weights(tmp_path,
     the --set field changed in the shipped config and stated in the card."""
     import shutil
 
-    import ship_mixer
+    ship_mixer = load_script("ship_mixer")
 
     import jaxden.denoise.registry
     from jaxden import progressive as P
@@ -142,7 +144,7 @@ def test_ship_mixer_reship_keeps_a_known_training_version(tmp_path, monkeypatch)
     """Weights trained with another pyoidn than the installed one say so in .json and card."""
     import shutil
 
-    import ship_mixer
+    ship_mixer = load_script("ship_mixer")
 
     import jaxden.denoise.registry
 
@@ -172,7 +174,7 @@ def test_shipped_card_states_the_installed_pyoidn():
 def test_mixer_alpha_first_layer_weights_and_table():
     """Per-feature first-layer weights of a network mixer; the closed form has none and is left
     out; the table names the denoiser and lists worst pixels when there are any."""
-    import mixer_alpha
+    mixer_alpha = load_script("mixer_alpha")
 
     weights = mixer_alpha.first_layer_weights(["oidn-pd", "closed-form"])
     assert list(weights) == ["oidn-pd"]
@@ -195,17 +197,18 @@ def test_mixer_alpha_first_layer_weights_and_table():
     assert "| `oidn-pd` |" in text
 
 
-def test_pd_report_provenance_records_package_versions():
-    import pd_report
+def test_provenance_records_package_versions():
+    from jaxden.provenance import package_version, versions
 
-    assert pd_report.package_version("pyoidn") == version("pyoidn")
-    assert pd_report.package_version("no-such-package-jaxden") == "not installed"
+    assert package_version("pyoidn") == version("pyoidn")
+    assert package_version("no-such-package-jaxden") == "not installed"
+    assert versions(("pyoidn",)) == {"pyoidn": version("pyoidn")}
 
 
 def test_sure_median_crop_check_reads_only_levels_from_64_spp():
     """The SURE target: the median crop's ratio within 5 % at every spp >= 64; a level below
     64 spp never decides it, and the farthest level is the one named."""
-    import pd_report
+    from jaxden.evaluate import sure as pd_report
 
     def summary(ratios):
         return {"per_spp": {str(s): {"median_crop_ratio": r} for s, r in ratios.items()}}
@@ -272,7 +275,7 @@ def _rt_result(model, seed, psnr, sizes=None, deploy=False, steps=4000, target_s
 def test_rt_tables_verdicts_from_seeds(tmp_path):
     """Targets are 'met' only beyond the seed-to-seed spread, say when one seed is all there
     is, and group the ablation's rows by kernel sizes and deploy form."""
-    import rt_tables
+    rt_tables = load_script("rt_tables")
 
     assert rt_tables.verdict(None, (1.0, 0.1, 2)).startswith("not measured")
     assert rt_tables.verdict((26.0, float("nan"), 1), (25.0, 0.1, 2)).startswith("one seed")
@@ -310,7 +313,7 @@ def test_rt_tables_verdicts_from_seeds(tmp_path):
 
 def test_relmse_crops_matches_a_numpy_relmse_and_names_the_worst_crop(tmp_path, capsys):
     # A tiny synthetic dataset (no Mitsuba); "oidn" is the model, so no training is needed.
-    import relmse_crops
+    relmse_crops = load_script("relmse_crops")
     from helpers import build_tiny_dataset
 
     from jaxden.data.layout import load_manifest
@@ -347,7 +350,7 @@ def test_relmse_crops_matches_a_numpy_relmse_and_names_the_worst_crop(tmp_path, 
 
 
 def test_pd_ood_ratios_bound_and_diagnosis(tmp_path):
-    import pd_ood
+    pd_ood = load_script("pd_ood")
 
     def row(scene, spp, pd, den, sure):
         return {"scene": scene, "crop": scene, "spp": spp, "pd_rmse": pd, "denoiser_rmse": den,
@@ -363,7 +366,7 @@ def test_pd_ood_ratios_bound_and_diagnosis(tmp_path):
     assert result["scenes"]["a"]["cells_over_bound"] == 1
     assert result["scenes"]["b"]["cells_over_bound"] == 0
     assert result["overall"]["cells_over_bound"] == 1
-    # The set's ratio per spp is a ratio of means over crops, as pd_report's table.
+    # The set's ratio per spp is a ratio of means over crops, as the PD result's table.
     assert result["per_spp"][32]["rmse"] == pytest.approx(2.7 / 3.0)
     sure_errors = sorted(c["sure_error"] for c in result["cells"])
     assert sure_errors[-1] == pytest.approx(0.1)  # 4.4 / 2.0^2 - 1
@@ -421,7 +424,8 @@ def _fake_mixer_run(root: Path, workdir: Path, weights: Path) -> dict:
 
     from jaxden.checkpoint import Checkpointer
     from jaxden.config import config_to_dict, load_config
-    from jaxden.progressive.mixer import MixerConfig, _mixer_meta, mixer_init
+    from jaxden.progressive.mixer import MixerConfig, mixer_init
+    from jaxden.progressive.mixer import mixer_meta as _mixer_meta
     from jaxden.train.config import load_train_config
 
     weights.mkdir()
@@ -456,7 +460,7 @@ def test_ship_mixer_card_of_a_mixer_over_wskp6_names_its_base(tmp_path, monkeypa
     .json carries no pyoidn version but the hash of the WSKP-6 weights."""
     import hashlib
 
-    import ship_mixer
+    ship_mixer = load_script("ship_mixer")
 
     import jaxden.denoise.registry
     from jaxden.progressive.pipeline import SHIPPED_MIXERS
@@ -508,7 +512,7 @@ def test_ship_mixer_card_of_a_mixer_over_wskp6_names_its_base(tmp_path, monkeypa
 
 
 def test_ship_mixer_labels_base_denoisers():
-    import ship_mixer
+    ship_mixer = load_script("ship_mixer")
 
     assert ship_mixer.denoiser_label("oidn") == "OIDN"
     assert ship_mixer.denoiser_label("wskp-6") == "WSKP-6"
@@ -539,7 +543,7 @@ def test_pd_bases_tables_ratios_targets_and_table4(tmp_path):
     """Table 1's PD / den is the ratio of spp-averaged crop-mean errors (the paper's form) next
     to the mean per-spp ratio; the 0.6 target and the top-spp check read the worst base and
     crop; Table 4 rows come from the named runs and methods; unfinished runs say so."""
-    import pd_bases_tables as T
+    T = load_script("pd_bases_tables")
 
     def evaluation(den, pd, top_crops):
         levels = (32, 4096)
@@ -646,7 +650,7 @@ def test_oracle_crossfit_blend_has_the_variance_of_n_spp_and_the_summary_its_sha
     """The cross-fitted oracle's twin render: w x_2N + (1 - w) x_N/2 has exactly the variance
     of an N-spp render; the summary's shares of the oracle's gain follow from the ratios; the
     PD column is named after the report's mixer."""
-    import pd_oracle_crossfit as X
+    from jaxden.evaluate import oracle as X
 
     for n in (64, 256, 2048):
         w = X.blend_weight(n, n // 2, 2 * n)
@@ -660,10 +664,10 @@ def test_oracle_crossfit_blend_has_the_variance_of_n_spp_and_the_summary_its_sha
                        for c in ("a", "b")],
               "provenance": {"mixer": {"spec": "closed-form"},
                              "mixer_overrides": ["sure_covariance=true"]}}
-    summary = X.summarize(rows, report)
+    summary = X.summarize_crossfit(rows, report)
     assert summary["mean_over_spp"] == pytest.approx({"oracle": 0.6, "crossfit": 0.8, "pd": 0.7})
     assert summary["share_of_oracle_gain"] == pytest.approx({"crossfit": 0.5, "pd": 0.75})
-    text = X.markdown(summary, "den", X.report_label(report))
+    text = X.markdown_crossfit(summary, "den", X.report_label(report))
     assert "| spp | 8 x 8 oracle | cross-fitted oracle | PD (mixer closed-form, " \
            "sure_covariance=true) |" in text and "- PD: 75%" in text
     # the twin's variance and covariance are the blend's, with the squared weights
@@ -680,7 +684,7 @@ def test_oracle_crossfit_blend_has_the_variance_of_n_spp_and_the_summary_its_sha
 
 # ------------------------------------------------------------------------- pd_targets
 def test_pd_targets_checks_each_image_against_mc_and_the_better_of_mc_and_the_denoiser():
-    import pd_targets
+    pd_targets = load_script("pd_targets")
 
     def row(crop, spp, mc, den, pd, margin=0.0, relmse=(1.0, 1.0, 1.0)):
         return {"crop": crop, "scene": f"s/{crop}.xml", "spp": spp, "mc_mse_nc": mc,
@@ -701,3 +705,29 @@ def test_pd_targets_checks_each_image_against_mc_and_the_better_of_mc_and_the_de
     assert b["worst_rmse"] == pytest.approx(math.sqrt(1.02)) and b["rmse_ok"]
     assert b["worst_relmse"] == pytest.approx(1.04) and b["relmse_ok"]
     assert "**no**" in pd_targets.table({"r": [a, b]}, 1.05)
+
+
+def test_scripts_are_clients_of_the_package():
+    """No script under experiments/ imports another one, and nothing under experiments/ or
+    tests/ edits sys.path: what scripts share lives in the package (read from the source)."""
+    import ast
+
+    root = Path(__file__).parent.parent
+    scripts = {p.stem for p in (root / "experiments").glob("*.py")}
+    files = [*(root / "experiments").glob("*.py"), *(root / "tests").glob("*.py")]
+    found = []
+    for path in files:
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                names = [alias.name.split(".")[0] for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and not node.level:
+                names = [(node.module or "").split(".")[0]]
+            else:
+                names = []
+            if path.parent.name == "experiments":
+                found += [f"{path.name} imports {n}" for n in names if n in scripts]
+            if (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Attribute)
+                    and node.value.attr == "path" and isinstance(node.value.value, ast.Name)
+                    and node.value.value.id == "sys"):
+                found.append(f"{path.name} edits sys.path ({node.attr})")
+    assert found == []

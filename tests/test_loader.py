@@ -17,9 +17,9 @@ from jaxden.data import (
     dihedral_frame,
     dihedral_motion,
 )
-from jaxden.data.builder import synthetic_render
 from jaxden.errors import DatasetError
 from jaxden.frame import Frame
+from jaxden.render.synthetic import synthetic_render
 
 CONFIG = DatasetConfig(
     name="loader",
@@ -189,6 +189,23 @@ def test_same_seed_same_batches_and_epochs_differ(dataset):
     assert_batches_equal(list(iter(second)), batches(first, 1))
 
 
+def test_read_of_part_of_a_batch_gives_its_rows(dataset):
+    """What each process of a multi-process run reads: ``read`` of some of a batch's draws
+    gives exactly those rows of the epoch's batch (same crops, symmetries and order)."""
+    loader = DatasetLoader(dataset, "train", batch_size=4, crop_size=6, seed=5, spp=[2, 8],
+                           drop_last=False)
+    plan = list(loader.batch_draws(2))
+    assert [len(d) for d in plan[:-1]] == [4] * (len(plan) - 1) and plan[-1]
+    for draws, batch in zip(plan, batches(loader, 2), strict=True):
+        for rows in (slice(0, 2), slice(2, None)):
+            part = loader.read(draws[rows])
+            assert part.items == batch.items[rows]
+            for name in batch.input.features():
+                np.testing.assert_array_equal(getattr(part.input, name),
+                                              getattr(batch.input, name)[rows])
+            np.testing.assert_array_equal(part.reference.color, batch.reference.color[rows])
+
+
 def test_epoch_visits_every_sample_once_and_uses_all_symmetries(dataset):
     loader = DatasetLoader(
         dataset, "all", batch_size=5, crop_size=10, seed=3, spp=[2, 8], drop_last=False
@@ -255,8 +272,8 @@ def test_incomplete_dataset_is_refused(tmp_path):
 def test_target_spp_pairs_each_input_with_its_own_crops_independent_render(dataset):
     """With target_spp = 8 the target of each 1- and 2-spp input is the 8-spp input of the same
     crop (read back from its EXR), at the same sub-crop and symmetry; never the reference."""
-    from jaxden.io.exr import read_frame
     from jaxden.data.layout import load_manifest
+    from jaxden.io.exr import read_frame
 
     loader = DatasetLoader(dataset, "train", batch_size=2, crop_size=12, seed=3, augment=False,
                            shuffle=False, target_spp=8, features=("color", "albedo"))

@@ -376,7 +376,7 @@ os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
 import jax, jax.numpy as jnp, optax
 from jaxden import progressive as P
 from jaxden.checkpoint import Checkpointer
-from jaxden.progressive.mixer import _mixer_meta
+from jaxden.progressive.mixer import mixer_meta
 from jaxden.train.loop import TrainState
 from jaxden.train.sharding import data_mesh, replicate
 assert len(jax.devices()) == 2
@@ -385,7 +385,7 @@ params = P.mixer_init(jax.random.PRNGKey(3), config)
 optimizer = optax.adam(1e-3)
 state = replicate(TrainState(params, optimizer.init(params), jnp.asarray(5)), data_mesh())
 checkpointer = Checkpointer(sys.argv[1])
-checkpointer.save(5, state, _mixer_meta(config))
+checkpointer.save(5, state, mixer_meta(config))
 checkpointer.wait()
 checkpointer.close()
 """

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from jaxden import cli
-from jaxden.data.builder import synthetic_render
 from jaxden.io.exr import read_frame, write_frame
+from jaxden.render.synthetic import synthetic_render
 
 
 @pytest.fixture()

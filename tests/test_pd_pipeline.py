@@ -3,7 +3,7 @@ tiny cached dataset (experiments/configs/mixer-tiny.toml), the training batches 
 progressive_denoise with OIDN, the `sure` / `progressive` / `dataset sure-cache` commands, and
 bad inputs (no variance, negative variance, mismatched or wrong-kind mixer checkpoints).
 
-Data: Mitsuba-free (jaxden.data.builder.synthetic_render): dataset-tiny.toml with 2 crops per
+Data: Mitsuba-free (jaxden.render.synthetic.synthetic_render): dataset-tiny.toml with 2 crops per
 scene (12 inputs of 32 x 32 at 2, 8, 32 spp); the mixer trains 40 steps on 16 x 16 crops.
 """
 
@@ -13,7 +13,6 @@ import argparse
 import dataclasses
 import json
 import shutil
-import sys
 from pathlib import Path
 
 import jax
@@ -24,13 +23,14 @@ from jaxden import cli, metrics
 from jaxden import progressive as P
 from jaxden.checkpoint import save_weights
 from jaxden.config import load_config
-from jaxden.data.builder import build_dataset, synthetic_render
+from jaxden.data.builder import build_dataset
 from jaxden.data.config import DatasetConfig
 from jaxden.denoise.registry import load_denoiser, make_denoiser
 from jaxden.errors import CheckpointError, ConfigError, FrameError
 from jaxden.io.exr import read_channels, read_header, read_image, write_channels, write_frame
 from jaxden.progressive.cache import SureCache
-from jaxden.progressive.mixer import _inference_alpha
+from jaxden.progressive.mixer import inference_alpha
+from jaxden.render.synthetic import synthetic_render
 from jaxden.sure.denoiser import denoise_with_sure
 from jaxden.sure.stein import draw_probes, sure_blackbox
 from jaxden.train.config import load_train_config
@@ -99,7 +99,7 @@ def test_training_lowers_the_loss_and_swap_symmetry_is_measured(trained):
     assert after < 0.9 * before
 
     # Swap symmetry on the (unswapped) validation crops. With swap averaging (inference form,
-    # _inference_alpha) alpha(x, y) + alpha(y, x) = 1 holds by construction: asserted to float32
+    # inference_alpha) alpha(x, y) + alpha(y, x) = 1 holds by construction: asserted to float32
     # round-off (1e-6 on values in [0, 1]). A single mixer call has no such guarantee: the gap
     # mean |alpha(x, y) - (1 - alpha(y, x))| is bounded by what was measured, with margin. The
     # centred head starts every alpha near 1/2 (output kernel scaled by 0.1), so the untrained
@@ -113,8 +113,8 @@ def test_training_lowers_the_loss_and_swap_symmetry_is_measured(trained):
             b = task.prepare(batch)
             x, y, var, sure = b["x"], b["y"], b["var"], b["sure"]
             values.append(P.swap_symmetry(p, mixer_config, x, y, var, sure))
-            forward = np.asarray(_inference_alpha(p, x, y, var, sure, mixer_config, True))
-            backward = np.asarray(_inference_alpha(p, y, x, sure, var, mixer_config, True))
+            forward = np.asarray(inference_alpha(p, x, y, var, sure, mixer_config, True))
+            backward = np.asarray(inference_alpha(p, y, x, sure, var, mixer_config, True))
             np.testing.assert_allclose(forward + backward, 1.0, rtol=0, atol=1e-6)
             assert np.all((forward >= 0) & (forward <= 1))
         gaps[name] = float(np.mean(values))
@@ -482,9 +482,9 @@ def test_swap_symmetry_of_the_trained_mixer_on_a_frame(trained):
     # 40 steps; a gap near 0 would mean the swapped call is not the swap) ...
     assert 0.2 < gap < 0.75
     # ... the swap-averaged alpha is, exactly: alpha(x, y) + alpha(y, x) = 1 per pixel, to
-    # float32 round-off, both through _inference_alpha and through progressive_denoise.
-    forward = np.asarray(_inference_alpha(params, x, y, var, sure, config, True))
-    backward = np.asarray(_inference_alpha(params, y, x, sure, var, config, True))
+    # float32 round-off, both through inference_alpha and through progressive_denoise.
+    forward = np.asarray(inference_alpha(params, x, y, var, sure, config, True))
+    backward = np.asarray(inference_alpha(params, y, x, sure, var, config, True))
     np.testing.assert_allclose(forward + backward, 1.0, rtol=0, atol=1e-6)
     np.testing.assert_allclose(forward, 0.5 * (alpha + 1 - swapped), atol=1e-6)
 
@@ -495,13 +495,13 @@ def test_swap_symmetry_of_the_trained_mixer_on_a_frame(trained):
 def test_mixer_alpha_script_matches_the_pipeline(trained):
     """experiments/mixer_alpha.py: its 'single' and 'average' PD / MC are what
     progressive_denoise gives without and with swap averaging (same SURE key)."""
-    sys.path.insert(0, str(ROOT / "experiments"))
-    import mixer_alpha
+    from helpers import load_script
 
-    from jaxden.progressive import report as pdreport
+    from jaxden.data.crops import iter_crops
 
+    mixer_alpha = load_script("mixer_alpha")
     dataset, workdir = trained
-    crop, reference, levels = next(pdreport.iter_crops(dataset, "all"))
+    crop, reference, levels = next(iter_crops(dataset, "all"))
     spp, frame = levels[-1]
     rows = mixer_alpha.evaluate(dataset, [crop.id], [spp], [str(workdir)])
     assert [(r["crop"], r["spp"]) for r in rows] == [(crop.id, spp)]
@@ -525,21 +525,19 @@ def test_mixer_alpha_script_matches_the_pipeline(trained):
 
 
 @pytest.mark.slow  # ~9 s; the report rows themselves: test_pd_report_rows_match_direct_computation
-def test_pd_report_script_tstat_override(trained, tmp_path, capsys):
-    """experiments/pd_report.py pd --tstat KEY=VALUE: the rows are those of the mixer with that
+def test_evaluate_pd_tstat_override(trained, tmp_path, capsys):
+    """jaxden evaluate pd --tstat KEY=VALUE: the rows are those of the mixer with that
     t-statistic field changed, and the provenance records it; a bad key names the field."""
-    sys.path.insert(0, str(ROOT / "experiments"))
-    import pd_report
-
+    from jaxden.cli.evaluate import logit_bound
     from jaxden.config import load_config
-    from jaxden.progressive import report as pdreport
+    from jaxden.evaluate import pd as pdreport
 
     dataset, workdir = trained
     spp = next(pdreport.iter_crops(dataset, "val"))[2][-1][0]  # the highest input spp
     out = tmp_path / "rep"
-    pd_report.main(["pd", "--data", str(dataset), "--split", "val", "--denoiser", "oidn",
-                    "--mixer", str(workdir), "--spp", str(spp), "--tstat", "c=1.0",
-                    "--out", str(out)])
+    assert cli.main(["evaluate", "pd", "--data", str(dataset), "--split", "val", "--denoiser",
+                     "oidn", "--mixer", str(workdir), "--spp", str(spp), "--tstat", "c=1.0",
+                     "--out", str(out)]) == 0
     result = json.loads(out.with_suffix(".json").read_text())
     assert len(result["rows"]) == 2  # the two val crops (the test's cost is per crop)
     assert result["provenance"]["tstat"]["c"] == 1.0
@@ -559,46 +557,43 @@ def test_pd_report_script_tstat_override(trained, tmp_path, capsys):
                                  ("--logit-bound", "3", "apply only to head"),
                                  ("--mixer-set", "closed_form_stop=1", "closed_form_stop"),
                                  ("--mixer-set", "closed_form_stops=0", "closed_form_stops")):
-        assert pd_report.main(["pd", "--data", str(dataset), "--split", "all", "--denoiser",
-                               "oidn", "--mixer", str(workdir), option, value, "--out",
-                               str(tmp_path / "bad")]) == 2
+        assert cli.main(["evaluate", "pd", "--data", str(dataset), "--split", "all",
+                         "--denoiser", "oidn", "--mixer", str(workdir), option, value, "--out",
+                         str(tmp_path / "bad")]) == 2
         assert match in capsys.readouterr().err
         assert not (tmp_path / "bad.json").exists()
     for text in ("0", "-1", "nan", "x"):
         with pytest.raises(argparse.ArgumentTypeError, match="expected a number > 0 or 'none'"):
-            pd_report._logit_bound(text)
-    assert pd_report._logit_bound("None") == 0.0 and pd_report._logit_bound("2.5") == 2.5
+            logit_bound(text)
+    assert logit_bound("None") == 0.0 and logit_bound("2.5") == 2.5
     # --mixer-set: the closed form with strata set on the command line is the spec with them.
     for name, argv in (("set", ["--mixer", "closed-form", "--mixer-set", "closed_form_stops=1"]),
                        ("spec", ["--mixer", "closed-form:stops=1"])):
-        assert pd_report.main(["pd", "--data", str(dataset), "--split", "val", "--denoiser",
-                               "oidn", "--spp", str(spp), *argv,
-                               "--out", str(tmp_path / name)]) == 0
+        assert cli.main(["evaluate", "pd", "--data", str(dataset), "--split", "val",
+                         "--denoiser", "oidn", "--spp", str(spp), *argv,
+                         "--out", str(tmp_path / name)]) == 0
     by_set, by_spec = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("set", "spec"))
     assert by_set["provenance"]["closed_form_stops"] == 1.0
     assert [r["pd_rmse"] for r in by_set["rows"]] == [r["pd_rmse"] for r in by_spec["rows"]]
 
 
-def test_pd_report_keep_current_keeps_only_the_same_run(trained, tmp_path, capsys,
-                                                         monkeypatch):
-    """pd_report.py pd --keep-current keeps OUT.json only when it is what the run would write:
+def test_evaluate_pd_keep_current_keeps_only_the_same_run(trained, tmp_path, capsys,
+                                                           monkeypatch):
+    """jaxden evaluate pd --keep-current keeps OUT.json only when it is what the run would write:
     the same data build, mixer and effective config; a changed mixer field, another build of
     the data or a report without a column the report now has (made before it existed) is made
     again. After the first real run the evaluation is replayed (what is kept is the point)."""
-    sys.path.insert(0, str(ROOT / "experiments"))
-    import pd_report
-
-    from jaxden.progressive import report as pdreport
+    from jaxden.evaluate import pd as pdreport
 
     dataset, workdir = trained
     spp = next(pdreport.iter_crops(dataset, "val"))[2][0][0]
     out = tmp_path / "rep"
-    argv = ["pd", "--data", str(dataset), "--split", "val", "--denoiser", "oidn", "--mixer",
+    argv = ["evaluate", "pd", "--data", str(dataset), "--split", "val", "--denoiser", "oidn", "--mixer",
             str(workdir), "--spp", str(spp), "--out", str(out), "--keep-current"]
 
     def run(*extra) -> bool:  # True: it wrote the report
         capsys.readouterr()
-        assert pd_report.main([*argv, *extra]) in (0, None)
+        assert cli.main([*argv, *extra]) == 0
         return "is current" not in capsys.readouterr().out
 
     assert run()
@@ -620,11 +615,11 @@ def test_pd_report_keep_current_keeps_only_the_same_run(trained, tmp_path, capsy
 
 
 def test_pd_report_rows_match_direct_computation(trained):
-    """jaxden.progressive.report on the tiny dataset: one row per (crop, spp); each row's numbers equal
+    """jaxden.evaluate's pd on the tiny dataset: one row per (crop, spp); each row's numbers equal
     progressive_denoise / metrics computed directly with the same key; the summary's ratios
     are the stated means."""
     from jaxden.data.layout import load_manifest
-    from jaxden.progressive import report as pdreport
+    from jaxden.evaluate import pd as pdreport
 
     dataset, workdir = trained
     params, config = P.load_mixer(workdir)
@@ -705,7 +700,7 @@ def test_sure_accuracy_rows_and_summary(trained):
     ratio of the crop means; an incomplete dataset is refused by name."""
     from jaxden.data.layout import load_manifest
     from jaxden.errors import DatasetError
-    from jaxden.progressive import report as pdreport
+    from jaxden.evaluate import sure as pdreport
 
     dataset, _ = trained
     rows = pdreport.sure_accuracy(dataset, "oidn", split="all", seed=1, spp=(8, 32))
@@ -732,7 +727,7 @@ def test_ratio_interval_is_a_crop_bootstrap():
     """With two crops the crop bootstrap has three outcomes ({a, a}, {a, b}, {b, b}, with
     probabilities 1/4, 1/2, 1/4), so its 2.5-97.5 % interval spans the two crops' own ratios;
     every crop at ratio 1 gives [1, 1]; renders of one crop move together."""
-    from jaxden.progressive import report as pdreport
+    from jaxden.evaluate import sure as pdreport
 
     rows = [{"crop": "a", "sure": 2.0, "mse_nc": 1.0}, {"crop": "a", "sure": 1.0, "mse_nc": 1.0},
             {"crop": "b", "sure": 1.0, "mse_nc": 2.0}]
@@ -752,7 +747,7 @@ def test_true_error_is_unbiased_for_the_squared_error_against_the_truth():
     raw squared error is off by the variance."""
     from types import SimpleNamespace
 
-    from jaxden.progressive.report import true_error
+    from jaxden.evaluate.oracle import true_error
 
     rng = np.random.default_rng(0)
     truth = rng.uniform(0, 2, (4, 5, 3))
@@ -770,7 +765,7 @@ def test_oracle_mix_is_the_best_tile_alpha():
     """oracle_mix's alpha per tile and channel minimises the squared error against the
     reference over alpha in [0, 1]: a brute-force search on a fine grid never does better,
     and the oracle is never worse than x (alpha 0) or y (alpha 1) on any tile."""
-    from jaxden.progressive.report import oracle_mix
+    from jaxden.evaluate.oracle import oracle_mix
 
     rng = np.random.default_rng(5)
     r = rng.uniform(0, 1, (10, 13, 3))
@@ -798,7 +793,7 @@ def test_sure_accuracy_buffers_rows(trained, monkeypatch):
     from jaxden.data.layout import load_manifest
     from jaxden.denoise.registry import load_denoiser
     from jaxden.errors import DatasetError
-    from jaxden.progressive import report as pdreport
+    from jaxden.evaluate import sure_buffers as pdreport
     from jaxden.sure.buffers import combine_buffers, sure_buffers
 
     dataset, _ = trained

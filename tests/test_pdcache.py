@@ -2,7 +2,7 @@
 probes, resumes without recomputing finished items, refuses another denoiser or setting, and
 cuts the same windows as the dataset loader.
 
-Data: a tiny Mitsuba-free dataset (jaxden.data.builder.synthetic_render, 2 scenes x 2 crops of
+Data: a tiny Mitsuba-free dataset (jaxden.render.synthetic.synthetic_render, 2 scenes x 2 crops of
 32 x 32, spp 1, 4, 16; the spp-1 items have no variance and are skipped by the cache).
 Denoisers: OIDN (a black box: finite differences) and a one-parameter JAX blur (jvp).
 """
@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from jaxden.config import load_config
-from jaxden.data.builder import build_dataset, synthetic_render
+from jaxden.data.builder import build_dataset
 from jaxden.data.config import DatasetConfig
 from jaxden.data.layout import load_manifest
 from jaxden.data.loader import DatasetLoader, dihedral
@@ -30,6 +30,7 @@ from jaxden.io.exr import read_frame, read_header
 from jaxden.progressive import cache as pdcache
 from jaxden.progressive import cache_build
 from jaxden.progressive.mixer import MixerConfig
+from jaxden.render.synthetic import synthetic_render
 from jaxden.sure.stein import draw_probes, sure, sure_blackbox
 
 TINY = "experiments/configs/dataset-tiny.toml"

@@ -302,7 +302,7 @@ def test_log_input_transform_is_a_signed_log_and_scale_free():
     assert np.abs(np.asarray(P.mixer_inputs(x, y, var, sure))[..., L["var"]]).max() < 2e-6
     with pytest.raises(ConfigError, match="unknown transform 'sqrt'"):
         P.mixer_inputs(x, y, var, sure, transform="sqrt")
-    with pytest.raises(ConfigError, match="input_transform: unknown transform"):
+    with pytest.raises(ConfigError, match="input_transform: expected one of 'atan', 'log', found 'sqrt'"):
         P.MixerConfig(input_transform="sqrt")
 
 

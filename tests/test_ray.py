@@ -23,13 +23,11 @@ import sys
 from pathlib import Path
 
 import pytest
+from test_distributed import FAST_COMPILE, loopback_namespace_reason, run_in_loopback
 
 from jaxden.cli import main
 from jaxden.errors import JaxdenError
 from jaxden.executor import ExecutorError, make_executor
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_distributed import FAST_COMPILE, loopback_namespace_reason, run_in_loopback
 
 ROOT = Path(__file__).resolve().parent.parent
 TINY = ROOT / "experiments" / "configs" / "dataset-tiny.toml"
@@ -115,7 +113,8 @@ def run():
 
     from jaxden.cli import main
     from jaxden.config import load_config
-    from jaxden.data.builder import build_dataset, synthetic_render
+    from jaxden.data.builder import build_dataset
+    from jaxden.render.synthetic import synthetic_render
     from jaxden.data.config import DatasetConfig
     from jaxden.data.verify import verify_dataset
 

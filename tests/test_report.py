@@ -424,5 +424,5 @@ def test_cli_help_documents_the_convention(capsys):
         run_cli(["report", "--help"])
     text = capsys.readouterr().out
     for part in ("SCENE/reference.exr", "SCENE/sppN.exr", "sppN.METHOD.exr",
-                 "sppN.METHOD.alpha.exr", "pd_report"):
+                 "sppN.METHOD.alpha.exr", "jaxden evaluate pd"):
         assert part in text

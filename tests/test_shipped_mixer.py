@@ -16,10 +16,10 @@ import pytest
 
 from jaxden import cli
 from jaxden import progressive as P
-from jaxden.data.builder import synthetic_render
 from jaxden.denoise.registry import WEIGHTS_DIR
 from jaxden.errors import CheckpointError
 from jaxden.io.exr import read_image, write_frame
+from jaxden.render.synthetic import synthetic_render
 
 
 def test_shipped_mixer_files_and_model_card():

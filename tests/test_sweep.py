@@ -10,9 +10,10 @@ import pytest
 
 from jaxden.cli import main
 from jaxden.config import load_config
-from jaxden.data.builder import build_dataset, synthetic_render
+from jaxden.data.builder import build_dataset
 from jaxden.data.config import DatasetConfig
 from jaxden.errors import ConfigError
+from jaxden.render.synthetic import synthetic_render
 from jaxden.sweep import load_sweep, plan_runs, run_sweep
 from jaxden.train.config import load_train_config
 
@@ -34,9 +35,9 @@ def pd_over_denoiser_rmse(run_dir, dataset, split, spp, seed=0, probes=4):
     import jax
     import numpy as np
 
+    from jaxden.data.crops import iter_crops
     from jaxden.progressive.mixer import load_mixer
     from jaxden.progressive.pipeline import progressive_denoise
-    from jaxden.progressive.report import iter_crops
 
     params, config = load_mixer(run_dir)
     errors: dict[int, list[tuple[float, float]]] = {}

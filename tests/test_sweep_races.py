@@ -10,10 +10,11 @@ import pytest
 
 from jaxden.cli import main
 from jaxden.config import load_config
-from jaxden.data.builder import build_dataset, synthetic_render
+from jaxden.data.builder import build_dataset
 from jaxden.data.config import DatasetConfig
 from jaxden.errors import ConfigError
 from jaxden.fileio import folder_lock
+from jaxden.render.synthetic import synthetic_render
 from jaxden.sweep import MAX_RUNS, run_sweep
 from jaxden.train import loop
 

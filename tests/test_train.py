@@ -255,3 +255,29 @@ def test_constant_schedule_is_the_learning_rate():
     schedule = make_schedule(OptimConfig(steps=50, learning_rate=3e-4, schedule="constant"))
     assert [float(schedule(t)) for t in (0, 1, 25, 50, 500)] == pytest.approx([3e-4] * 5,
                                                                               rel=1e-7)
+
+
+def test_one_table_of_trainable_models(tmp_path):
+    """Every registered denoiser and the mixer come from one name -> Trainable table, which
+    load_train_config, the loop and sweeps look models up in (they never branch on a name)."""
+    from jaxden.denoise.registry import REGISTRY
+    from jaxden.progressive.mixer import MixerConfig
+    from jaxden.train.config import load_train_config
+    from jaxden.train.loop import shared_data_key
+    from jaxden.train.tasks import get_trainable, trainables
+
+    table = trainables()
+    assert set(table) == set(REGISTRY) | {"mixer"}
+    assert all(table[name].config_cls is REGISTRY[name].config_cls for name in REGISTRY)
+    assert (get_trainable("mixer").config_cls, get_trainable("mixer").kind) == (MixerConfig, "mixer")
+    assert {table[name].kind for name in REGISTRY} == {"denoiser"}
+    path = tmp_path / "t.toml"
+    path.write_text('model = "wskpp"\n')
+    with pytest.raises(ConfigError, match=r"t.toml: model = 'wskpp': unknown model .*mixer.*wskp"):
+        load_train_config(path)
+    path.write_text('model = "mixer"\n[data]\ndataset = "d"\n[model_config]\nsure_probes = 2\n')
+    key = shared_data_key(load_train_config(path))  # the SURE cache: dataset, denoiser, SURE
+    assert key is not None and '"oidn"' in key and str(Path("d").absolute()) in key
+    assert shared_data_key(load_train_config(path, ["model_config.kind=closed_form"])) is None
+    path.write_text('model = "kp"\n[data]\ndataset = "d"\n')
+    assert shared_data_key(load_train_config(path)) is None

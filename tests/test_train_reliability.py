@@ -25,6 +25,7 @@ from jaxden.errors import JaxdenError
 from jaxden.fileio import folder_lock
 from jaxden.train import loop
 from jaxden.train.config import load_train_config
+from jaxden.train.workdir import TRAIN_LOCK
 
 
 @pytest.fixture(scope="module")
@@ -70,7 +71,7 @@ def test_a_second_run_on_a_locked_workdir_is_one_line(tmp_path, dataset, capsys)
     config = write_config(tmp_path, dataset, steps=2)
     workdir = tmp_path / "run"
     workdir.mkdir()
-    with folder_lock(workdir, loop.TRAIN_LOCK, "training run"):
+    with folder_lock(workdir, TRAIN_LOCK, "training run"):
         assert main(["train", str(config), "--workdir", str(workdir)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "another training run is writing into" in err[0], err

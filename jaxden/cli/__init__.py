@@ -4,7 +4,7 @@ User errors (:class:`jaxden.errors.JaxdenError`) print one line ``jaxden: error:
 with status 2; anything else is a bug and keeps its traceback.
 
 One module per command group (:mod:`jaxden.cli.render`, ``dataset``, ``train``, ``denoise``,
-``bench``, ``demo``), each with ``cmd_*`` functions and ``add_commands(subparsers)``; shared
+``evaluate``, ``bench``, ``demo``, ``report``), each with ``cmd_*`` functions and ``add_commands(subparsers)``; shared
 option types live in :mod:`jaxden.cli.options`.
 """
 
@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from jaxden.cli import bench, dataset, demo, denoise, render, report, train
+from jaxden.cli import bench, dataset, demo, denoise, evaluate, render, report, train
 from jaxden.errors import JaxdenError
 
 
@@ -32,7 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="jaxden", description="Monte Carlo denoising research in JAX (see README.md)."
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for group in (demo, render, dataset, denoise, train, bench, report):
+    for group in (demo, render, dataset, denoise, train, evaluate, bench, report):
         group.add_commands(sub)
     return parser
 
@@ -40,6 +40,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
+    args.command_line = list(sys.argv[1:] if argv is None else argv)  # results record it
     # argparse gives a trailing ``overrides`` positional nothing once an option comes between
     # it and the config (``CONFIG --out DIR key=value``); take key=value words left over.
     if extra and hasattr(args, "overrides") and all("=" in w and not w.startswith("-")

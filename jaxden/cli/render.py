@@ -46,9 +46,9 @@ def _render_buffers(args: argparse.Namespace, out: Path) -> int:
     as OUT; for ``jaxden sure OUT --buffers OUT.b*.exr``."""
     import numpy as np
 
-    from jaxden.data.builder import render_cached
     from jaxden.fileio import all_or_nothing
     from jaxden.io.exr import write_frame
+    from jaxden.render.scene_cache import render_cached
     from jaxden.sure.buffers import combine_buffers
 
     k = args.buffers

@@ -19,8 +19,8 @@ DIR follows the layout `jaxden demo` writes:
   DIR/SCENE/sppN.exr                the Monte Carlo input at N spp (method "mc")
   DIR/SCENE/sppN.METHOD.exr         METHOD's result at N spp (N may be zero-padded)
   DIR/SCENE/sppN.METHOD.alpha.exr   optional: the mixer's alpha map behind METHOD
-  DIR/*.json                        optional: experiments/pd_report.py results (metrics only)
-DIR may also be one scene folder, or a single pd_report JSON file."""
+  DIR/*.json                        optional: `jaxden evaluate pd` results (metrics only)
+DIR may also be one scene folder, or a single `jaxden evaluate pd` JSON file."""
 
 
 def cmd_report(args: argparse.Namespace) -> int:
@@ -47,7 +47,7 @@ def add_commands(sub) -> None:
     p = sub.add_parser("report", help="an HTML page comparing methods on a folder of EXRs",
                        description=DESCRIPTION,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("dir", metavar="DIR", help="results folder (layout above) or pd_report JSON")
+    p.add_argument("dir", metavar="DIR", help="results folder (layout above) or a PD result's JSON")
     p.add_argument("--out", default=None,
                    help="the .html file to write (default: DIR/report.html)")
     p.add_argument("--title", default=None, help="page title (default: from DIR)")

@@ -50,6 +50,7 @@ from jaxden.data.layout import (
     sha256_file,
 )
 from jaxden.errors import DatasetError, SceneError
+from jaxden.render.scene_cache import render_cached
 
 SAVE_INTERVAL_S = 5.0
 
@@ -90,45 +91,6 @@ class CropTask:
     scene_file: str = ""  # an XML scene's absolute path (workers may run in another folder)
 
 
-# Per worker process: the most recently loaded Mitsuba scenes. render_frame reloads a scene
-# given by name on every call, and a freshly loaded scene with textures (the procedural ones)
-# misses Dr.Jit's kernel cache: a 4-6 s recompile per render. Rendering a loaded mi.Scene
-# reuses the kernels (same images: the seeds and the scene are the same). One scene only: every
-# live scene is traced into each render's kernels (jaxden.render.load), so a second one held
-# would slow the renders of the first; crops of one scene are built one after another.
-_SCENE_CACHE: dict[tuple[str, tuple[int, int]], Any] = {}
-_SCENE_CACHE_SIZE = 1
-
-
-def render_cached(
-    scene: str,
-    spp: int,
-    seed: int = 0,
-    size: tuple[int, int] | None = None,
-    *,
-    crop: tuple[int, int, int, int] | None = None,
-    aux: str = "first-hit",
-    feature_spp: int = 16,
-    colour: Any = None,
-    parameters: dict[str, str] | None = None,
-) -> Any:
-    """``jaxden.render.core.render_frame`` with the loaded scene kept between calls (the
-    builder's default renderer). ``parameters``: ``$name`` values of an XML scene."""
-    from jaxden.render.core import render_frame
-    from jaxden.render.load import load_scene
-
-    key = (scene, tuple(size) if size is not None else None,
-           tuple(sorted((parameters or {}).items())))
-    loaded = _SCENE_CACHE.get(key)
-    if loaded is None:
-        loaded = load_scene(scene, size, parameters or None)
-        while len(_SCENE_CACHE) >= _SCENE_CACHE_SIZE:
-            _SCENE_CACHE.pop(next(iter(_SCENE_CACHE)))
-        _SCENE_CACHE[key] = loaded
-    return render_frame(loaded, spp, seed=seed, size=size, crop=crop, aux=aux,
-                        feature_spp=feature_spp, colour=colour)
-
-
 def _feature_options(aux: str, feature_spp: int) -> dict[str, Any]:
     """The feature keywords a dataset passes to its renderer: only those off their defaults,
     so render functions written before they existed keep working on ordinary datasets."""
@@ -152,7 +114,9 @@ def _missing_keywords(render_fn: RenderFn, names) -> list[str]:
     return [name for name in names if name not in {p.name for p in parameters}]
 
 
-def _renderer_name(render_fn: RenderFn | None) -> str:
+def renderer_name(render_fn: RenderFn | None) -> str:
+    """What a manifest records as the renderer of ``render_fn`` (``module.qualname``; None:
+    jaxden's Mitsuba renderer): a rerun with another renderer is refused."""
     if render_fn is None:
         return "jaxden.render.core.render_frame"
     name = getattr(render_fn, "__qualname__", None) or type(render_fn).__qualname__
@@ -220,63 +184,10 @@ def _render_one(task: CropTask, item: RenderTask, render: RenderFn) -> dict[str,
     }
 
 
-def synthetic_render(
-    scene: str,
-    spp: int,
-    seed: int = 0,
-    size: tuple[int, int] | None = None,
-    *,
-    crop: tuple[int, int, int, int] | None = None,
-) -> Any:
-    """A Mitsuba-free stand-in for ``render_frame``, for tests, docs and pipeline dry runs.
-
-    The "scene" is a smooth analytic image of film coordinates (changing with the scene name);
-    each pixel mean is its value plus Gaussian noise of variance ``sigma^2 / spp`` with
-    ``sigma = 0.5 * value`` (independent per pixel and channel, seeded by ``seed``), and the
-    variance channel is the unbiased sample-variance estimate of the mean, drawn from its
-    exact distribution ``(sigma^2 / spp) * chi2(spp - 1) / (spp - 1)`` (None for spp = 1).
-    ``position`` holds the film pixel centre (x + 0.5, y + 0.5, 0), so crops can be located;
-    ``normal`` is (0, 0, 1), ``depth`` 1, ``albedo`` a smooth pattern. Float32, (h, w, C).
-    """
-    from jaxden.frame import Frame
-
-    width, height = size if size is not None else (64, 64)
-    top, left, crop_height, crop_width = crop if crop is not None else (0, 0, height, width)
-    ys, xs = np.mgrid[top : top + crop_height, left : left + crop_width].astype(np.float64)
-    ys, xs = ys + 0.5, xs + 0.5
-    phase = (int.from_bytes(scene.encode()[:8].ljust(8, b"\0"), "little") % 997) / 997.0
-    u, v = xs / width, ys / height
-    clean = np.stack(
-        [
-            1.0 + 0.8 * np.sin(6.0 * u + 6.28 * phase) * np.cos(4.0 * v),
-            1.0 + 0.8 * np.cos(5.0 * u * v + 3.0 * phase),
-            0.5 + 0.4 * np.sin(3.0 * (u + v) + 1.0),
-        ],
-        axis=-1,
-    )
-    rng = np.random.default_rng(seed)
-    sigma2 = np.square(0.5 * clean)
-    color = clean + rng.standard_normal(clean.shape) * np.sqrt(sigma2 / spp)
-    variance = None
-    if spp > 1:
-        variance = sigma2 / spp * rng.chisquare(spp - 1, clean.shape) / (spp - 1)
-    shape = clean.shape[:2]
-    albedo = np.stack([0.2 + 0.6 * u, 0.2 + 0.6 * v, np.full(shape, 0.5)], axis=-1)
-    return Frame(
-        color=color.astype(np.float32),
-        variance=None if variance is None else variance.astype(np.float32),
-        albedo=albedo.astype(np.float32),
-        normal=np.broadcast_to(np.float32([0, 0, 1]), shape + (3,)).copy(),
-        depth=np.ones(shape + (1,), np.float32),
-        position=np.stack([xs, ys, np.zeros(shape)], axis=-1).astype(np.float32),
-        spp=np.float32(spp),
-    )
-
-
 def _check_render(frame: Any, task: CropTask, item: RenderTask) -> None:
     from jaxden.frame import Frame
 
-    who = f"{_renderer_name(task.render_fn)} for item {item.item_id} ({task.scene}, {item.spp} spp)"
+    who = f"{renderer_name(task.render_fn)} for item {item.item_id} ({task.scene}, {item.spp} spp)"
     if not isinstance(frame, Frame):
         raise DatasetError(f"{who} returned {type(frame).__name__}, not a Frame")
     height, width = task.window[2], task.window[3]
@@ -357,7 +268,7 @@ def _build_lock(directory: Path):
     return folder_lock(directory, LOCK_NAME, "build")
 
 
-def _with_defaults(stored_config: dict[str, Any]) -> dict[str, Any]:
+def config_with_defaults(stored_config: dict[str, Any]) -> dict[str, Any]:
     """A stored dataset config with the fields added since it was written at their defaults
     (e.g. ``aux``), so that an older dataset still resumes under the same config."""
     from jaxden.config import config_to_dict
@@ -376,7 +287,7 @@ def _reconcile(stored: Manifest, planned: Manifest, directory: Path) -> Manifest
     where = directory / MANIFEST_NAME
     if not any(item.done for item in stored.items) and not any(directory.rglob("*.exr")):
         return planned  # nothing was built yet (e.g. the first render failed): start afresh
-    differences = config_diff(_with_defaults(stored.config), planned.config)
+    differences = config_diff(config_with_defaults(stored.config), planned.config)
     if differences:
         raise DatasetError(
             f"{where} was built from a different config; differences (stored -> given): "
@@ -439,12 +350,12 @@ def build_dataset(
             "the dataset's " + ", ".join(f"{name} = {options[name]!r}" for name in missing)
             + " needs a renderer that takes "
             + ", ".join(f"`{name}=`" for name in missing)
-            + f"; {_renderer_name(render_fn)} does not")
+            + f"; {renderer_name(render_fn)} does not")
     directory = Path(out_dir)
     if directory.exists() and not directory.is_dir():
         raise DatasetError(f"{directory} exists and is not a folder")
     planned = plan_dataset(config)
-    planned.renderer = _renderer_name(render_fn)
+    planned.renderer = renderer_name(render_fn)
     if render_fn is None:  # before the output folder exists: nothing left behind
         try:
             check_scenes(config.scene_ids(), config.scene_parameters)

@@ -34,6 +34,7 @@ import numpy as np
 
 from jaxden.data.config import SPLIT_NAMES, DatasetConfig
 from jaxden.errors import DatasetError
+from jaxden.provenance import file_sha256
 
 MANIFEST_NAME = "manifest.json"
 CONFIG_NAME = "dataset.toml"  # the resolved config as TOML, for people (the manifest is canonical)
@@ -422,9 +423,5 @@ def plan_dataset(config: DatasetConfig) -> Manifest:
     )
 
 
-def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        while block := handle.read(chunk):
-            digest.update(block)
-    return digest.hexdigest()
+#: A file's sha256 (hex): the one definition, in :mod:`jaxden.provenance`.
+sha256_file = file_sha256

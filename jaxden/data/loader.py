@@ -274,25 +274,37 @@ class DatasetLoader:
             (int(order[i]), int(tops[i]), int(lefts[i]), int(symmetries[i])) for i in range(count)
         ]
 
-    def epoch(self, epoch: int) -> Iterator[Batch]:
-        """The batches of epoch ``epoch`` (a pure function of the seed and the epoch)."""
+    def batch_draws(self, epoch: int) -> Iterator[list[tuple[int, int, int, int]]]:
+        """The draws of each batch of epoch ``epoch`` (:meth:`plan_epoch` cut into batches; the
+        last one shorter unless ``drop_last``)."""
         draws = self.plan_epoch(epoch)
         for start in range(0, len(draws), self.batch_size):
             chunk = draws[start : start + self.batch_size]
             if len(chunk) < self.batch_size and self.drop_last:
                 return
-            inputs, references, ids = [], [], []
-            for index, top, left, symmetry in chunk:
-                item, reference = self.samples[index]
-                size = self.crop_size
-                for frame_list, source, features in (
-                    (inputs, item, self.features),
-                    (references, reference, self.reference_features),
-                ):
-                    frame = self._read(source, features).crop(top, left, size, size)
-                    frame_list.append(dihedral_frame(frame, symmetry))
-                ids.append(item.id)
-            yield Batch(_stack(inputs), _stack(references), tuple(ids))
+            yield chunk
+
+    def read(self, draws) -> Batch:
+        """The batch of ``draws`` (sample index, top, left, symmetry), in their order: any
+        subset of an epoch's draws reads the same crops and symmetries as the whole (several
+        training processes each read their rows of a batch)."""
+        inputs, references, ids = [], [], []
+        size = self.crop_size
+        for index, top, left, symmetry in draws:
+            item, reference = self.samples[index]
+            for frame_list, source, features in (
+                (inputs, item, self.features),
+                (references, reference, self.reference_features),
+            ):
+                frame = self._read(source, features).crop(top, left, size, size)
+                frame_list.append(dihedral_frame(frame, symmetry))
+            ids.append(item.id)
+        return Batch(_stack(inputs), _stack(references), tuple(ids))
+
+    def epoch(self, epoch: int) -> Iterator[Batch]:
+        """The batches of epoch ``epoch`` (a pure function of the seed and the epoch)."""
+        for draws in self.batch_draws(epoch):
+            yield self.read(draws)
 
 
 def _stack(frames: list[Frame]) -> Frame:

@@ -7,13 +7,14 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from jaxden.data.builder import _renderer_name, _with_defaults, build_dataset, render_cached
+from jaxden.data.builder import build_dataset, config_with_defaults, renderer_name
 from jaxden.data.config import load_dataset_config
 from jaxden.data.layout import (
     Manifest,
     load_manifest,
 )
 from jaxden.errors import DatasetError
+from jaxden.render.scene_cache import render_cached
 
 # -------------------------------------------------------------------------- refeature
 #: The config keys `refeature` may change: they touch only the feature pass.
@@ -67,10 +68,10 @@ def refeature_dataset(
     manifest = load_manifest(source)
     if not manifest.complete:
         raise DatasetError(f"{source}: the dataset is not complete; finish its build first")
-    if manifest.renderer != _renderer_name(None):
+    if manifest.renderer != renderer_name(None):
         raise DatasetError(f"{source}: built by {manifest.renderer}; refeature needs a dataset "
-                           f"rendered by {_renderer_name(None)}")
-    base = _with_defaults(manifest.config)
+                           f"rendered by {renderer_name(None)}")
+    base = config_with_defaults(manifest.config)
     config = load_dataset_config(base, overrides)
     changed = [line.split(":", 1)[0] for line in config_diff(base, config_to_dict(config))]
     other = [key for key in changed if key not in FEATURE_KEYS]

@@ -16,7 +16,8 @@ colon, for every denoiser: ``emission=separate`` keeps the directly visible emis
 
 The registered denoisers live beside this module (:mod:`jaxden.denoise.oidn`,
 :mod:`jaxden.denoise.models`); the package imports them, so any import of
-``jaxden.denoise...`` sees every name.
+``jaxden.denoise...`` sees every name. Training sees them, beside the mixer, through the table
+of trainable models (:func:`jaxden.train.tasks.trainables`).
 """
 
 from __future__ import annotations

@@ -7,10 +7,13 @@
 - :mod:`~jaxden.progressive.network`: the PDNet flax module;
 - :mod:`~jaxden.progressive.mixer`: MixerConfig, init / alpha / apply, mixer checkpoints;
 - :mod:`~jaxden.progressive.pipeline`: progressive_denoise and the shipped mixers;
-- :mod:`~jaxden.progressive.cache`: SURE caches for mixer training;
-- :mod:`~jaxden.progressive.report`: PD, oracle and SURE-accuracy reports on a test set.
+- :mod:`~jaxden.progressive.cache`, :mod:`~jaxden.progressive.cache_build`: SURE caches for
+  mixer training (data derived from a dataset; kept here, beside their reader, because
+  building one runs SURE, a later floor than :mod:`jaxden.data`);
+- :mod:`~jaxden.progressive.checks`: the argument checks these functions share.
 
-The mixer's training task lives with the other tasks in :mod:`jaxden.train.tasks`.
+The mixer's training task, and its entry in the table of trainable models, live with the
+other tasks in :mod:`jaxden.train.tasks`.
 """
 
 from jaxden.progressive.closed_form import (

@@ -156,17 +156,17 @@ def default_cache_dir(dataset_dir, denoiser, covariance: bool = False) -> Path:
     return Path(dataset_dir) / DERIVED_DIR / (f"{slug}-cov" if covariance else slug)
 
 
-def _dataset_identity(manifest) -> dict[str, Any]:
+def cache_dataset_identity(manifest) -> dict[str, Any]:
     text = json.dumps(manifest.config, sort_keys=True)
     return {"name": manifest.config.get("name"),
             "config_sha256": hashlib.sha256(text.encode()).hexdigest()}
 
 
-def _cache_key(identity: dict[str, Any]) -> str:
+def identity_key(identity: dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:20]
 
 
-def _save_json(path: Path, data: dict) -> None:
+def save_cache_manifest(path: Path, data: dict) -> None:
     atomic_write_text(path, json.dumps(data, indent=1))
 
 
@@ -178,7 +178,7 @@ _RECORD_FIELDS = {"path": str, "sha256": str, "bytes": int, "source_sha256": str
                   "seed?": int, "seconds?": float}
 
 
-def _load_cache_manifest(directory: Path) -> dict[str, Any] | None:
+def load_cache_manifest(directory: Path) -> dict[str, Any] | None:
     """The cache manifest of ``directory`` (None when there is none); DatasetError naming the
     file and the field when it is unreadable, malformed, wrongly typed or of another format."""
     from jaxden.data.layout import inside_folder
@@ -209,7 +209,7 @@ def _load_cache_manifest(directory: Path) -> dict[str, Any] | None:
     return data
 
 
-def _eligible_items(manifest) -> list:
+def eligible_items(manifest) -> list:
     """Input items that have a variance (spp >= 2)."""
     return [item for item in manifest.items if item.kind == "input" and item.spp >= 2]
 
@@ -272,7 +272,7 @@ class SureCache:
         self.dataset_dir = Path(dataset_dir)
         self.directory = Path(cache_dir)
         self.dataset = load_manifest(self.dataset_dir)
-        data = _load_cache_manifest(self.directory)
+        data = load_cache_manifest(self.directory)
         if data is None:
             raise DatasetError(
                 f"{self.directory} holds no SURE cache ({CACHE_MANIFEST} missing): build it with "
@@ -280,7 +280,7 @@ class SureCache:
             )
         self.identity = data.get("identity", {})
         self.cache_key = data.get("cache_key")
-        dataset_identity = _dataset_identity(self.dataset)
+        dataset_identity = cache_dataset_identity(self.dataset)
         if self.identity.get("dataset") != dataset_identity:
             raise DatasetError(
                 f"{self.directory}: the SURE cache was computed from another dataset "
@@ -298,7 +298,7 @@ class SureCache:
     def missing(self) -> list[str]:
         """Eligible items whose record is absent or was computed from another dataset file."""
         return [
-            item.id for item in _eligible_items(self.dataset)
+            item.id for item in eligible_items(self.dataset)
             if self.records.get(item.id, {}).get("source_sha256") != item.sha256
         ]
 

@@ -21,15 +21,15 @@ from jaxden.progressive.cache import (
     LOCK_NAME,
     SAVE_INTERVAL_S,
     SureCache,
-    _cache_key,
-    _dataset_identity,
-    _eligible_items,
-    _load_cache_manifest,
-    _save_json,
+    cache_dataset_identity,
     default_cache_dir,
     denoiser_identity,
+    eligible_items,
+    identity_key,
     item_seed,
+    load_cache_manifest,
     read_sure_exr,
+    save_cache_manifest,
     write_sure_exr,
 )
 from jaxden.sure.denoiser import default_eps, denoise_with_sure, resolve_denoiser, resolve_method
@@ -140,11 +140,11 @@ def build_sure_cache(
     if covariance:  # absent when off: caches built before the option keep their key
         settings["covariance"] = True
     identity = {
-        "dataset": _dataset_identity(manifest),
+        "dataset": cache_dataset_identity(manifest),
         "denoiser": denoiser_identity(denoiser),
         "settings": settings,
     }
-    cache_key = _cache_key(identity)
+    cache_key = identity_key(identity)
     directory = (Path(out_dir) if out_dir is not None
                  else default_cache_dir(dataset_dir, denoiser, covariance))
     if directory.exists() and not directory.is_dir():
@@ -155,7 +155,7 @@ def build_sure_cache(
         return SureCache(dataset_dir, directory)
 
     with _lock(directory):
-        stored = _load_cache_manifest(directory)
+        stored = load_cache_manifest(directory)
         if stored is not None:
             differences = config_diff(stored.get("identity", {}), identity)
             if differences:
@@ -177,7 +177,7 @@ def build_sure_cache(
                 )
             records, created = {}, None
         created = created or time.strftime("%Y-%m-%dT%H:%M:%S%z")
-        items = _eligible_items(manifest)
+        items = eligible_items(manifest)
         skipped = [item.id for item in manifest.items if item.kind == "input" and item.spp < 2]
         new_records: dict[str, dict] = {}
         pending = []
@@ -193,7 +193,7 @@ def build_sure_cache(
         records = new_records
 
         def save() -> None:
-            _save_json(directory / CACHE_MANIFEST, {
+            save_cache_manifest(directory / CACHE_MANIFEST, {
                 "format": CACHE_FORMAT,
                 "format_version": CACHE_VERSION,
                 "jaxden_version": __version__,
@@ -264,14 +264,14 @@ def _finished(directory: Path, manifest, identity: dict, cache_key: str) -> bool
     checksum (read only; a writer replaces files atomically, so this never sees half a file)."""
     from jaxden.config import config_diff
 
-    stored = _load_cache_manifest(directory)
+    stored = load_cache_manifest(directory)
     if stored is None or not stored.get("complete") or config_diff(
             stored.get("identity", {}), identity):
         return False
     records = stored.get("items", {})
     return all(
         _item_state(directory / item.path, records.get(item.id), item, cache_key)[0] == "done"
-        for item in _eligible_items(manifest))
+        for item in eligible_items(manifest))
 
 
 def _runtime_info(denoiser, spec) -> dict[str, Any]:

@@ -12,7 +12,7 @@ import jaxden.frame
 from jaxden.errors import FrameError
 
 
-def _check_image(name: str, array, where: str, channels: tuple[int, ...] = (3,)) -> tuple:
+def check_image(name: str, array, where: str, channels: tuple[int, ...] = (3,)) -> tuple:
     shape = np.shape(array)
     if len(shape) < 3 or shape[-1] not in channels:
         raise FrameError(
@@ -22,9 +22,9 @@ def _check_image(name: str, array, where: str, channels: tuple[int, ...] = (3,))
     return shape
 
 
-def _check_same(where: str, **arrays) -> tuple:
+def check_same(where: str, **arrays) -> tuple:
     """All arrays (..., H, W, 3) with the same shape; returns it."""
-    shapes = {name: _check_image(name, a, where) for name, a in arrays.items()}
+    shapes = {name: check_image(name, a, where) for name, a in arrays.items()}
     first_name, first = next(iter(shapes.items()))
     for name, shape in shapes.items():
         if shape != first:
@@ -41,7 +41,7 @@ def _variance_passes(var) -> jax.Array:
     return jnp.all(jnp.isfinite(var) & (var >= 0))
 
 
-def _check_variance_values(var, where: str) -> None:
+def check_variance_values(var, where: str) -> None:
     """Variance must be finite and >= 0 (only checked on concrete arrays; a JAX array on an
     accelerator is checked where it lives, and copied to the host only to word a failure)."""
     if not _is_concrete(var):
@@ -60,7 +60,7 @@ def _check_variance_values(var, where: str) -> None:
         )
 
 
-def _check_spp(spp, lead: tuple, where: str):
+def check_spp(spp, lead: tuple, where: str):
     """None, or the sample count as a float32 array broadcastable to the leading dims."""
     if spp is None:
         return None

@@ -67,7 +67,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import ndtr
 
-from jaxden.progressive.closed_form import _blur_2d, _gaussian_taps, _strata_local_sums
+from jaxden.progressive.closed_form import blur_2d, gaussian_taps, strata_local_sums
 
 #: The noise level (log2 of a pixel's standard deviation over the image's mean of it) is
 #: clipped to +-16 stops.
@@ -92,7 +92,7 @@ def variance_inflation(spp, config):
     """1 + guard_confidence sqrt(2 / ((n - 1) N_eff)) for n = ``spp`` samples per pixel
     (n - 1 taken as at least 1): the factor by which the guard raises the local variance to
     an upper confidence bound. Broadcasts over ``spp``."""
-    n_eff = _effective_pixels(_gaussian_taps(config.guard_sigma))
+    n_eff = _effective_pixels(gaussian_taps(config.guard_sigma))
     dof = jnp.maximum(jnp.asarray(spp, jnp.float32) - 1.0, 1.0) * n_eff
     return 1.0 + config.guard_confidence * jnp.sqrt(2.0 / dof)
 
@@ -118,7 +118,7 @@ def _noise_level(var, taps):
     level = jnp.where(member, jnp.clip(log_std - scale, -GUARD_STRATA_RANGE,
                                        GUARD_STRATA_RANGE), 0.0)
     weight = member.astype(level.dtype)
-    local = _blur_2d(level, taps) / jnp.maximum(_blur_2d(weight, taps), 1e-12)
+    local = blur_2d(level, taps) / jnp.maximum(blur_2d(weight, taps), 1e-12)
     deviation = jnp.abs(level - local)
     counted = member & (deviation < 8.0)
     spread = jnp.sqrt(jnp.sum(jnp.where(counted, jnp.square(deviation), 0.0))
@@ -135,9 +135,9 @@ def _guard_chi2(x, y, var, inflation, config):
     if not config.per_channel:
         residual = jnp.sum(residual, axis=-1, keepdims=True)
         pooled_var = jnp.sum(var, axis=-1, keepdims=True)
-    taps = jnp.asarray(_gaussian_taps(config.guard_sigma), x.dtype)
+    taps = jnp.asarray(gaussian_taps(config.guard_sigma), x.dtype)
     terms = jnp.concatenate([pooled_var * inflation, residual], axis=-1)
-    local_var, local_residual = jnp.split(_blur_2d(terms, taps), 2, axis=-1)
+    local_var, local_residual = jnp.split(blur_2d(terms, taps), 2, axis=-1)
     chi2 = _ratio(local_residual, local_var)
     if config.guard_strata is None:
         return chi2, chi2
@@ -148,18 +148,18 @@ def _guard_chi2(x, y, var, inflation, config):
     # nor are pooled.
     position = jnp.where(member, level / width, -2.0 * bound - 4.0)
     ones = member.astype(x.dtype)
-    sums = _strata_local_sums(jnp.concatenate([terms, ones], axis=-1), position, -bound, bound,
-                              taps)
+    sums = strata_local_sums(jnp.concatenate([terms, ones], axis=-1), position, -bound, bound,
+                             taps)
     channels = terms.shape[-1] // 2
     strata_var, strata_residual, support = jnp.split(sums, [channels, 2 * channels], axis=-1)
-    support = support / _blur_2d(jnp.ones_like(ones), taps)
+    support = support / blur_2d(jnp.ones_like(ones), taps)
     strata_chi2 = jnp.where(support >= GUARD_STRATA_SUPPORT,
                             _ratio(strata_residual, strata_var), 0.0)
     return chi2, jnp.maximum(chi2, strata_chi2)
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
-def _guard_alpha(alpha, x, y, var, config, spp=None):
+def guard_alpha(alpha, x, y, var, config, spp=None):
     """alpha'' = min(alpha, gamma / chi_cap^2) (1 - S(a (chi_test - c))), batched over leading
     dims; ``spp`` (None: unknown, no inflation; else a scalar or one per leading index)."""
     lead = x.shape[:-3]

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxden.errors import ConfigError, FrameError
-from jaxden.progressive.checks import _check_image, _check_same
+from jaxden.progressive.checks import check_image, check_same
 
 # ---------------------------------------------------------------------------------- alpha
 
@@ -29,7 +29,7 @@ CLOSED_FORM_LOGIT_EPS = 1e-3
 
 
 @functools.partial(jax.jit, static_argnames=("grouping",))
-def _f_act(raw, eps, grouping):
+def f_act_unchecked(raw, eps, grouping):
     if grouping == "by_role":
         x1, x2, x3 = raw[..., 0:3], raw[..., 3:6], raw[..., 6:9]
     else:
@@ -51,12 +51,12 @@ def f_act(raw, eps: float = 1e-6, *, grouping: Literal["by_role", "by_channel"] 
     ``max(x3, eps)`` has zero gradient w.r.t. x3 below eps and the clip zero gradient outside
     [0, 1] (as in the authors' code).
     """
-    _check_image("raw", raw, "f_act", channels=(9,))
+    check_image("raw", raw, "f_act", channels=(9,))
     if grouping not in ("by_role", "by_channel"):
         raise ConfigError(f"f_act: grouping must be 'by_role' or 'by_channel', got {grouping!r}")
     if not (isinstance(eps, (int, float, np.floating)) and math.isfinite(eps) and eps > 0):
         raise ConfigError(f"f_act: eps must be > 0, got {eps!r}")
-    return _f_act(jnp.asarray(raw), eps, grouping)
+    return f_act_unchecked(jnp.asarray(raw), eps, grouping)
 
 
 def alpha_direct(raw, kind: Literal["sigmoid", "clip"] = "sigmoid"):
@@ -65,7 +65,7 @@ def alpha_direct(raw, kind: Literal["sigmoid", "clip"] = "sigmoid"):
     ``"sigmoid"``: alpha = sigmoid(raw); ``"clip"``: alpha = clip(raw, 0, 1). The paper does
     not say which squashing its ablation used; sigmoid is the default (nonzero gradient).
     """
-    _check_image("raw", raw, "alpha_direct")
+    check_image("raw", raw, "alpha_direct")
     raw = jnp.asarray(raw)
     if kind == "sigmoid":
         return jax.nn.sigmoid(raw)
@@ -105,14 +105,14 @@ def closed_form_logit_alpha(raw, alpha_cf, bound: float | None = None,
 
 
 @jax.jit
-def _mix(x, y, alpha):
+def mix_unchecked(x, y, alpha):
     return x + alpha * (y - x)
 
 
 def mix(x, y, alpha):
     """z = x + alpha * (y - x); x, y (..., H, W, 3), alpha broadcastable (..., H, W, 1 or 3)."""
-    shape = _check_same("mix", x=x, y=y)
-    alpha_shape = _check_image("alpha", alpha, "mix", channels=(1, 3))
+    shape = check_same("mix", x=x, y=y)
+    alpha_shape = check_image("alpha", alpha, "mix", channels=(1, 3))
     if alpha_shape[:-1] != shape[:-1]:
         raise FrameError(f"mix: 'alpha' has shape {alpha_shape} but x has {shape}")
-    return _mix(jnp.asarray(x), jnp.asarray(y), jnp.asarray(alpha))
+    return mix_unchecked(jnp.asarray(x), jnp.asarray(y), jnp.asarray(alpha))

@@ -25,8 +25,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxden.errors import ConfigError, FrameError
-from jaxden.progressive.checks import _check_same
-from jaxden.progressive.closed_form import _closed_form_alpha
+from jaxden.progressive.checks import check_same
+from jaxden.progressive.closed_form import closed_form_alpha_unchecked
 
 # ---------------------------------------------------------------------------------- inputs
 
@@ -74,7 +74,7 @@ INPUT_TRANSFORMS: dict[str, Callable] = {"atan": jnp.arctan, "log": _signed_log}
 
 def mixer_channel_slices(features: tuple[str, ...] = MIXER_FEATURES) -> dict[str, slice]:
     """Channel slice of each feature in ``mixer_inputs(..., features=features)``."""
-    _check_features(features)
+    check_mixer_features(features)
     return {
         name: slice(CHANNELS_PER_FEATURE * i, CHANNELS_PER_FEATURE * (i + 1))
         for i, name in enumerate(features)
@@ -88,7 +88,7 @@ MIXER_LAYOUT: dict[str, slice] = {
 }
 
 
-def _check_features(features) -> None:
+def check_mixer_features(features) -> None:
     if not isinstance(features, tuple) or not features:
         raise ConfigError(f"mixer features must be a non-empty tuple of names, got {features!r}")
     allowed = MIXER_FEATURES + EXTRA_MIXER_FEATURES
@@ -103,8 +103,8 @@ def _check_features(features) -> None:
 
 @functools.partial(jax.jit, static_argnames=("features", "transform", "closed_form_sigma",
                                              "closed_form_stops"))
-def _mixer_inputs(x, y, var, sure, features, transform: str = "atan",
-                  closed_form_sigma: float = 12.0, closed_form_stops: float | None = None):
+def mixer_inputs_unchecked(x, y, var, sure, features, transform: str = "atan",
+                           closed_form_sigma: float = 12.0, closed_form_stops: float | None = None):
     residual_sq = jnp.square(x - y)
     f = INPUT_TRANSFORMS[transform]
     parts = {
@@ -114,8 +114,8 @@ def _mixer_inputs(x, y, var, sure, features, transform: str = "atan",
         "sure": lambda: f(sure),
         "residual": lambda: f(residual_sq),
         "divergence": lambda: f(sure + var - residual_sq),
-        "closed_form": lambda: _closed_form_alpha(x, y, var, sure, closed_form_sigma, False,
-                                                  closed_form_stops),
+        "closed_form": lambda: closed_form_alpha_unchecked(x, y, var, sure, closed_form_sigma,
+                                                           False, closed_form_stops),
     }
     return jnp.concatenate([parts[name]() for name in features], axis=-1)
 
@@ -140,7 +140,7 @@ def mixer_inputs(x, y, var, sure=None, *, features: tuple[str, ...] = MIXER_FEAT
     default (bounded, and defined for the negative values SURE takes), as in the paper's Sec.
     4.3; radiance stays linear as in the authors' code.
     """
-    _check_features(features)
+    check_mixer_features(features)
     if transform not in INPUT_TRANSFORMS:
         raise ConfigError(f"mixer_inputs: unknown transform {transform!r}; allowed: "
                           f"{', '.join(INPUT_TRANSFORMS)}")
@@ -153,11 +153,11 @@ def mixer_inputs(x, y, var, sure=None, *, features: tuple[str, ...] = MIXER_FEAT
     arrays = {"x": x, "y": y, "var": var}
     if needs_sure:
         arrays["sure"] = sure
-    _check_same("mixer_inputs", **arrays)
+    check_same("mixer_inputs", **arrays)
     x, y, var = jnp.asarray(x), jnp.asarray(y), jnp.asarray(var)
     sure = jnp.asarray(sure) if needs_sure else jnp.zeros_like(x)
-    return _mixer_inputs(x, y, var, sure, features, transform, float(closed_form_sigma),
-                         None if closed_form_stops is None else float(closed_form_stops))
+    return mixer_inputs_unchecked(x, y, var, sure, features, transform, float(closed_form_sigma),
+                                  None if closed_form_stops is None else float(closed_form_stops))
 
 
 def swap_inputs(key, x, y, var, sure, probability: float = 0.5):
@@ -167,7 +167,7 @@ def swap_inputs(key, x, y, var, sure, probability: float = 0.5):
     with ``swapped`` a bool array of shape (B,) (or ()). The target is unchanged: after a swap
     the mixer learns ``beta = 1 - alpha`` (paper Sec. 4.3).
     """
-    _check_same("swap_inputs", x=x, y=y, var=var, sure=sure)
+    check_same("swap_inputs", x=x, y=y, var=var, sure=sure)
     if not 0.0 <= probability <= 1.0:
         raise ConfigError(f"swap_inputs: probability must be in [0, 1], got {probability}")
     lead = np.shape(x)[:-3]

@@ -14,23 +14,22 @@ import jax.numpy as jnp
 
 from jaxden.config import bounded
 from jaxden.errors import ConfigError, FrameError
-from jaxden.progressive.checks import _check_same
-from jaxden.progressive.closed_form import _closed_form_alpha
+from jaxden.progressive.checks import check_same
+from jaxden.progressive.closed_form import closed_form_alpha_unchecked
 from jaxden.progressive.heads import (
     ALPHA_HEADS,
     CLOSED_FORM_LOGIT_EPS,
-    _f_act,
-    _mix,
     closed_form_logit_alpha,
+    f_act_unchecked,
+    mix_unchecked,
 )
 from jaxden.progressive.inputs import (
     CHANNELS_PER_FEATURE,
-    INPUT_TRANSFORMS,
     MIXER_FEATURES,
     SURE_BASED_FEATURES,
-    _check_features,
-    _mixer_inputs,
+    check_mixer_features,
     mixer_channel_slices,
+    mixer_inputs_unchecked,
 )
 from jaxden.progressive.tstat import TStatConfig
 
@@ -80,8 +79,8 @@ def closed_form_alpha(x, y, var, sure, *, sigma: float = 12.0, per_channel: bool
     config = MixerConfig(kind="closed_form", closed_form_sigma=sigma,
                          closed_form_per_channel=per_channel, closed_form_stops=stops)
     x, y, var, sure = _mixer_arrays("closed_form_alpha", config, x, y, var, sure)
-    return _closed_form_alpha(x, y, var, sure, float(sigma), per_channel,
-                              None if stops is None else float(stops))
+    return closed_form_alpha_unchecked(x, y, var, sure, float(sigma), per_channel,
+                                       None if stops is None else float(stops))
 
 
 def closed_form_mixer(spec: str = CLOSED_FORM_SPEC):
@@ -202,7 +201,8 @@ class MixerConfig:
     f_act_eps: float = bounded(1e-6, low=0, low_open=True, high=1)
     input_transform: Literal["atan", "log"] = "atan"
     logit_bound: float | None = bounded(None, low=0, low_open=True, high=100)
-    logit_eps: float = bounded(CLOSED_FORM_LOGIT_EPS, low=0, low_open=True, high=0.5)
+    logit_eps: float = bounded(CLOSED_FORM_LOGIT_EPS, low=0, low_open=True, high=0.5,
+                               high_open=True)
     swap_probability: float = bounded(0.5, low=0, high=1)
     tstat: TStatConfig = TStatConfig()
     swap_average: bool = False
@@ -216,94 +216,25 @@ class MixerConfig:
     build_cache: bool = True
 
     def __post_init__(self):
+        from jaxden.config import check_fields
+        from jaxden.paths import expand_path
+
         if isinstance(self.features, list):  # a list from Python code; jit needs it hashable
             object.__setattr__(self, "features", tuple(self.features))
-        _check_features(self.features)
-        if self.kind not in MIXER_KINDS:
-            raise ConfigError(
-                f"MixerConfig.kind: unknown mixer kind {self.kind!r}; allowed: "
-                f"{', '.join(MIXER_KINDS)}"
-            )
-        if not (isinstance(self.closed_form_sigma, (int, float))
-                and not isinstance(self.closed_form_sigma, bool)
-                and math.isfinite(self.closed_form_sigma) and self.closed_form_sigma > 0):
-            raise ConfigError(
-                f"MixerConfig.closed_form_sigma: expected a number > 0 (pixels), got "
-                f"{self.closed_form_sigma!r}"
-            )
-        if self.closed_form_stops is not None and not (
-                isinstance(self.closed_form_stops, (int, float))
-                and not isinstance(self.closed_form_stops, bool)
-                and math.isfinite(self.closed_form_stops) and self.closed_form_stops > 0):
-            raise ConfigError(
-                f"MixerConfig.closed_form_stops: expected a number > 0 (stops) or none, got "
-                f"{self.closed_form_stops!r}"
-            )
-        if not isinstance(self.closed_form_per_channel, bool):
-            raise ConfigError(
-                f"MixerConfig.closed_form_per_channel: expected true or false, got "
-                f"{self.closed_form_per_channel!r}"
-            )
-        if self.head not in ALPHA_HEADS:
-            raise ConfigError(
-                f"MixerConfig.head: unknown alpha head {self.head!r}; allowed: "
-                f"{', '.join(ALPHA_HEADS)}"
-            )
-        if not isinstance(self.width, int) or self.width < 1:
-            raise ConfigError(f"MixerConfig.width: expected an integer >= 1, got {self.width!r}")
-        if not (math.isfinite(self.init_output_scale) and self.init_output_scale >= 0):
-            raise ConfigError(
-                f"MixerConfig.init_output_scale: expected >= 0, got {self.init_output_scale!r}"
-            )
-        if not (math.isfinite(self.f_act_eps) and self.f_act_eps > 0):
-            raise ConfigError(f"MixerConfig.f_act_eps: expected > 0, got {self.f_act_eps!r}")
-        if self.input_transform not in INPUT_TRANSFORMS:
-            raise ConfigError(
-                f"MixerConfig.input_transform: unknown transform {self.input_transform!r}; "
-                f"allowed: {', '.join(INPUT_TRANSFORMS)}"
-            )
-        if self.logit_bound is not None and not (
-                isinstance(self.logit_bound, (int, float)) and not isinstance(self.logit_bound, bool)
-                and math.isfinite(self.logit_bound) and self.logit_bound > 0):
-            raise ConfigError(
-                f"MixerConfig.logit_bound: expected a number > 0 or none, got {self.logit_bound!r}"
-            )
-        if not (isinstance(self.logit_eps, (int, float)) and not isinstance(self.logit_eps, bool)
-                and 0.0 < self.logit_eps < 0.5):
-            raise ConfigError(
-                f"MixerConfig.logit_eps: expected a number in (0, 0.5), got {self.logit_eps!r}"
-            )
+        # Types, choices and the bounded ranges, as declared above.
+        check_fields(self)
+        check_mixer_features(self.features)
         if self.head != "closed_form_logit" and (
                 self.logit_bound is not None or self.logit_eps != CLOSED_FORM_LOGIT_EPS):
             raise ConfigError(
                 f"MixerConfig.logit_bound / logit_eps apply only to head = 'closed_form_logit' "
                 f"(head is {self.head!r})"
             )
-        if not 0.0 <= self.swap_probability <= 1.0:
-            raise ConfigError(
-                f"MixerConfig.swap_probability: expected a value in [0, 1], got "
-                f"{self.swap_probability!r}"
-            )
-        if not isinstance(self.tstat, TStatConfig):
-            raise ConfigError(f"MixerConfig.tstat: expected a TStatConfig, got {self.tstat!r}")
-        if not isinstance(self.swap_average, bool):
-            raise ConfigError(
-                f"MixerConfig.swap_average: expected true or false, got {self.swap_average!r}"
-            )
-        if not isinstance(self.sure_probes, int) or self.sure_probes < 1:
-            raise ConfigError(
-                f"MixerConfig.sure_probes: expected an integer >= 1, got {self.sure_probes!r}"
-            )
-        if self.sure_eps is not None and not (math.isfinite(self.sure_eps) and self.sure_eps > 0):
-            raise ConfigError(f"MixerConfig.sure_eps: expected > 0 or none, got {self.sure_eps!r}")
         if not self.denoiser:
             raise ConfigError("MixerConfig.denoiser: name the denoiser whose output is mixed")
-        from jaxden.paths import expand_path
-
         # a trained base under "$JAXDEN_HOME/runs/..." or "~/...", as data.dataset allows
         for name in ("denoiser", "cache"):
-            if isinstance(getattr(self, name), str):
-                object.__setattr__(self, name, expand_path(getattr(self, name)))
+            object.__setattr__(self, name, expand_path(getattr(self, name)))
 
     @property
     def in_channels(self) -> int:
@@ -408,16 +339,16 @@ def _mixer_swap_args(config: MixerConfig, x, y, var, sure):
 def _mixer_alpha(params, x, y, var, sure, config: MixerConfig):
     stops = None if config.closed_form_stops is None else float(config.closed_form_stops)
     if config.kind == "closed_form":
-        return _closed_form_alpha(x, y, var, sure, float(config.closed_form_sigma),
-                                  config.closed_form_per_channel, stops)
-    inputs = _mixer_inputs(x, y, var, sure, tuple(config.features), config.input_transform,
-                           float(config.closed_form_sigma), stops)
+        return closed_form_alpha_unchecked(x, y, var, sure, float(config.closed_form_sigma),
+                                           config.closed_form_per_channel, stops)
+    inputs = mixer_inputs_unchecked(x, y, var, sure, tuple(config.features), config.input_transform,
+                                    float(config.closed_form_sigma), stops)
     raw = mixer_module(config).apply(params, inputs)
     if config.head == "f_act":
-        return _f_act(raw, config.f_act_eps, "by_role")
+        return f_act_unchecked(raw, config.f_act_eps, "by_role")
     if config.head == "closed_form_logit":
-        alpha_cf = _closed_form_alpha(x, y, var, sure, float(config.closed_form_sigma),
-                                      config.closed_form_per_channel, stops)
+        alpha_cf = closed_form_alpha_unchecked(x, y, var, sure, float(config.closed_form_sigma),
+                                               config.closed_form_per_channel, stops)
         return closed_form_logit_alpha(raw, alpha_cf, config.logit_bound, config.logit_eps)
     if config.head == "sigmoid":
         return jax.nn.sigmoid(raw)
@@ -430,7 +361,7 @@ def _mixer_arrays(where: str, config: MixerConfig, x, y, var, sure):
     arrays = {"x": x, "y": y, "var": var}
     if sure is not None:
         arrays["sure"] = sure
-    _check_same(where, **arrays)
+    check_same(where, **arrays)
     x, y, var = (jnp.asarray(a, jnp.float32) for a in (x, y, var))
     sure = jnp.zeros_like(x) if sure is None else jnp.asarray(sure, jnp.float32)
     return x, y, var, sure
@@ -452,10 +383,10 @@ def mixer_apply(params, config: MixerConfig, x, y, var, sure=None):
     :func:`mixer_alpha`. No t-statistic scaling (the paper applies it only at inference)."""
     x, y, var, sure = _mixer_arrays("mixer_apply", config, x, y, var, sure)
     alpha = _mixer_alpha(params, x, y, var, sure, config)
-    return _mix(x, y, alpha), alpha
+    return mix_unchecked(x, y, alpha), alpha
 
 
-def _inference_alpha(params, x, y, var, sure, config: MixerConfig, swap_average: bool):
+def inference_alpha(params, x, y, var, sure, config: MixerConfig, swap_average: bool):
     alpha = _mixer_alpha(params, x, y, var, sure, config)
     if not swap_average:
         return alpha
@@ -482,7 +413,7 @@ def swap_symmetry(params, config: MixerConfig, x, y, var, sure=None, *, per_pixe
 
 # ------------------------------------------------------------------------------ checkpoints
 
-def _mixer_meta(config: MixerConfig) -> dict:
+def mixer_meta(config: MixerConfig) -> dict:
     from jaxden.config import config_to_dict
 
     return {
@@ -500,7 +431,7 @@ def save_mixer(path, params, config: MixerConfig, **extra_meta) -> None:
     """
     from jaxden.checkpoint import save_weights
 
-    save_weights(path, params, {**extra_meta, **_mixer_meta(config)})
+    save_weights(path, params, {**extra_meta, **mixer_meta(config)})
 
 
 def load_mixer(spec, *, expect_features: tuple[str, ...] | None = None):

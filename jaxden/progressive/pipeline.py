@@ -10,10 +10,10 @@ import numpy as np
 
 from jaxden.errors import ConfigError
 from jaxden.frame import Frame
-from jaxden.progressive.checks import _check_spp
-from jaxden.progressive.heads import _mix
-from jaxden.progressive.mixer import MixerConfig, _inference_alpha, load_mixer
-from jaxden.progressive.tstat import TStatConfig, _consistent_alpha
+from jaxden.progressive.checks import check_spp
+from jaxden.progressive.heads import mix_unchecked
+from jaxden.progressive.mixer import MixerConfig, inference_alpha, load_mixer
+from jaxden.progressive.tstat import TStatConfig, consistent_alpha
 
 # ------------------------------------------------------------------------------ inference
 
@@ -111,14 +111,14 @@ def mix_given_sure(x, y, var, sure, mixer_params, mixer_config: MixerConfig, *,
     if swap_average is None:
         swap_average = mixer_config.swap_average
     x, y, var, sure = (jnp.asarray(a, jnp.float32) for a in (x, y, var, sure))
-    alpha = _inference_alpha(mixer_params, x, y, var, sure, mixer_config, bool(swap_average))
-    mixed = _mix(x, y, alpha)
+    alpha = inference_alpha(mixer_params, x, y, var, sure, mixer_config, bool(swap_average))
+    mixed = mix_unchecked(x, y, alpha)
     if tstat is None:
         return mixed, alpha, alpha, mixed
     if tstat.guard:
-        spp = _check_spp(spp, tuple(x.shape[:-3]), "progressive_denoise")
-    alpha_prime = _consistent_alpha(alpha, x, y, var, mixed, tstat, spp)
-    return _mix(x, y, alpha_prime), alpha_prime, alpha, mixed
+        spp = check_spp(spp, tuple(x.shape[:-3]), "progressive_denoise")
+    alpha_prime = consistent_alpha(alpha, x, y, var, mixed, tstat, spp)
+    return mix_unchecked(x, y, alpha_prime), alpha_prime, alpha, mixed
 
 
 #: Mixers shipped in ``jaxden/weights/`` per denoiser name: ``{denoiser: weights name}``.

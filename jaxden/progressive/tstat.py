@@ -16,10 +16,10 @@ from jax.scipy.special import ndtr
 
 from jaxden.config import bounded
 from jaxden.errors import ConfigError, FrameError
-from jaxden.progressive.checks import _check_image, _check_same, _check_spp, _check_variance_values
-from jaxden.progressive.closed_form import _blur_shifted
-from jaxden.progressive.guard import _guard_alpha
-from jaxden.progressive.heads import _mix
+from jaxden.progressive.checks import check_image, check_same, check_spp, check_variance_values
+from jaxden.progressive.closed_form import blur_shifted
+from jaxden.progressive.guard import guard_alpha
+from jaxden.progressive.heads import mix_unchecked
 
 # ---------------------------------------------------------------------------------- t-test
 
@@ -87,36 +87,12 @@ class TStatConfig:
     guard_strata: float | None = bounded(None, low=0, low_open=True, high=16, unit='stops')
 
     def __post_init__(self):
-        def fail(field, expected):
-            raise ConfigError(
-                f"TStatConfig.{field}: expected {expected}, got {getattr(self, field)!r}"
-            )
+        from jaxden.config import check_fields
 
-        if not isinstance(self.window, int) or self.window < 1 or self.window % 2 == 0:
-            fail("window", "an odd integer >= 1")
-        for field in ("a", "sigma_scale", "sigma_variance_cap", "sigma_min", "sigma_fixed", "eps",
-                      "guard_gamma", "guard_sigma"):
-            value = getattr(self, field)
-            if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-                fail(field, "a finite number > 0")
-        if self.guard_strata is not None and (
-                not isinstance(self.guard_strata, (int, float))
-                or not math.isfinite(self.guard_strata) or self.guard_strata <= 0):
-            fail("guard_strata", "None or a finite number > 0")
-        if (not isinstance(self.guard_confidence, (int, float))
-                or not math.isfinite(self.guard_confidence) or self.guard_confidence < 0):
-            fail("guard_confidence", "a finite number >= 0")
-        for field in ("c", "neighbour_weight"):
-            value = getattr(self, field)
-            if not isinstance(value, (int, float)) or not math.isfinite(value):
-                fail(field, "a finite number")
-        if self.squash not in ("normal_cdf", "logistic"):
-            fail("squash", "'normal_cdf' or 'logistic'")
-        if self.sigma_rule not in ("mean_variance", "image_mean_variance", "fixed"):
-            fail("sigma_rule", "'mean_variance', 'image_mean_variance' or 'fixed'")
-        for field in ("use_max_variance_neighbour", "per_channel", "guard"):
-            if not isinstance(getattr(self, field), bool):
-                fail(field, "a bool")
+        check_fields(self)  # types, choices and the bounded ranges, as declared above
+        if self.window % 2 == 0:
+            raise ConfigError(f"TStatConfig.window: expected an odd integer >= 1, got "
+                              f"{self.window!r}")
 
 
 def _gaussian_sigma(var, config: TStatConfig):
@@ -134,9 +110,9 @@ def _gaussian_sigma(var, config: TStatConfig):
 def _blur_1d(image, taps, axis: int):
     """Zero-padded correlation of (H, W, C) along ``axis`` (0: H, 1: W), odd-length ``taps``
     (traced values: s depends on the data); neighbours outside the image are absent from the
-    sum. Shifted, weighted adds (:func:`jaxden.progressive.closed_form._blur_shifted`): on
+    sum. Shifted, weighted adds (:func:`jaxden.progressive.closed_form.blur_shifted`): on
     XLA:CPU about 35x faster than the depthwise convolution this was at 1280 x 720."""
-    return _blur_shifted(image, taps, axis)
+    return blur_shifted(image, taps, axis)
 
 
 def _pick_along(var, index, diff, window: int, axis: int):
@@ -247,14 +223,14 @@ def t_statistic(x, z, var, config: TStatConfig | None = None, **overrides):
     of x; all (..., H, W, 3). ``config``/``overrides``: :class:`TStatConfig` fields.
     """
     config = _resolve_config(config, overrides)
-    _check_same("t_statistic", x=x, z=z, var=var)
-    _check_variance_values(var, "t_statistic")
+    check_same("t_statistic", x=x, z=z, var=var)
+    check_variance_values(var, "t_statistic")
     return _t_statistic(jnp.asarray(x), jnp.asarray(z), jnp.asarray(var), config)
 
 
 def _check_alpha(alpha, shape: tuple, where: str) -> None:
     """alpha (..., H, W, 1 or 3) over the (..., H, W) of the colour shape ``shape``."""
-    alpha_shape = _check_image("alpha", alpha, where, channels=(1, 3))
+    alpha_shape = check_image("alpha", alpha, where, channels=(1, 3))
     if alpha_shape[:-1] != shape[:-1]:
         raise FrameError(f"{where}: 'alpha' has shape {alpha_shape} but x has {shape}")
 
@@ -304,9 +280,9 @@ def t_statistic_scaling(alpha, x, z, var, config: TStatConfig | None = None, **o
     the window sum (as in both).
     """
     config = _resolve_config(config, overrides)
-    shape = _check_same("t_statistic_scaling", x=x, z=z, var=var)
+    shape = check_same("t_statistic_scaling", x=x, z=z, var=var)
     _check_alpha(alpha, shape, "t_statistic_scaling")
-    _check_variance_values(var, "t_statistic_scaling")
+    check_variance_values(var, "t_statistic_scaling")
     t = _t_statistic(jnp.asarray(x), jnp.asarray(z), jnp.asarray(var), config)
     return _scale_alpha(jnp.asarray(alpha), t, config)
 
@@ -325,19 +301,19 @@ def error_guard(alpha, x, y, var, config: TStatConfig | None = None, *, spp=None
     as exact.
     """
     config = _resolve_config(config, overrides)
-    shape = _check_same("error_guard", x=x, y=y, var=var)
+    shape = check_same("error_guard", x=x, y=y, var=var)
     _check_alpha(alpha, shape, "error_guard")
-    _check_variance_values(var, "error_guard")
-    spp = _check_spp(spp, tuple(shape[:-3]), "error_guard")
-    return _guard_alpha(jnp.asarray(alpha), jnp.asarray(x), jnp.asarray(y), jnp.asarray(var),
-                        config, spp)
+    check_variance_values(var, "error_guard")
+    spp = check_spp(spp, tuple(shape[:-3]), "error_guard")
+    return guard_alpha(jnp.asarray(alpha), jnp.asarray(x), jnp.asarray(y), jnp.asarray(var),
+                       config, spp)
 
 
-def _consistent_alpha(alpha, x, y, var, mixed, config: TStatConfig, spp=None):
+def consistent_alpha(alpha, x, y, var, mixed, config: TStatConfig, spp=None):
     """The inference stage after the mixer, on validated arrays: the t-statistic scaling of
     alpha (``mixed`` = x + alpha (y - x)), then the error guard when ``config.guard``."""
     scaled = _scale_alpha(alpha, _t_statistic(x, mixed, var, config), config)
-    return _guard_alpha(scaled, x, y, var, config, spp) if config.guard else scaled
+    return guard_alpha(scaled, x, y, var, config, spp) if config.guard else scaled
 
 
 def consistent_mix(x, y, alpha, var, config: TStatConfig | None = None, *, spp=None,
@@ -347,10 +323,10 @@ def consistent_mix(x, y, alpha, var, config: TStatConfig | None = None, *, spp=N
     and z' = x + alpha' (y - x). Shapes as in :func:`t_statistic_scaling`; ``spp`` as in
     :func:`error_guard`."""
     config = _resolve_config(config, overrides)
-    shape = _check_same("consistent_mix", x=x, y=y, var=var)
+    shape = check_same("consistent_mix", x=x, y=y, var=var)
     _check_alpha(alpha, shape, "consistent_mix")
-    _check_variance_values(var, "consistent_mix")
-    spp = _check_spp(spp, tuple(shape[:-3]), "consistent_mix")
+    check_variance_values(var, "consistent_mix")
+    spp = check_spp(spp, tuple(shape[:-3]), "consistent_mix")
     x, y, var, alpha = (jnp.asarray(a) for a in (x, y, var, alpha))
-    alpha_prime = _consistent_alpha(alpha, x, y, var, _mix(x, y, alpha), config, spp)
-    return _mix(x, y, alpha_prime), alpha_prime
+    alpha_prime = consistent_alpha(alpha, x, y, var, mix_unchecked(x, y, alpha), config, spp)
+    return mix_unchecked(x, y, alpha_prime), alpha_prime

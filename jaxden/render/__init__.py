@@ -11,6 +11,10 @@ Public API:
 * :func:`render_frame` - scene + spp + seed -> :class:`jaxden.frame.Frame` with colour, variance
   of the mean, albedo, normal, depth, position.
 
+Beside them: :func:`jaxden.render.scene_cache.render_cached` (render_frame with the loaded scene
+kept between calls: the dataset builder's default renderer) and
+:func:`jaxden.render.synthetic.synthetic_render` (a Mitsuba-free stand-in for tests and dry runs).
+
 Importing this package does not import Mitsuba; the first call does.
 """
 

@@ -127,7 +127,7 @@ class Camera:
             ),
         }
         if size is not None:
-            width, height = _size(size, "Camera.to_sensor_dict")
+            width, height = film_size_pair(size, "Camera.to_sensor_dict")
             sensor["film"] = {
                 "type": "hdrfilm",
                 "width": width,
@@ -155,7 +155,7 @@ def _ensure_variant() -> None:
     ensure_variant()
 
 
-def _size(size, where: str) -> tuple[int, int]:
+def film_size_pair(size, where: str) -> tuple[int, int]:
     try:
         width, height = size
     except (TypeError, ValueError):
@@ -217,7 +217,7 @@ def project(
       depth: (...) float64 distance along the viewing axis (camera-space z), world units.
     Exactly Mitsuba's perspective projection; see the module docstring for the formula.
     """
-    width, height = _size((width, height), "project")
+    width, height = film_size_pair((width, height), "project")
     points = np.asarray(points_world, dtype=np.float64)
     if points.ndim < 1 or points.shape[-1] != 3:
         raise SceneError(f"project: points must have shape (..., 3), got {points.shape}")
@@ -234,7 +234,7 @@ def project(
 
 def pixel_centres(width: int, height: int) -> np.ndarray:
     """(H, W, 2) float64 pixel-centre coordinates (x, y) = (column + 0.5, row + 0.5)."""
-    width, height = _size((width, height), "pixel_centres")
+    width, height = film_size_pair((width, height), "pixel_centres")
     ys, xs = np.meshgrid(np.arange(height) + 0.5, np.arange(width) + 0.5, indexing="ij")
     return np.stack([xs, ys], axis=-1)
 

@@ -20,10 +20,10 @@ import numpy as np
 from jaxden.errors import SceneError
 from jaxden.render.scene_xml import flatten_scene
 from jaxden.render.scenes import (
-    _ALL_SENSOR_PLUGINS,
-    _PROCEDURAL,
+    ALL_SENSOR_PLUGINS,
     BUILTIN_SCENES,
     DEFAULT_SIZE,
+    PROCEDURAL_SPEC,
     SCENE_MEMORY,
     SENSOR_TYPES,
     check_size,
@@ -84,7 +84,7 @@ def _sensor_keys(scene: dict, where: str) -> list[str]:
 
     keys = []
     for key, value in scene.items():
-        if isinstance(value, dict) and value.get("type") in _ALL_SENSOR_PLUGINS:
+        if isinstance(value, dict) and value.get("type") in ALL_SENSOR_PLUGINS:
             keys.append(key)
         elif isinstance(value, mi.Sensor):
             raise SceneError(
@@ -109,7 +109,7 @@ def _patch_scene_dict(scene: dict, size, where: str) -> dict:
 
 
 def _procedural(spec: str, size) -> dict:
-    match = _PROCEDURAL.match(spec)
+    match = PROCEDURAL_SPEC.match(spec)
     if match is None:
         raise SceneError(
             f"scene spec {spec!r} is malformed: procedural scenes are 'procedural:SEED' with "

@@ -35,7 +35,8 @@ import numpy as np
 
 from jaxden.errors import SceneError
 from jaxden.render import textures
-from jaxden.render.camera import Camera, _ensure_variant, _size
+from jaxden.render.camera import Camera, film_size_pair
+from jaxden.render.variant import ensure_variant
 
 SHAPE_KINDS: tuple[str, ...] = ("sphere", "cube", "cylinder", "rectangle", "disk")
 MATERIAL_KINDS: tuple[str, ...] = (
@@ -380,8 +381,8 @@ def generate_scene(seed: int, *, size: tuple[int, int] = (256, 256)) -> dict:
     Raises SceneError for a bad seed or size.
     """
     seed = _check_seed(seed)
-    width, height = _size(size, "generate_scene")
-    _ensure_variant()
+    width, height = film_size_pair(size, "generate_scene")
+    ensure_variant()
     rng = np.random.default_rng(seed)
     radius = float(rng.uniform(1.5, 3.5))  # half-extent of the content region, world units
     camera = _camera(rng, radius)

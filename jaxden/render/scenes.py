@@ -47,8 +47,8 @@ MAX_PIXELS = 1 << 27
 SCENE_MEMORY = 16
 SENSOR_TYPES = frozenset({"perspective", "thinlens", "orthographic", "telecentric"})
 # Every Mitsuba sensor plugin: found as sensors, then rejected unless in SENSOR_TYPES.
-_ALL_SENSOR_PLUGINS = SENSOR_TYPES | {"batch", "radiancemeter", "irradiancemeter", "distant"}
-_PROCEDURAL = re.compile(r"^procedural:(\d+)$")
+ALL_SENSOR_PLUGINS = SENSOR_TYPES | {"batch", "radiancemeter", "irradiancemeter", "distant"}
+PROCEDURAL_SPEC = re.compile(r"^procedural:(\d+)$")
 
 
 # ---------------------------------------------------------------------------- validation

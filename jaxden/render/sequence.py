@@ -26,7 +26,8 @@ import numpy as np
 
 from jaxden.errors import FrameError, SceneError
 from jaxden.frame import Frame
-from jaxden.render.camera import Camera, _ensure_variant, _size, pixel_centres, project
+from jaxden.render.camera import Camera, film_size_pair, pixel_centres, project
+from jaxden.render.variant import ensure_variant
 
 
 def motion_vectors(
@@ -58,7 +59,7 @@ def motion_vectors(
       is False or the point is at or behind ``prev_camera``.
     Raises FrameError for mismatched shapes.
     """
-    width, height = _size((width, height), "motion_vectors")
+    width, height = film_size_pair((width, height), "motion_vectors")
     position = np.asarray(position)
     valid = np.asarray(valid)
     if position.shape != (height, width, 3):
@@ -150,14 +151,14 @@ def iter_sequence(
     if reference_spp is not None:
         reference_spp = _check_int(reference_spp, "reference_spp", 1)
     if size is not None:
-        size = _size(size, "render_sequence")
+        size = film_size_pair(size, "render_sequence")
     return _generate(scene, cameras, spp, seed, size, reference_spp, max_depth)
 
 
 def _generate(scene, cameras, spp, seed, size, reference_spp, max_depth):
     import mitsuba as mi
 
-    _ensure_variant()  # mi.Scene exists only once a variant is set
+    ensure_variant()  # mi.Scene exists only once a variant is set
 
     from jaxden.render.core import render_frame
     from jaxden.render.load import load_scene

@@ -5,7 +5,7 @@ reference, chosen in two dropdowns), a strip of every method at the chosen spp, 
 error maps (relative squared error, FLIP) and mixer alpha maps with colour bars, all with one
 shared zoom and pan and an exposure control in stops applied in the page; then a convergence
 plot (log-log error vs spp with MC's 1/spp rate as a guide) and the metrics table. Results of
-``experiments/pd_report.py`` (JSON, no images) get their plot and table.
+``jaxden evaluate`` (JSON, no images) get their plot and table.
 
 The input convention (:mod:`jaxden.report.discover`)::
 
@@ -13,7 +13,7 @@ The input convention (:mod:`jaxden.report.discover`)::
     DIR/SCENE/sppN.exr                 the Monte Carlo input at N spp (method "mc")
     DIR/SCENE/sppN.METHOD.exr          METHOD's result at N spp
     DIR/SCENE/sppN.METHOD.alpha.exr    optional: the mixer's alpha behind METHOD at N spp
-    DIR/*.json                         optional: experiments/pd_report.py results
+    DIR/*.json                         optional: jaxden evaluate results
 
 which is what ``jaxden demo`` writes. Modules: ``discover`` (the convention), ``errormaps``
 (maps and metrics), ``tonemap`` (exposure, sRGB, colour maps), ``encode`` (pixels in the

@@ -1,4 +1,4 @@
-"""``build_report``: a folder (or a pd_report JSON) in, one self-contained HTML page out.
+"""``build_report``: a folder (or a `jaxden evaluate pd` result) in, one self-contained HTML page out.
 
 Finds the files (:mod:`jaxden.report.discover`), measures and encodes every scene
 (:mod:`jaxden.report.content`), renders the page (:mod:`jaxden.report.html`) and writes it

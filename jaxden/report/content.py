@@ -3,7 +3,7 @@
 Per scene (:func:`scene_content`): every image read from its EXR (linear, checked finite and of
 the reference's size), its error maps against the reference (relative squared error, FLIP),
 alpha maps where present, every metric (:func:`jaxden.report.errormaps.image_metrics`), a
-convergence plot, and the automatic exposure. Per pd_report JSON (:func:`metric_file_content`):
+convergence plot, and the automatic exposure. Per `jaxden evaluate pd` result (:func:`metric_file_content`):
 the per-spp means over its crops and their plot. Pixels are stored as
 :mod:`jaxden.report.encode` describes.
 """
@@ -50,7 +50,7 @@ class SceneContent:
 
 @dataclasses.dataclass
 class MetricContent:
-    """A pd_report JSON: its per-spp means over crops (``rows``) and their plot."""
+    """A `jaxden evaluate pd` result: its per-spp means over crops (``rows``) and their plot."""
 
     name: str
     path: str
@@ -140,7 +140,7 @@ def scene_content(scene: SceneFiles, max_size: int | None = 1024, progress: bool
 
 
 def metric_file_content(metric_file: MetricFile) -> MetricContent:
-    """The per-spp means over crops of a pd_report JSON, and their convergence plot."""
+    """The per-spp means over crops of a `jaxden evaluate pd` result, and their convergence plot."""
     rows = mean_rows(metric_file.rows, metric_file.name)
     metrics = tuple(m for m in ("rmse", "rmse_nc", "relmse", "flip") if m in metric_file.metrics)
     metrics = metrics or metric_file.metrics

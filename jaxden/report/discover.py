@@ -7,11 +7,11 @@ A report reads a folder laid out like ``jaxden demo``'s output::
     DIR/SCENE/sppN.METHOD.exr          METHOD's result at N spp (METHOD: letters, digits, _ or -)
     DIR/SCENE/sppN.METHOD.alpha.exr    optional: the mixer's alpha map behind METHOD at N spp
                                        (1 = METHOD's denoiser, 0 = the MC input)
-    DIR/*.json                         optional: experiments/pd_report.py results (metrics only)
+    DIR/*.json                         optional: jaxden evaluate results (metrics only)
 
 N may be zero-padded (``spp00004``). Images are read as R,G,B (alpha maps: R,G,B or their one
 channel), linear HDR. ``DIR`` may itself be one scene folder (it holds ``reference.exr``), or a
-single pd_report JSON file. Other files are ignored (``.exr`` files that do not follow the
+single `jaxden evaluate pd` result file. Other files are ignored (``.exr`` files that do not follow the
 convention are listed in :attr:`Discovery.ignored`, so a typo does not go unnoticed).
 """
 
@@ -61,7 +61,7 @@ class SceneFiles:
 
 @dataclasses.dataclass(frozen=True)
 class MetricFile:
-    """Metrics without images (a pd_report JSON): long-form ``rows`` of
+    """Metrics without images (a `jaxden evaluate pd` result): long-form ``rows`` of
     ``{scene, spp, method, <metric>: value}``, one per crop, spp and method."""
 
     name: str
@@ -138,7 +138,7 @@ def scan_scene(folder: Path, name: str | None = None) -> tuple[SceneFiles | None
 
 
 def pd_report_rows(data) -> tuple[list[dict], tuple[str, ...]] | None:
-    """Long-form rows of a pd_report result (``{"rows": [{crop, spp, mc_rmse, ...}]}``) and its
+    """Long-form rows of a `jaxden evaluate pd` result (``{"rows": [{crop, spp, mc_rmse, ...}]}``) and its
     metrics; None when ``data`` is no such result."""
     rows = data.get("rows") if isinstance(data, dict) else None
     if not isinstance(rows, list) or not rows or not isinstance(rows[0], dict):
@@ -158,7 +158,7 @@ def pd_report_rows(data) -> tuple[list[dict], tuple[str, ...]] | None:
 
 
 def read_metric_file(path: Path, required: bool) -> MetricFile | None:
-    """A pd_report JSON as a :class:`MetricFile`; None (or, if ``required``, an error) when
+    """A `jaxden evaluate pd` result as a :class:`MetricFile`; None (or, if ``required``, an error) when
     ``path`` is not one."""
     try:
         data = json.loads(path.read_text())
@@ -170,13 +170,13 @@ def read_metric_file(path: Path, required: bool) -> MetricFile | None:
     parsed = pd_report_rows(data)
     if parsed is None:
         if required:
-            raise ReportError(f"{path}: not a result of experiments/pd_report.py pd (expected "
+            raise ReportError(f"{path}: not a result of jaxden evaluate pd (expected "
                               f"'rows' with crop, spp and mc_rmse, ...)")
         return None
     rows, metrics = parsed
     source = data.get("provenance", {}) if isinstance(data, dict) else {}
     crops = len({row["scene"] for row in rows})
-    note = (f"experiments/pd_report.py result: mean over {crops} crops; "
+    note = (f"jaxden evaluate result: mean over {crops} crops; "
             f"denoiser = {source.get('denoiser', '?')}; command: {source.get('command', '?')}")
     return MetricFile(path.stem, path, rows, metrics, note)
 
@@ -191,7 +191,7 @@ def discover(path) -> Discovery:
     if root.is_file():
         if root.suffix.lower() == ".json":
             return Discovery(root.parent, (), (read_metric_file(root, required=True),), ())
-        raise ReportError(f"{root}: give a folder of EXRs ({CONVENTION}) or a pd_report JSON")
+        raise ReportError(f"{root}: give a folder of EXRs ({CONVENTION}) or a `jaxden evaluate pd` result")
     scenes, ignored = [], []
     scene, skipped = scan_scene(root)
     if scene is not None:  # DIR is one scene folder
@@ -210,7 +210,7 @@ def discover(path) -> Discovery:
     if not scenes and not metric_files:
         what = "is empty" if not any(root.iterdir()) else "has nothing a report can show"
         raise ReportError(f"{root}: {what}: expected scene folders ({CONVENTION}) or "
-                          f"experiments/pd_report.py JSON files")
+                          f"jaxden evaluate JSON files")
     return Discovery(root, tuple(scenes), tuple(metric_files), tuple(ignored))
 
 

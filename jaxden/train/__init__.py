@@ -2,7 +2,9 @@
 
 - :mod:`~jaxden.train.config`: TrainConfig (data, optimiser, model) from TOML;
 - :mod:`~jaxden.train.task`: the Task protocol between the loop and what it trains;
-- :mod:`~jaxden.train.tasks`: the denoiser task and the mixer task;
+- :mod:`~jaxden.train.tasks`: what ``model = NAME`` trains: the name -> Trainable table (every
+  registered denoiser and the mixer), their tasks and the mixer's shared SURE cache;
+- :mod:`~jaxden.train.workdir`: a run's folder (lock, recorded config, metrics log);
 - :mod:`~jaxden.train.losses`, :mod:`~jaxden.train.optim`: losses, schedule and optimiser;
 - :mod:`~jaxden.train.sharding`: data parallelism over local devices;
 - :mod:`~jaxden.train.loop`: the jitted train / eval steps and the resumable loop.
@@ -25,8 +27,12 @@ from jaxden.train.task import (
     Task,
 )
 from jaxden.train.tasks import (
+    Trainable,
     denoiser_task,
+    get_trainable,
     make_task,
+    mixer_task,
+    trainables,
 )
 
 __all__ = [
@@ -34,10 +40,14 @@ __all__ = [
     "OptimConfig",
     "Task",
     "TrainConfig",
+    "Trainable",
     "denoiser_task",
+    "get_trainable",
     "load_train_config",
     "make_optimizer",
     "make_schedule",
     "make_task",
+    "mixer_task",
     "train_and_evaluate",
+    "trainables",
 ]

@@ -6,7 +6,7 @@ import dataclasses
 import os
 from typing import Any, Literal
 
-from jaxden.config import bounded
+from jaxden.config import bounded, check_fields
 from jaxden.errors import ConfigError
 
 
@@ -51,18 +51,14 @@ class OptimConfig:
     grad_clip_norm: float | None = bounded(None, low=0, low_open=True, high=1e9)
 
     def __post_init__(self):
-        if self.steps < 1:
-            raise ConfigError(f"optim.steps must be >= 1, got {self.steps}")
-        if not self.learning_rate > 0:
-            raise ConfigError(f"optim.learning_rate must be > 0, got {self.learning_rate}")
-        if not 0 <= self.warmup_fraction < 1:
-            raise ConfigError(f"optim.warmup_fraction must be in [0, 1), got {self.warmup_fraction}")
+        check_fields(self)  # the bounded ranges above, for a config built in Python too
 
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
-    """A training run. ``model`` names a registered denoiser (or 'mixer'); ``model_config``
-    holds that model's own options (validated against its config class)."""
+    """A training run. ``model`` names a trainable model (a registered denoiser or 'mixer':
+    :func:`jaxden.train.tasks.trainables`); ``model_config`` holds that model's own options
+    (validated against its config class)."""
 
     model: str = "wskp"
     model_config: dict[str, Any] = dataclasses.field(default_factory=dict)
@@ -76,32 +72,23 @@ class TrainConfig:
     keep_checkpoints: int = bounded(2, low=1, high=1000)
 
     def __post_init__(self):
-        for name in ("log_every", "eval_every", "eval_batches", "checkpoint_every", "keep_checkpoints"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
+        check_fields(self)  # the bounded ranges above, for a config built in Python too
 
 
 def load_train_config(source, overrides=()) -> TrainConfig:
     """Load a training config and check its ``model`` and ``[model_config]`` now, so that a
     typo there is reported with the file's name before any work starts."""
     from jaxden.config import load_config
+    from jaxden.train.tasks import get_trainable, model_config
 
     config = load_config(source, TrainConfig, overrides)
     where = f"{source}: " if isinstance(source, (str, os.PathLike)) else ""
-    if config.model == "mixer":
-        from jaxden.progressive.mixer import MixerConfig
-
-        config_cls = MixerConfig
-    else:
-        from jaxden.denoise.registry import get_definition
-
-        try:
-            config_cls = get_definition(config.model).config_cls
-        except ConfigError as error:
-            raise ConfigError(f"{where}model = {config.model!r}: {error} (or 'mixer')") from None
-    if config_cls is not None:
-        try:
-            load_config(dict(config.model_config), config_cls)
-        except ConfigError as error:
-            raise ConfigError(f"{where}[model_config] of model '{config.model}': {error}") from None
+    try:
+        get_trainable(config.model)
+    except ConfigError as error:
+        raise ConfigError(f"{where}model = {config.model!r}: {error}") from None
+    try:
+        model_config(config)
+    except ConfigError as error:
+        raise ConfigError(f"{where}{error}") from None
     return config

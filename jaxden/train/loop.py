@@ -20,18 +20,18 @@ process with the same devices and global batch (tests/test_distributed.py). Data
 share is prepared first (:func:`prepare_shared_data`; sweeps call it before dispatching runs).
 
 What is trained is a :class:`Task`: how to initialise parameters from a sample batch, how to
-predict an image from (params, batch), and which image is the target. Denoisers from the
-registry are one task; the progressive-denoising mixer is another (``jaxden.progressive``).
+predict an image from (params, batch), and which image is the target. The model's entry in
+:mod:`jaxden.train.tasks` makes it (every registered denoiser, and the progressive-denoising
+mixer); the loop never branches on the model. The workdir's bookkeeping (lock, recorded
+config, metrics log) is :mod:`jaxden.train.workdir`.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
-import json
 import math
 import os
-import shutil
 import signal
 import sys
 import threading
@@ -50,10 +50,14 @@ from jaxden.train.config import TrainConfig
 from jaxden.train.optim import loss_function, make_optimizer, make_schedule
 from jaxden.train.sharding import data_mesh, host_value, process_rows, replicate, shard_batch
 from jaxden.train.task import Task
-from jaxden.train.tasks import make_task
-
-#: The lock file of a training workdir (two runs writing one workdir would mix checkpoints).
-TRAIN_LOCK = ".train.lock"
+from jaxden.train.tasks import get_trainable, make_task, model_config
+from jaxden.train.workdir import (
+    MetricsLog,
+    check_workdir,
+    claim_workdir,
+    remove_partial_checkpoints,
+    resume_expectation,
+)
 
 
 @jax.tree_util.register_dataclass
@@ -148,53 +152,9 @@ def epoch_batches(loader, epoch: int, mesh=None) -> Iterator[tuple[Any, int]]:
         for batch in loader.epoch(epoch):
             yield batch, len(batch.items)
         return
-    draws = loader.plan_epoch(epoch)
-    for start in range(0, len(draws), loader.batch_size):
-        chunk = draws[start : start + loader.batch_size]
-        if len(chunk) < loader.batch_size and loader.drop_last:
-            return
-        rows = process_rows(len(chunk), mesh)
-        yield (None if rows is None else _read_draws(loader, chunk[rows])), len(chunk)
-
-
-def _read_draws(loader, draws) -> Any:
-    """The batch of ``draws`` (sample, top, left, symmetry), as ``DatasetLoader.epoch`` reads
-    it (same crops, symmetries and order)."""
-    from jaxden.data.loader import Batch, _stack, dihedral_frame
-
-    inputs, references, ids = [], [], []
-    size = loader.crop_size
-    for index, top, left, symmetry in draws:
-        item, reference = loader.samples[index]
-        for frames, source, features in ((inputs, item, loader.features),
-                                         (references, reference, loader.reference_features)):
-            frame = loader._read(source, features).crop(top, left, size, size)
-            frames.append(dihedral_frame(frame, symmetry))
-        ids.append(item.id)
-    return Batch(_stack(inputs), _stack(references), tuple(ids))
-
-
-class MetricsLog:
-    """Append-only JSONL log. On resume from the checkpoint of ``resume_step`` the entries of
-    later steps (and of step 0 when no checkpoint is kept: the run starts over) are dropped,
-    and so is a last line cut short by a kill; any other broken line is a one-line error
-    naming the file and the line. Each entry is appended whole or not at all."""
-
-    def __init__(self, path: Path, resume_step: int):
-        from jaxden.fileio import atomic_write_text, read_jsonl
-
-        self.path = path
-        if path.exists():
-            records, cut = read_jsonl(path, "the metrics log", error=JaxdenError,
-                                      fields={"step?": int})
-            kept = [r for r in records if resume_step > 0 and r.get("step", 0) <= resume_step]
-            if cut or len(kept) < len(records):
-                atomic_write_text(path, "".join(json.dumps(r) + "\n" for r in kept))
-
-    def write(self, record: dict[str, Any]) -> None:
-        from jaxden.fileio import append_line
-
-        append_line(self.path, json.dumps(record))
+    for draws in loader.batch_draws(epoch):
+        rows = process_rows(len(draws), mesh)
+        yield (None if rows is None else loader.read(draws[rows])), len(draws)
 
 
 def evaluate(eval_step, params, loader, mesh, max_batches: int, prepare) -> dict[str, float]:
@@ -215,43 +175,30 @@ def evaluate(eval_step, params, loader, mesh, max_batches: int, prepare) -> dict
 
 
 # ------------------------------------------------------------------------- shared data
-def _mixer_config(config: TrainConfig):
-    """The MixerConfig of a mixer network run over a dataset (None for anything else)."""
-    if config.model != "mixer" or not config.data.dataset:
+def _shared_data(config: TrainConfig):
+    """The :class:`jaxden.train.tasks.SharedData` of the run (None when it reads none)."""
+    trainable = get_trainable(config.model)
+    if trainable.shared_data is None:
         return None
-    from jaxden.config import load_config
-    from jaxden.progressive.mixer import MixerConfig
-
-    try:
-        mixer = load_config(dict(config.model_config), MixerConfig)
-    except ConfigError as error:
-        raise ConfigError(f"[model_config] of model 'mixer': {error}") from None
-    return mixer if mixer.kind == "network" else None
+    return trainable.shared_data(config, model_config(config))
 
 
 def shared_data_key(config: TrainConfig) -> str | None:
     """What identifies the data a run reads that other runs may share (a mixer's SURE cache:
     dataset, denoiser and SURE settings); None when the run needs none."""
-    mixer = _mixer_config(config)
-    if mixer is None:
-        return None
-    fields = ("denoiser", "cache", "sure_probes", "sure_method", "sure_eps", "sure_seed",
-              "sure_covariance", "build_cache")
-    return json.dumps([str(Path(config.data.dataset).absolute()),
-                       *(getattr(mixer, name) for name in fields)], default=str)
+    shared = _shared_data(config)
+    return None if shared is None else shared.key
 
 
 def prepare_shared_data(config: TrainConfig, *, progress: bool = True) -> None:
-    """Build (or finish, or just confirm) the data that several runs share, before they start:
-    a mixer's SURE cache (:func:`jaxden.progressive.cache_build.open_training_cache`). Runs
-    started afterwards find it complete and only read it. Raises what opening it raises (an
-    incomplete cache with ``build_cache = false``, another dataset's cache, ...)."""
-    mixer = _mixer_config(config)
-    if mixer is None:
-        return
-    from jaxden.progressive.cache_build import open_training_cache
-
-    open_training_cache(config.data.dataset, mixer)
+    """Build (or finish, or just confirm) the data that several runs share, before they start
+    (its model's hook in :mod:`jaxden.train.tasks`; a mixer's SURE cache:
+    :func:`jaxden.progressive.cache_build.open_training_cache`). Runs started afterwards find
+    it complete and only read it. Raises what preparing it raises (an incomplete cache with
+    ``build_cache = false``, another dataset's cache, ...)."""
+    shared = _shared_data(config)
+    if shared is not None:
+        shared.prepare()
 
 
 # ------------------------------------------------------------------------- reliability
@@ -312,15 +259,6 @@ class HoldInterrupts:
                 raise KeyboardInterrupt
 
 
-def _remove_partial_checkpoints(directory: Path) -> None:
-    """Orbax's temporary step folders (a save cut short by a crash): never a resumable state."""
-    if not directory.is_dir():
-        return
-    for path in directory.iterdir():
-        if path.is_dir() and ".orbax-checkpoint-tmp" in path.name:
-            shutil.rmtree(path, ignore_errors=True)
-
-
 def _training_mesh(batch_size: int, progress: bool):
     """The mesh the batch is split over: every device of every process in a multi-process job
     (the batch must split over them); in one process the most local devices that split the
@@ -350,27 +288,6 @@ def _peer_failure(error: BaseException) -> bool:
         word in text for word in ("Gloo", "gloo", "coordination", "heartbeat", "UNAVAILABLE"))
 
 
-def _resolved_model_config(config: TrainConfig, saved: Any) -> Any:
-    """A checkpoint's recorded model_config with today's defaults filled in (None if it no
-    longer loads), so that adding a config field with a default keeps old runs resumable."""
-    from jaxden.config import config_to_dict, load_config
-
-    if not isinstance(saved, dict):
-        return None
-    try:
-        if config.model == "mixer":
-            from jaxden.progressive.mixer import MixerConfig
-
-            cls = MixerConfig
-        else:
-            from jaxden.denoise.registry import get_definition
-
-            cls = get_definition(config.model).config_cls
-        return config_to_dict(load_config(dict(saved), cls))
-    except (ConfigError, TypeError, ValueError):
-        return None
-
-
 def train_and_evaluate(
     config: TrainConfig, workdir: str | os.PathLike, *, progress: bool = True, stop_after: int | None = None
 ) -> dict[str, Any]:
@@ -387,27 +304,8 @@ def train_and_evaluate(
     writes the workdir, and a job restarted after losing a process resumes from the last
     checkpoint.
     """
-    from jaxden.config import config_diff, config_to_dict, dump_config, load_config
-
     workdir = Path(workdir)
-    if workdir.exists() and not workdir.is_dir():
-        raise ConfigError(f"--workdir {workdir} is a file, not a folder")
-    resolved = config_to_dict(config)
-    config_file = workdir / "config.toml"
-    saved_json = workdir / "config.json"
-    if saved_json.exists():
-        from jaxden.fileio import read_json
-
-        previous = read_json(saved_json, "the run's recorded config", error=ConfigError)
-        with contextlib.suppress(ConfigError, TypeError, ValueError):
-            # Today's defaults for fields added since the run started (same run).
-            previous = config_to_dict(load_config(previous, TrainConfig))
-        differences = config_diff(previous, resolved)
-        if differences:
-            raise ConfigError(
-                f"{workdir} holds a run with another config ({'; '.join(differences[:5])}); "
-                f"use a new --workdir"
-            )
+    resolved = check_workdir(config, workdir)
     several = jax.process_count() > 1
     primary = jax.process_index() == 0
     if several:  # shared data (a SURE cache) is built by process 0 alone, then only read
@@ -432,13 +330,7 @@ def train_and_evaluate(
 
     with contextlib.ExitStack() as stack:
         if primary:
-            from jaxden.fileio import atomic_write_text, folder_lock
-
-            workdir.mkdir(parents=True, exist_ok=True)
-            stack.enter_context(folder_lock(workdir, TRAIN_LOCK, "training run"))
-            if not saved_json.exists():
-                atomic_write_text(config_file, dump_config(config, header="resolved training config"))
-                atomic_write_text(saved_json, json.dumps(resolved, indent=2))
+            stack.enter_context(claim_workdir(workdir, config, resolved))
         return _train(config, workdir, task, loss_fn, optimizer, train_loader, val_loader, mesh,
                       state, progress=progress and primary, stop_after=stop_after)
 
@@ -485,7 +377,7 @@ def _train(config, workdir, task, loss_fn, optimizer, train_loader, val_loader, 
     checkpointer = None
     if primary:
         checkpointer = Checkpointer(workdir, max_to_keep=config.keep_checkpoints)
-        _remove_partial_checkpoints(checkpointer.directory)
+        remove_partial_checkpoints(checkpointer.directory)
     elif workdir.is_dir():  # other processes only read, and only what process 0 saved
         with contextlib.suppress(CheckpointError):
             checkpointer = Checkpointer(workdir, create=False)
@@ -496,12 +388,8 @@ def _train(config, workdir, task, loss_fn, optimizer, train_loader, val_loader, 
             raise CheckpointError(
                 f"process {jax.process_index()} cannot see the checkpoints of {workdir} that "
                 f"process 0 found: every process needs the workdir on one shared filesystem")
-        expect = {k: task.meta[k] for k in ("kind", "model", "model_config")}
         saved = checkpointer.read_meta(latest).get("model_config")
-        if saved != expect["model_config"] and _resolved_model_config(config, saved) == \
-                expect["model_config"]:
-            # Saved before a config field with a default was added: the same model.
-            expect["model_config"] = saved
+        expect = resume_expectation(task.meta, config, saved)
         state, _ = checkpointer.restore(state, step=latest, expect=expect)
         start = int(state.step)
     state = replicate(state, mesh)

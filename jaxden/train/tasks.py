@@ -1,63 +1,133 @@
-"""The trainable tasks: a registered JAX denoiser, and the progressive-denoising mixer over a SURE
-cache.
+"""What ``model = NAME`` trains: one name -> :class:`Trainable` table over every registered
+denoiser (:mod:`jaxden.denoise.registry`) and the progressive-denoising mixer over a SURE cache.
+
+A :class:`Trainable` is a config class for ``[model_config]``, a training task (init and
+predict through :class:`~jaxden.train.task.Task`), the kind of checkpoint it writes, and
+optionally a hook for data that several runs share (the mixer's SURE cache). The training
+loop, ``load_train_config`` and sweeps look a model up here and never branch on its name.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
 
 import jax
 import numpy as np
 
 from jaxden.errors import ConfigError, FrameError
-from jaxden.progressive.heads import _mix
 from jaxden.progressive.inputs import swap_inputs
 from jaxden.progressive.mixer import (
     CLOSED_FORM_SPEC,
+    MIXER_KIND,
+    MIXER_MODEL,
     MixerConfig,
-    _mixer_alpha,
-    _mixer_meta,
+    mixer_apply,
     mixer_init,
+    mixer_meta,
 )
-from jaxden.train.config import TrainConfig
 from jaxden.train.task import Task
 
 
-def denoiser_task(config: TrainConfig) -> Task:
+# -------------------------------------------------------------------------------- the table
+@dataclasses.dataclass(frozen=True)
+class SharedData:
+    """Data that several runs read (a SURE cache): ``key`` identifies it (runs with equal keys
+    share it), ``prepare()`` builds, finishes or confirms it."""
+
+    key: str
+    prepare: Callable[[], None]
+
+
+@dataclasses.dataclass(frozen=True)
+class Trainable:
+    """An entry of the table: ``config_cls`` validates ``[model_config]``;
+    ``init(key, model_config) -> params`` and ``apply(params, model_config, ...)`` are the
+    model's pure functions (a denoiser's ``apply(params, config, frame) -> image``, the
+    mixer's :func:`~jaxden.progressive.mixer.mixer_apply`); ``task(train_config) -> Task``
+    trains it; ``kind``: what its checkpoints hold (their meta record's ``kind``:
+    ``"denoiser"`` or ``"mixer"``); ``shared_data(train_config, model_config)``: the
+    :class:`SharedData` the run reads, or None (None: the model never has any)."""
+
+    name: str
+    kind: str
+    config_cls: type
+    init: Callable[..., Any] | None
+    apply: Callable[..., Any]
+    task: Callable[[Any], Task]
+    shared_data: Callable[[Any, Any], SharedData | None] | None = None
+
+
+def trainables() -> dict[str, Trainable]:
+    """The name -> :class:`Trainable` table: every registered denoiser (black boxes too: their
+    task refuses to train them, naming why) and the mixer."""
+    from jaxden.denoise.registry import REGISTRY
+
+    table = {name: Trainable(name, "denoiser", definition.config_cls, definition.init,
+                             definition.apply, denoiser_task)
+             for name, definition in REGISTRY.items()}
+    table[MIXER.name] = MIXER
+    return table
+
+
+def get_trainable(name: str) -> Trainable:
+    """The table's entry for ``name``; ConfigError listing the names if there is none."""
+    table = trainables()
+    if name not in table:
+        raise ConfigError(f"unknown model {name!r}; the trainable models: "
+                          f"{', '.join(sorted(table))}")
+    return table[name]
+
+
+def model_config(train_config) -> Any:
+    """``train_config.model_config`` validated into its model's config class (a ConfigError
+    names the model and the key)."""
+    from jaxden.config import load_config
+
+    trainable = get_trainable(train_config.model)
+    try:
+        return load_config(dict(train_config.model_config), trainable.config_cls)
+    except ConfigError as error:
+        raise ConfigError(f"[model_config] of model '{train_config.model}': {error}") from None
+
+
+def make_task(config) -> Task:
+    """The :class:`Task` that trains ``config.model``."""
+    return get_trainable(config.model).task(config)
+
+
+# ------------------------------------------------------------------------------- denoisers
+def denoiser_task(config) -> Task:
     """A registered (JAX) denoiser trained on (noisy frame -> reference colour)."""
-    from jaxden.config import config_to_dict, load_config
+    from jaxden.config import config_to_dict
     from jaxden.denoise.registry import get_definition
 
     definition = get_definition(config.model)
     if definition.init is None or not definition.differentiable:
         raise ConfigError(f"model '{config.model}' is not trainable (a black-box denoiser)")
-    try:
-        model_config = load_config(dict(config.model_config), definition.config_cls)
-    except ConfigError as error:
-        raise ConfigError(f"[model_config] of model '{config.model}': {error}") from None
+    options = model_config(config)
 
     def predict(params, batch):
-        return definition.apply(params, model_config, batch["input"])
+        return definition.apply(params, options, batch["input"])
 
     return Task(
-        init=lambda key, batch: definition.init(key, model_config),
+        init=lambda key, batch: definition.init(key, options),
         predict=predict,
-        features=tuple(definition.required(model_config)),
+        features=tuple(definition.required(options)),
         meta={
             "kind": "denoiser",
             "model": config.model,
-            "model_config": config_to_dict(model_config),
+            "model_config": config_to_dict(options),
         },
         prepare=lambda batch: {"input": batch.input, "reference": batch.reference.color},
     )
 
 
-def make_task(config: TrainConfig) -> Task:
-    if config.model == "mixer":
-        return mixer_task(config)
-    return denoiser_task(config)
-
-
+# ----------------------------------------------------------------------------------- mixer
 @functools.partial(jax.jit, static_argnames=("probability", "with_sure"))
 def _swap_batch(key, x, y, var, sure, probability: float, with_sure: bool):
     """:func:`swap_inputs` with one key per sample (split from ``key``), (B, h, w, 3) each.
@@ -89,14 +159,10 @@ def mixer_task(train_config):
     against the reference; no t-statistic in training (paper).
     The logged ``val_baseline_loss`` is the denoiser output's loss (what the mixer must beat).
     """
-    from jaxden.config import load_config
     from jaxden.data.layout import derive_seed
     from jaxden.progressive.cache_build import open_training_cache
 
-    try:
-        config = load_config(dict(train_config.model_config), MixerConfig)
-    except ConfigError as error:
-        raise ConfigError(f"[model_config] of model 'mixer': {error}") from None
+    config = model_config(train_config)
     if config.kind != "network":
         raise ConfigError(
             f"[model_config] of model 'mixer': kind = {config.kind!r} has no parameters to "
@@ -132,15 +198,42 @@ def mixer_task(train_config):
         }
 
     def predict(params, batch):
-        alpha = _mixer_alpha(params, batch["x"], batch["y"], batch["var"], batch["sure"], config)
-        return _mix(batch["x"], batch["y"], alpha)
+        z, _ = mixer_apply(params, config, batch["x"], batch["y"], batch["var"], batch["sure"])
+        return z
 
     return Task(
         init=lambda key, batch: mixer_init(key, config),
         predict=predict,
         features=("color", "variance"),
-        meta=_mixer_meta(config),
+        meta=mixer_meta(config),
         prepare=prepare,
         target=lambda batch: batch["reference"],
         baseline=lambda batch: batch["y"],
     )
+
+
+#: The MixerConfig fields that decide its SURE cache (with the dataset).
+_CACHE_FIELDS = ("denoiser", "cache", "sure_probes", "sure_method", "sure_eps", "sure_seed",
+                 "sure_covariance", "build_cache")
+
+
+def mixer_shared_data(train_config, config: MixerConfig) -> SharedData | None:
+    """A mixer network's SURE cache over its dataset (None for a closed-form mixer or no
+    dataset): keyed by the dataset, the denoiser and the SURE settings; prepared by
+    :func:`jaxden.progressive.cache_build.open_training_cache`."""
+    dataset = train_config.data.dataset
+    if not dataset or config.kind != "network":
+        return None
+    key = json.dumps([str(Path(dataset).absolute()),
+                      *(getattr(config, name) for name in _CACHE_FIELDS)], default=str)
+
+    def prepare() -> None:
+        from jaxden.progressive.cache_build import open_training_cache
+
+        open_training_cache(dataset, config)
+
+    return SharedData(key, prepare)
+
+
+MIXER = Trainable(MIXER_MODEL, MIXER_KIND, MixerConfig, mixer_init, mixer_apply, mixer_task,
+                  mixer_shared_data)

@@ -1,6 +1,7 @@
-"""jaxden.denoise.report: every row equals the metrics computed directly on the same images;
-temporal accumulation on a static-camera sequence of a fixed image beats single frames; the
-sweep's [evaluate] denoise table reaches result.json and summary.md."""
+"""jaxden.evaluate.denoise (the ``denoise`` and ``sequences`` evaluators): every row equals
+the metrics computed directly on the same images; temporal accumulation on a static-camera
+sequence of a fixed image beats single frames; the sweep's [evaluate] denoise table reaches
+result.json and summary.md."""
 
 from __future__ import annotations
 
@@ -8,11 +9,12 @@ import numpy as np
 import pytest
 
 from jaxden import metrics
-from jaxden.data.builder import build_dataset, synthetic_render
+from jaxden.data.builder import build_dataset
 from jaxden.data.config import DatasetConfig, SplitConfig
 from jaxden.data.crops import iter_crops
-from jaxden.denoise import report
 from jaxden.denoise.registry import Denoiser, DenoiserDef
+from jaxden.evaluate import denoise as report
+from jaxden.render.synthetic import synthetic_render
 
 
 def box3(params, config, frame):

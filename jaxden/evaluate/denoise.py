@@ -1,4 +1,5 @@
-"""Measuring denoisers on held-out data: the WSKP paper's Tables 1/6 on jaxden's datasets.
+"""Measuring denoisers on held-out data: the WSKP paper's Tables 1/6 on jaxden's datasets (the
+``denoise`` and ``sequences`` evaluators).
 
 :func:`evaluate_denoiser` denoises every input of a dataset split at the chosen spp and scores
 it against the crop's independent reference; :func:`evaluate_sequences` does the same per frame
@@ -18,6 +19,7 @@ unbiased comparison. Every row names its crop, scene and spp so tables can be re
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 from typing import Any
@@ -25,6 +27,8 @@ from typing import Any
 import numpy as np
 
 from jaxden.data.crops import iter_crops
+from jaxden.evaluate.evaluator import Evaluator
+from jaxden.evaluate.shared import denoiser_label
 
 DENOISE_METRICS = ("psnr", "ssim", "relmse", "flip", "rmse", "mse_nc")
 
@@ -140,3 +144,83 @@ def markdown(summaries: dict[str, dict[str, float]], prefixes=("den",)) -> str:
 
 def dataset_label(path) -> str:
     return Path(str(path)).name
+
+
+# ---------------------------------------------------------------------------- the evaluators
+@dataclasses.dataclass(frozen=True)
+class DenoiseOptions:
+    """``denoiser``: a spec (``oidn``, a shipped name, a run folder); ``spp``: the input spp
+    levels scored; ``include_input``: score the noisy input too (``mc_*``)."""
+
+    denoiser: str = "oidn"
+    split: str = "test"
+    spp: tuple[int, ...] = (1,)
+    include_input: bool = True
+
+
+@dataclasses.dataclass(frozen=True)
+class SequencesOptions:
+    """``denoiser``: a spec; ``skip_frames``: leading frames of each sequence left out (no
+    history yet); temporal accumulation with the default TemporalConfig."""
+
+    denoiser: str = "oidn"
+    skip_frames: int = 1
+
+
+def sequence_provenance(data, split: str | None) -> dict:
+    """The ``dataset`` entry of a result measured on a sequence set (checked)."""
+    from jaxden.data.sequences import MANIFEST_NAME, read_manifest
+    from jaxden.provenance import dataset_identity
+
+    manifest = read_manifest(data)
+    return dataset_identity(data, Path(data) / MANIFEST_NAME, manifest.get("config"), split)
+
+
+def _label(provenance: dict) -> str:
+    return denoiser_label(provenance["denoiser"]["spec"])
+
+
+def _weights(options) -> dict:
+    from jaxden.evaluate.shared import weights_identity
+
+    return {"denoiser": weights_identity(options.denoiser)}
+
+
+def _summary(rows, provenance) -> dict:
+    return {"summary": summarize(rows)}
+
+
+DENOISE = Evaluator(
+    name="denoise",
+    description="PSNR, SSIM, relMSE, FLIP and noise-corrected RMSE of a denoiser per crop and "
+                "spp (the WSKP paper's Tables 1/6)",
+    options=DenoiseOptions,
+    run=lambda data, options, progress=False: evaluate_denoiser(
+        data, options.denoiser, split=options.split, spp=options.spp,
+        include_input=options.include_input),
+    summarize=_summary,
+    table=lambda fields, rows, provenance: markdown(
+        {_label(provenance): fields["summary"]},
+        prefixes=("den", "mc") if provenance.get("include_input", True) else ("den",)),
+    provenance=lambda options: {**_weights(options), "spp": list(options.spp),
+                                "include_input": options.include_input},
+    sweep_options=lambda run_dir, table: DenoiseOptions(
+        denoiser=str(run_dir), split=table["split"], spp=tuple(table["denoise_spp"])),
+    sweep_key="den",
+)
+
+SEQUENCES = Evaluator(
+    name="sequences",
+    description="the same per frame of camera-path sequences, frame by frame and after "
+                "temporal accumulation",
+    options=SequencesOptions,
+    run=lambda data, options, progress=False: evaluate_sequences(
+        data, options.denoiser, skip_frames=options.skip_frames),
+    summarize=_summary,
+    table=lambda fields, rows, provenance: markdown(
+        {_label(provenance): fields["summary"]}, prefixes=("mc", "den", "acc", "tdn")),
+    provenance=lambda options: {**_weights(options), "skip_frames": options.skip_frames},
+    dataset=sequence_provenance,
+    sweep_options=lambda run_dir, table: SequencesOptions(denoiser=str(run_dir)),
+    sweep_key="seq",
+)

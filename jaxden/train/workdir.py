@@ -1,0 +1,122 @@
+"""A training run's folder (its workdir): the lock, the recorded config, the metrics log, and
+what resuming from its checkpoints checks.
+
+A workdir holds ``config.toml`` and ``config.json`` (the resolved config, written once when
+the run starts), ``metrics.jsonl`` (:class:`MetricsLog`) and the orbax checkpoints
+(:class:`jaxden.checkpoint.Checkpointer`). A run on a workdir that holds a run with another
+config is refused; one run at a time trains in it (:data:`TRAIN_LOCK`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+from jaxden.errors import ConfigError, JaxdenError
+
+#: The lock file of a training workdir (two runs writing one workdir would mix checkpoints).
+TRAIN_LOCK = ".train.lock"
+CONFIG_TOML = "config.toml"
+CONFIG_JSON = "config.json"
+
+
+def check_workdir(config, workdir: Path) -> dict[str, Any]:
+    """The resolved config (a dict) of a run of ``config`` in ``workdir``; ConfigError when
+    ``workdir`` is a file or records a run with another config (today's defaults filled in for
+    fields added since that run started: the same run)."""
+    from jaxden.config import config_diff, config_to_dict, load_config
+    from jaxden.train.config import TrainConfig
+
+    if workdir.exists() and not workdir.is_dir():
+        raise ConfigError(f"--workdir {workdir} is a file, not a folder")
+    resolved = config_to_dict(config)
+    saved_json = workdir / CONFIG_JSON
+    if saved_json.exists():
+        from jaxden.fileio import read_json
+
+        previous = read_json(saved_json, "the run's recorded config", error=ConfigError)
+        with contextlib.suppress(ConfigError, TypeError, ValueError):
+            # Today's defaults for fields added since the run started (same run).
+            previous = config_to_dict(load_config(previous, TrainConfig))
+        differences = config_diff(previous, resolved)
+        if differences:
+            raise ConfigError(
+                f"{workdir} holds a run with another config ({'; '.join(differences[:5])}); "
+                f"use a new --workdir"
+            )
+    return resolved
+
+
+@contextlib.contextmanager
+def claim_workdir(workdir: Path, config, resolved: dict[str, Any]):
+    """Create and lock ``workdir`` for the block, recording the run's config the first time."""
+    from jaxden.config import dump_config
+    from jaxden.fileio import atomic_write_text, folder_lock
+
+    workdir.mkdir(parents=True, exist_ok=True)
+    with folder_lock(workdir, TRAIN_LOCK, "training run"):
+        if not (workdir / CONFIG_JSON).exists():
+            atomic_write_text(workdir / CONFIG_TOML,
+                              dump_config(config, header="resolved training config"))
+            atomic_write_text(workdir / CONFIG_JSON, json.dumps(resolved, indent=2))
+        yield
+
+
+class MetricsLog:
+    """Append-only JSONL log. On resume from the checkpoint of ``resume_step`` the entries of
+    later steps (and of step 0 when no checkpoint is kept: the run starts over) are dropped,
+    and so is a last line cut short by a kill; any other broken line is a one-line error
+    naming the file and the line. Each entry is appended whole or not at all."""
+
+    def __init__(self, path: Path, resume_step: int):
+        from jaxden.fileio import atomic_write_text, read_jsonl
+
+        self.path = path
+        if path.exists():
+            records, cut = read_jsonl(path, "the metrics log", error=JaxdenError,
+                                      fields={"step?": int})
+            kept = [r for r in records if resume_step > 0 and r.get("step", 0) <= resume_step]
+            if cut or len(kept) < len(records):
+                atomic_write_text(path, "".join(json.dumps(r) + "\n" for r in kept))
+
+    def write(self, record: dict[str, Any]) -> None:
+        from jaxden.fileio import append_line
+
+        append_line(self.path, json.dumps(record))
+
+
+def remove_partial_checkpoints(directory: Path) -> None:
+    """Orbax's temporary step folders (a save cut short by a crash): never a resumable state."""
+    if not directory.is_dir():
+        return
+    for path in directory.iterdir():
+        if path.is_dir() and ".orbax-checkpoint-tmp" in path.name:
+            shutil.rmtree(path, ignore_errors=True)
+
+
+def resolved_model_config(config, saved: Any) -> Any:
+    """A checkpoint's recorded model_config with today's defaults filled in (None if it no
+    longer loads), so that adding a config field with a default keeps old runs resumable."""
+    from jaxden.config import config_to_dict, load_config
+    from jaxden.train.tasks import get_trainable
+
+    if not isinstance(saved, dict):
+        return None
+    try:
+        return config_to_dict(load_config(dict(saved), get_trainable(config.model).config_cls))
+    except (ConfigError, TypeError, ValueError):
+        return None
+
+
+def resume_expectation(task_meta: dict[str, Any], config, saved_model_config: Any) -> dict:
+    """What the checkpoint to resume from must record (kind, model, model_config): the task's,
+    with the checkpoint's own model_config where it is the same model saved before a config
+    field with a default was added."""
+    expect = {k: task_meta[k] for k in ("kind", "model", "model_config")}
+    if saved_model_config != expect["model_config"] and resolved_model_config(
+            config, saved_model_config) == expect["model_config"]:
+        expect["model_config"] = saved_model_config
+    return expect
