@@ -130,6 +130,7 @@ def test_differentiable_and_batched(blobs):
                                oidn_denoise(params, spec, 2 * color), rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.slow  # ~5 s; the bit-closeness test in the default suite catches a mis-mapping
 def test_a_weight_on_the_wrong_layer_shows(blobs):
     """Two layers of one shape swapped (enc_conv5b and dec_conv3b of rt_hdr, both 96 x 96 x
     3 x 3) move the output far beyond the tolerance: the test above would catch a mis-mapping."""
@@ -141,3 +142,30 @@ def test_a_weight_on_the_wrong_layer_shows(blobs):
     good = np.asarray(oidn_denoise(params, spec, color))
     bad = np.asarray(oidn_denoise(swapped, spec, color))
     assert _relative_rmse(bad, good) > 100 * TOLERANCE
+
+
+def test_registered_and_loaded_by_name():
+    """`--denoiser oidn-jax`: Intel's weights by name, differentiable (SURE takes its jvp),
+    the features its config names required; the same output as the function."""
+    from jaxden.denoise.registry import load_denoiser
+    from jaxden.frame import Frame
+
+    denoiser = load_denoiser("oidn-jax")
+    assert denoiser.differentiable and denoiser.definition.required(denoiser.config) == (
+        "color", "albedo", "normal")
+    color, albedo, normal = _scene(20, 18, seed=4)
+    frame = Frame(color=color, albedo=albedo, normal=normal)
+    params, spec = load_oidn(albedo=True, normal=True, clean_aux=True)
+    np.testing.assert_allclose(np.asarray(denoiser(frame)),
+                               np.asarray(oidn_denoise(params, spec, color, albedo, normal)),
+                               rtol=2e-5, atol=1e-6)  # two jit fusions: float32 rounding
+
+
+def test_unknown_names_list_shipped_models_and_suggest():
+    from jaxden.denoise.registry import load_denoiser
+
+    with pytest.raises(CheckpointError, match=r"did you mean 'wskp-6'.*by name: .*wskp-6.*"
+                                              r"oidn-jax; architectures .*wskp_mr"):
+        load_denoiser("wskp6")
+    with pytest.raises(CheckpointError, match="runs/wskp: no such file or folder"):
+        load_denoiser("runs/wskp")

@@ -127,7 +127,7 @@ def test_bad_input_is_a_one_line_error_naming_the_path(tmp_path, case):
     expected = {"missing": "no such file", "empty": "is empty", "nothing": "nothing a report",
                 "no-reference": "no reference.exr", "no-images": "no sppN",
                 "duplicate": "names the same image", "orphan-alpha": "without its image",
-                "not-a-report-json": "pd_report"}[case]
+                "not-a-report-json": "jaxden evaluate pd"}[case]
     assert expected in message
     assert isinstance(error.value, JaxdenError)
 

@@ -184,3 +184,64 @@ def oidn_denoise(params, spec: OIDNSpec, color, albedo=None, normal=None, *, inp
     out = run(flat, zeros if features[0] is None else features[0],
               zeros if features[1] is None else features[1], scales)
     return out.reshape(color.shape)
+
+
+# ------------------------------------------------------------------------------ registration
+@dataclasses.dataclass(frozen=True)
+class OIDNJaxConfig:
+    """OIDN in JAX with Intel's weights: which of OIDN's networks (the inputs it takes and the
+    quality), chosen as OIDN chooses (:func:`blob_name`). Unlike the black box, which picks
+    per call from the features a frame carries, the network is fixed by the config, so a
+    frame must carry the features the config names (``required``)."""
+
+    quality: str = "high"
+    use_albedo: bool = True
+    use_normal: bool = True
+    clean_aux: bool = True
+
+    def __post_init__(self) -> None:
+        if self.quality not in QUALITIES:
+            raise ConfigError(f"oidn-jax quality must be one of {', '.join(QUALITIES)}, got "
+                              f"{self.quality!r}")
+        if self.use_normal and not self.use_albedo:
+            raise ConfigError("oidn-jax: use_normal needs use_albedo (OIDN takes a normal only "
+                              "together with an albedo)")
+
+
+@functools.cache
+def _loaded(config: OIDNJaxConfig):
+    return load_oidn(albedo=config.use_albedo, normal=config.use_normal,
+                     clean_aux=config.clean_aux, quality=config.quality)
+
+
+def oidn_jax_init(key, config: OIDNJaxConfig):
+    """Intel's weights for ``config`` (``key`` is unused: they are not drawn but read)."""
+    del key
+    params, _ = _loaded(config)
+    return jax.tree_util.tree_map(jnp.array, params)
+
+
+def oidn_jax_apply(params, config: OIDNJaxConfig, frame):
+    _, spec = _loaded(config)
+    return oidn_denoise(params, spec, frame.color,
+                        frame.albedo if config.use_albedo else None,
+                        frame.normal if config.use_normal else None)
+
+
+def _register() -> None:
+    from jaxden.denoise.registry import DenoiserDef, register
+
+    register(DenoiserDef(
+        name="oidn-jax",
+        description="Intel Open Image Denoise 2 in JAX with Intel's weights from the installed "
+                    "library (differentiable: SURE by jvp)",
+        config_cls=OIDNJaxConfig,
+        required=lambda config: ("color", *(("albedo",) if config.use_albedo else ()),
+                                 *(("normal",) if config.use_normal else ())),
+        apply=oidn_jax_apply,
+        init=oidn_jax_init,
+        pretrained=True,
+    ))
+
+
+_register()

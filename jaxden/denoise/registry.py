@@ -45,7 +45,8 @@ class DenoiserDef:
 
     ``init(key, config) -> params`` (None for black boxes);
     ``apply(params, config, frame) -> image`` (pure JAX unless ``differentiable`` is False);
-    ``required(config) -> field names`` the frame must carry.
+    ``required(config) -> field names`` the frame must carry; ``pretrained``: ``init``
+    returns trained weights (OIDN in JAX reads Intel's), so the name alone loads it.
     """
 
     name: str
@@ -55,6 +56,7 @@ class DenoiserDef:
     apply: Callable[[Any, Any, Frame], Any]
     init: Callable[[jax.Array, Any], Any] | None = None
     differentiable: bool = True
+    pretrained: bool = False  # init gives trained weights (read, not drawn): usable by name
 
 
 REGISTRY: dict[str, DenoiserDef] = {}
@@ -151,6 +153,7 @@ def emission_separated(definition: DenoiserDef) -> DenoiserDef:
         apply=separated_apply(definition.apply, name, definition.differentiable),
         init=definition.init,
         differentiable=definition.differentiable,
+        pretrained=definition.pretrained,
     )
 
 
@@ -210,8 +213,10 @@ def _load_base(spec: str | os.PathLike) -> Denoiser:
     if not path.exists() and isinstance(spec, str) and shipped.is_file():
         path = shipped
     if not path.exists():
+        if str(spec) not in REGISTRY:
+            raise CheckpointError(_unknown_spec_message(str(spec)))
         definition = get_definition(str(spec))
-        if definition.init is not None:
+        if definition.init is not None and not definition.pretrained:
             raise CheckpointError(
                 f"denoiser '{spec}' needs trained weights: pass a checkpoint folder from "
                 f"`jaxden train` (or a .msgpack weights file) instead of its name"
@@ -236,3 +241,39 @@ def _load_base(spec: str | os.PathLike) -> Denoiser:
     target = jax.eval_shape(lambda: definition.init(jax.random.PRNGKey(0), config))
     params, _ = load_trained_params(path, target, expect={"model": definition.name})
     return Denoiser(definition, config, params)
+
+
+def shipped_denoisers() -> list[str]:
+    """Names of the trained denoisers shipped in ``jaxden/weights`` (their cards say
+    ``kind: denoiser``; the mixers shipped beside them are not denoisers)."""
+    import json
+
+    names = []
+    for card in sorted(WEIGHTS_DIR.glob("*.json")):
+        try:
+            kind = json.loads(card.read_text()).get("kind")
+        except (OSError, ValueError):
+            continue
+        if kind == "denoiser" and card.with_suffix(".msgpack").is_file():
+            names.append(card.stem)
+    return names
+
+
+def _unknown_spec_message(spec: str) -> str:
+    """A denoiser spec that is neither a path nor a name: say which it looked like, list the
+    shipped models and the architectures apart, and suggest a close match."""
+    import difflib
+
+    if os.sep in spec or spec.endswith((".msgpack", ".json")) or spec.startswith("."):
+        return f"{spec}: no such file or folder (a checkpoint folder or .msgpack weights file)"
+    shipped = shipped_denoisers()
+    built_in = sorted(n for n, d in REGISTRY.items() if d.init is None or d.pretrained)
+    architectures = sorted(n for n in REGISTRY if n not in built_in)
+    candidates = shipped + built_in + architectures
+    normalised = {name.replace("-", "").replace("_", "").lower(): name for name in candidates}
+    close = normalised.get(spec.replace("-", "").replace("_", "").lower())
+    close = close or next(iter(difflib.get_close_matches(spec, candidates, n=1)), None)
+    hint = f" (did you mean {close!r}?)" if close else ""
+    return (f"unknown denoiser {spec!r}{hint}; by name: {', '.join(shipped + built_in)}; "
+            f"architectures (a checkpoint of one, from jaxden train): {', '.join(architectures)}")
+
