@@ -58,8 +58,8 @@ from typing import Any, Literal
 from jaxden.config import config_to_dict, load_config, toml_value
 from jaxden.errors import ConfigError
 
-__all__ = ["EvaluateConfig", "Run", "SweepConfig", "load_sweep", "plan_runs", "run_sweep",
-           "summarize"]
+__all__ = ["EvaluateConfig", "Run", "SweepConfig", "check_sweep", "load_sweep", "plan_runs",
+           "run_sweep", "summarize"]
 
 RESULT_NAME = "result.json"
 #: A sweep of more runs is refused unless ``allow_large`` (a typo in [axes] can mean thousands).
@@ -294,6 +294,63 @@ def _absolute_overrides(train_config, overrides: tuple[str, ...]) -> tuple[str, 
     return overrides
 
 
+def check_sweep(path: str | Path, overrides=(), *, only: Sequence[str] = (),
+                allow_large: bool = False):
+    """Everything about a sweep that can be checked before any training, in the order a run
+    would meet it: the file, its runs (count, names, ``only``), every run's resolved training
+    config (axis keys, values and ranges, through the config's declarations), and every
+    dataset of its ``[evaluate]`` table (exists, complete, the split not empty). The first
+    problem is a ConfigError naming the file and the run, key or dataset. Returns
+    ``(config, axes, base, runs, train_configs)`` (runs with absolute paths in overrides)."""
+    from jaxden.train.config import load_train_config
+
+    config, axes, base = load_sweep(path, tuple(overrides))
+    runs = select_runs(plan_runs(config, axes), only, path)
+    if len(runs) > MAX_RUNS and not allow_large:
+        raise ConfigError(f"{path}: the sweep has {len(runs)} runs, more than {MAX_RUNS}; check "
+                          f"its [axes], or pass --allow-large to run them all")
+    configs = []
+    for index, run in enumerate(runs):
+        try:
+            train_config = load_train_config(base, list(run.overrides))
+            absolute = _absolute_overrides(train_config, run.overrides)
+            if absolute != run.overrides:
+                runs[index] = run = dataclasses.replace(run, overrides=absolute)
+                train_config = load_train_config(base, list(run.overrides))
+        except ConfigError as error:
+            raise ConfigError(f"{path}: run {run.name}: {error}") from None
+        configs.append(train_config)
+    _check_evaluate_sets(path, config.evaluate)
+    return config, axes, base, runs, configs
+
+
+def _check_evaluate_sets(path, evaluate: EvaluateConfig) -> None:
+    """Each [evaluate] dataset exists, is complete and has crops in the split it is read at
+    (sequence sets: exist and are complete)."""
+    from jaxden.data.layout import load_manifest
+    from jaxden.errors import DatasetError
+
+    for key in ("pd", "denoise", "sequences"):
+        for folder in getattr(evaluate, key):
+            where = f"{path}: [evaluate] {key} = {folder!r}"
+            if not Path(folder).is_dir():
+                raise ConfigError(f"{where}: no such dataset folder")
+            if key == "sequences":
+                if not (Path(folder) / "manifest.json").is_file():
+                    raise ConfigError(f"{where}: not a sequence set (no manifest.json)")
+                continue
+            try:
+                manifest = load_manifest(folder)
+            except DatasetError as error:
+                raise ConfigError(f"{where}: {error}") from None
+            if not manifest.complete:
+                raise ConfigError(f"{where}: the dataset is not complete; finish `jaxden "
+                                  f"dataset build` first")
+            if not manifest.crops_in(evaluate.split):
+                raise ConfigError(f"{where}: no crops in split {evaluate.split!r} (splits: "
+                                  f"{manifest.split_counts()})")
+
+
 def run_sweep(path: str | Path, workdir: str | Path, overrides=(), *, executor: str = "serial",
               workers: int | None = None, progress: bool = True, allow_large: bool = False,
               ray_address: str | None = None, only: Sequence[str] = ()) -> list[dict]:
@@ -311,29 +368,11 @@ def run_sweep(path: str | Path, workdir: str | Path, overrides=(), *, executor: 
     from jaxden.fileio import atomic_write_text
     from jaxden.train.loop import prepare_shared_data, shared_data_key
 
-    config, axes, base = load_sweep(path, tuple(overrides))
-    runs = plan_runs(config, axes)
-    runs = select_runs(runs, only, path)
-    if len(runs) > MAX_RUNS and not allow_large:
-        raise ConfigError(f"{path}: the sweep has {len(runs)} runs, more than {MAX_RUNS}; check "
-                          f"its [axes], or pass --allow-large to run them all")
+    config, axes, base, runs, configs = check_sweep(path, overrides, only=only,
+                                                   allow_large=allow_large)
     given_workdir, workdir = workdir, Path(workdir).absolute()
     if workdir.exists() and not workdir.is_dir():
         raise ConfigError(f"--workdir {workdir} is a file, not a folder")
-    # Every run's config must load before any training starts.
-    from jaxden.train.config import load_train_config
-
-    configs = []
-    for index, run in enumerate(runs):
-        try:
-            train_config = load_train_config(base, list(run.overrides))
-            absolute = _absolute_overrides(train_config, run.overrides)
-            if absolute != run.overrides:
-                runs[index] = run = dataclasses.replace(run, overrides=absolute)
-                train_config = load_train_config(base, list(run.overrides))
-        except ConfigError as error:
-            raise ConfigError(f"{path}: run {run.name}: {error}") from None
-        configs.append(train_config)
     if progress:
         print(f"sweep {path}: {len(runs)} run(s) of {base} ({config.mode} over "
               f"{', '.join(axes)}) in {workdir}", flush=True)

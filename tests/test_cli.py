@@ -130,3 +130,12 @@ def test_dataset_build_verify_and_denoise_with_oidn(tmp_path, capsys):
 def test_console_script_is_installed():
     result = subprocess.run([sys.executable, "-m", "jaxden.cli", "--help"], capture_output=True, text=True)
     assert result.returncode == 0 and "render" in result.stdout and "dataset" in result.stdout
+
+
+def test_version(capsys):
+    from jaxden import __version__
+
+    with pytest.raises(SystemExit) as info:
+        main(["--version"])
+    assert info.value.code == 0 and capsys.readouterr().out.strip() == f"jaxden {__version__}"
+

@@ -3,6 +3,7 @@ tiny mixer sweep end to end (Mitsuba-free data): every run trained and evaluated
 folder, a summary with the spread over seeds, and a rerun that skips finished runs."""
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -102,6 +103,26 @@ def test_bad_base_or_run_config_fails_before_any_training(tmp_path, capsys):
     assert main(["sweep", str(typo), "--workdir", str(tmp_path / "w")]) == 2
     err = capsys.readouterr().err
     assert "haed" in err and "run haed=f_act" in err
+    assert not (tmp_path / "w").exists()
+
+
+@pytest.mark.parametrize("body, words", [
+    ('[axes]\n"model_config.haed" = ["f_act"]\n', "run haed=f_act"),
+    ('[axes]\n"optim.learning_rate" = [-0.1]\n', "learning_rate"),
+    ('[axes]\n"model_config.head" = ["tree"]\n', "head"),
+    ('[evaluate]\npd = ["NOWHERE"]\n[axes]\nseed = [0]\n', r"\[evaluate\] pd = .*nowhere.*no "
+                                                          r"such dataset folder"),
+])
+def test_dry_run_makes_the_checks_of_a_real_sweep(tmp_path, capsys, body, words):
+    """`--dry-run` exits 2 on the first problem a sweep would meet before training (a typo'd
+    axis key, an out-of-range value, an unknown choice, a missing [evaluate] dataset), naming
+    the file, and a real sweep stops there too, before any run folder exists."""
+    path = write_sweep(tmp_path, body.replace("NOWHERE", str(tmp_path / "nowhere")))
+    assert main(["sweep", str(path), "--workdir", str(tmp_path / "w"), "--dry-run"]) == 2
+    err = capsys.readouterr().err
+    assert "sweep.toml" in err and re.search(words, err), err
+    assert main(["sweep", str(path), "--workdir", str(tmp_path / "w")]) == 2
+    assert re.search(words, capsys.readouterr().err)
     assert not (tmp_path / "w").exists()
 
 

@@ -31,6 +31,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="jaxden", description="Monte Carlo denoising research in JAX (see README.md)."
     )
+    from jaxden import __version__
+
+    parser.add_argument("--version", action="version", version=f"jaxden {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for group in (demo, render, dataset, denoise, train, evaluate, bench, report):
         group.add_commands(sub)

@@ -54,11 +54,12 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from jaxden.sweep import load_sweep, plan_runs, run_sweep, select_runs
+    from jaxden.sweep import check_sweep, run_sweep
 
-    if args.dry_run:
-        config, axes, base = load_sweep(args.config, tuple(args.overrides))
-        runs = select_runs(plan_runs(config, axes), args.only or (), args.config)
+    if args.dry_run:  # the checks a real sweep makes before training, then the plan
+        config, axes, base, runs, _ = check_sweep(args.config, tuple(args.overrides),
+                                                  only=args.only or (),
+                                                  allow_large=args.allow_large)
         print(f"{len(runs)} run(s) of {base} ({config.mode} over {', '.join(axes)}):")
         for run in runs:
             print(f"  {run.name}: {' '.join(run.overrides)}")
@@ -113,6 +114,8 @@ def add_commands(sub) -> None:
     p.add_argument("--only", action="append", metavar="NAME",
                    help="run just the run of this name (repeatable; see --dry-run for the "
                         "names); writes no summary")
-    p.add_argument("--dry-run", action="store_true", help="list the runs and their overrides")
+    p.add_argument("--dry-run", action="store_true",
+                   help="check every run's config and the [evaluate] datasets as a sweep does "
+                        "before training (exit 2 on the first problem), then list the runs")
     p.set_defaults(func=cmd_sweep)
 
