@@ -166,7 +166,7 @@ def test_range_closed_form_alpha_vanishes_as_the_variance_shrinks():
 
 
 def test_range_closed_form_config_and_network_head():
-    for spec, message in [("closed-form:stops=0", r"closed_form_stops: 0.0 is outside the valid range \(0, 64\]"),
+    for spec, message in [("closed-form:stops=0", r"closed_form_stops: 0.0 is outside the valid range \[0.0625, 64\]"),
                           ("closed-form:stops=-1", "closed_form_stops"),
                           ("closed-form:stop=1", "KEY one of sigma, per_channel, stops")]:
         with pytest.raises(ConfigError, match=message):

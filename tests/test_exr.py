@@ -258,3 +258,25 @@ def test_covariance_must_be_a_covariance_of_the_variance(tmp_path):
     back = exr.read_frame(path, variance_is_sample_variance=True)
     np.testing.assert_allclose(back.covariance, frame.covariance, rtol=1e-6)
     np.testing.assert_allclose(back.variance, frame.variance, rtol=1e-6)
+
+
+def test_links_that_loop_or_dangle_are_named(tmp_path):
+    loop = tmp_path / "loop.exr"
+    loop.symlink_to(loop)
+    with pytest.raises(ExrError, match="loops back on itself"):
+        exr.read_frame(loop)
+    dangling = tmp_path / "dangling.exr"
+    dangling.symlink_to(tmp_path / "nothing.exr")
+    with pytest.raises(ExrError, match="a symbolic link to nothing"):
+        exr.read_frame(dangling)
+
+
+def test_strata_narrower_than_a_sixteenth_stop_are_refused():
+    from jaxden.errors import ConfigError
+    from jaxden.progressive.mixer import MixerConfig
+    from jaxden.progressive.tstat import TStatConfig
+
+    with pytest.raises(ConfigError, match=r"closed_form_stops: 1e-300 is outside"):
+        MixerConfig(denoiser="oidn", closed_form_stops=1e-300)
+    with pytest.raises(ConfigError, match=r"guard_strata: 0.01 is outside"):
+        TStatConfig(guard_strata=0.01)

@@ -162,8 +162,11 @@ def same_file(a, b) -> bool:
     """Whether two paths name one file: the same resolved path (links followed), or the same
     inode where both exist (hard links)."""
     a, b = Path(a), Path(b)
-    if a.resolve() == b.resolve():
-        return True
+    try:
+        if a.resolve() == b.resolve():
+            return True
+    except (RuntimeError, OSError):  # a symbolic link loop: reading it names the problem
+        return a.absolute() == b.absolute()
     try:
         return os.path.samefile(a, b)
     except OSError:

@@ -178,6 +178,13 @@ def _decode_error(error: Exception, native: str = "") -> str:
 
 def _open(path: Path, header_only: bool = False):
     OpenEXR = _openexr()
+    if path.is_symlink():
+        try:
+            path.resolve(strict=True)
+        except (RuntimeError, OSError) as error:  # Python 3.11 raises RuntimeError on a loop
+            loop = isinstance(error, RuntimeError) or getattr(error, "errno", None) == 40
+            raise ExrError(f"{path}: " + ("a symbolic link that loops back on itself" if loop
+                                          else "a symbolic link to nothing")) from None
     if not path.exists():
         raise ExrError(f"{path}: no such file")
     if path.is_dir():

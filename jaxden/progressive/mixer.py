@@ -193,7 +193,8 @@ class MixerConfig:
     kind: Literal["network", "closed_form"] = "network"
     closed_form_sigma: float = bounded(12.0, low=0, low_open=True, high=256, unit='pixels')
     closed_form_per_channel: bool = False
-    closed_form_stops: float | None = bounded(None, low=0, low_open=True, high=64, unit='stops')
+    closed_form_stops: float | None = bounded(None, low=0.0625, high=64,
+                                                  unit='stops')  # >= 1/16 stop
     head: Literal["f_act", "sigmoid", "clip", "closed_form_logit"] = "f_act"
     width: int = bounded(48, low=1, high=1024)
     centred_head: bool = True

@@ -84,7 +84,7 @@ class TStatConfig:
     guard_gamma: float = bounded(2.0, low=0, low_open=True, high=1e3)
     guard_sigma: float = bounded(1.0, low=0, low_open=True, high=64, unit='pixels')
     guard_confidence: float = bounded(2.0, low=0, high=100)
-    guard_strata: float | None = bounded(None, low=0, low_open=True, high=16, unit='stops')
+    guard_strata: float | None = bounded(None, low=0.0625, high=16, unit='stops')  # >= 1/16 stop
 
     def __post_init__(self):
         from jaxden.config import check_fields
