@@ -104,6 +104,17 @@ def test_parameter_names_longest_match(tmp_path):
         flatten_scene(tmp_path / "s.xml")
 
 
+@pytest.mark.parametrize("value", ["nan", "1, inf, 1", "$s"])
+def test_non_finite_geometry_is_refused(tmp_path, value):
+    """Mitsuba drops a shape whose <scale> is NaN without a word; jaxden refuses the scene,
+    also when the NaN comes through a parameter."""
+    (tmp_path / "s.xml").write_text(
+        '<scene version="3.0.0"><default name="s" value="nan"/><shape type="sphere">'
+        f'<transform name="to_world"><scale value="{value}"/></transform></shape></scene>')
+    with pytest.raises(SceneError, match=r"s.xml.*<scale value=.* is not a finite number"):
+        flatten_scene(tmp_path / "s.xml")
+
+
 @pytest.mark.parametrize("case, pattern", [
     ("missing", r"included file 'include/nowhere.xml' not found"),
     ("cycle", r"cycle of includes: main.xml -> a.xml -> b.xml -> a.xml"),

@@ -28,6 +28,7 @@ with one line naming the file and the element.
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import xml.etree.ElementTree as ET
@@ -139,6 +140,7 @@ class _Flattener:
             elif child.tag == "include":
                 out.extend(self.include(child, path, stack))
             else:
+                _check_finite(child, path)
                 kept = ET.Element(child.tag, dict(child.attrib))
                 kept.text, kept.tail = child.text, child.tail
                 kept.extend(self.children(child, path, stack, inner))
@@ -177,6 +179,28 @@ class _Flattener:
         if root.tag == "scene":
             return self.children(root, target, [*stack, target])
         return self.children(_wrap(root), target, [*stack, target])
+
+
+#: Elements whose numbers place geometry: a NaN or inf there makes Mitsuba drop the shape
+#: (or the camera) without a word, so it is refused here.
+_GEOMETRY_TAGS = frozenset({"scale", "translate", "rotate", "matrix", "lookat", "point",
+                            "vector"})
+
+
+def _check_finite(element: ET.Element, path: Path) -> None:
+    if element.tag not in _GEOMETRY_TAGS:
+        return
+    for key, value in element.attrib.items():
+        if key in ("name", "id", "type"):
+            continue
+        for token in re.split(r"[\s,]+", value.strip()):
+            try:
+                number = float(token)
+            except ValueError:
+                continue
+            if not math.isfinite(number):
+                raise SceneError(f"{_where(path, element)}: <{element.tag} {key}={value!r}> is "
+                                 f"not a finite number; Mitsuba would drop what it places")
 
 
 def _wrap(element: ET.Element) -> ET.Element:
