@@ -115,6 +115,7 @@ def assert_sweep_resumes(setup, sweep: Path, workdir: Path) -> None:
 
 
 # ------------------------------------------------------------------------------ SIGKILL
+@pytest.mark.slow  # ~21 s; Ctrl-C during a checkpoint stays in the default suite
 def test_training_killed_while_checkpointing_resumes(setup, tmp_path):
     """SIGKILL while checkpoint 4 is being written: checkpoint 2 is kept untouched, the rerun
     removes the unfinished save, resumes from 2 and finishes; every step is logged once."""

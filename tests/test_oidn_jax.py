@@ -110,6 +110,7 @@ def test_bit_close_to_pyoidn_everywhere(blobs, quality, albedo, normal, clean, s
     assert error < TOLERANCE
 
 
+@pytest.mark.slow  # ~6 s (two compiles of the base net and its jvp)
 def test_differentiable_and_batched(blobs):
     """jvp through OIDN matches a central finite difference along a relative perturbation
     (measured 0.75 % apart at step 1e-3: larger steps cross ReLU kinks, smaller ones drown in

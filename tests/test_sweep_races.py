@@ -53,8 +53,13 @@ def test_a_sweep_states_its_size_and_refuses_a_huge_one(tmp_path, capsys):
     # --allow-large passes that check (the configs are then checked: steps = 0 is invalid).
     with pytest.raises(ConfigError, match="optim.steps"):
         run_sweep(sweep, workdir, allow_large=True, progress=False)
-    assert main(["sweep", str(sweep), "--workdir", str(workdir), "--dry-run"]) == 0
-    assert capsys.readouterr().out.startswith("225 run(s) of")
+    # --dry-run makes the same checks: the size, then (with --allow-large) the configs.
+    capsys.readouterr()
+    assert main(["sweep", str(sweep), "--workdir", str(workdir), "--dry-run"]) == 2
+    assert f"has 225 runs, more than {MAX_RUNS}" in capsys.readouterr().err
+    assert main(["sweep", str(sweep), "--workdir", str(workdir), "--dry-run",
+                 "--allow-large"]) == 2
+    assert "optim.steps" in capsys.readouterr().err and not workdir.exists()
 
 
 @pytest.fixture(scope="module")
