@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxden.data.merge import combine_buffers  # noqa: F401  (the sure package's API)
 from jaxden.errors import FrameError
 from jaxden.frame import Frame, NonFinitePolicy
 from jaxden.sure.stein import SureResult, _check_output, _checked_frame, sure_from_parts
@@ -41,57 +42,6 @@ from jaxden.sure.stein import SureResult, _check_output, _checked_frame, sure_fr
 # K + 1 denoiser calls, and a renderer that keeps sub-buffers (or K renders with different
 # seeds at N / K spp each). For the identity it equals the batch-means variance estimate
 # sum_k (x_k - x)^2 / (K (K - 1)) exactly.
-
-
-def combine_buffers(buffers) -> Frame:
-    """One frame from K equal-spp sub-buffer frames of the same image (independent samples).
-
-    Colour: the mean of the buffers' colours. Variance of the mean: the pooled sample variance
-    of all K * m samples over K * m, from each buffer's variance of its mean (m samples each;
-    the frames must have ``spp``) and the spread of the buffer means, exactly as if one
-    render had taken all the samples; the covariance between channels likewise when every
-    buffer has one (else none). Features (albedo, normal, ...): the mean over the
-    buffers (per-sample averages, as one render of all samples gives them; a present feature
-    must be present in every buffer). Returns float64 NumPy arrays.
-    """
-    frames = [b.numpy() if isinstance(b, Frame) else b for b in buffers]
-    if len(frames) < 2 or not all(isinstance(f, Frame) for f in frames):
-        raise FrameError(f"combine_buffers: need at least 2 Frames, got {len(frames)}")
-    spps = [None if f.spp is None else np.unique(np.asarray(f.spp)) for f in frames]
-    if any(s is None or s.size != 1 for s in spps) or len({float(s[0]) for s in spps}) != 1:
-        raise FrameError(f"combine_buffers: buffers need one common spp, got "
-                         f"{[None if s is None else s.tolist() for s in spps]}")
-    m = int(spps[0][0])
-    if m < 2:
-        raise FrameError(f"combine_buffers: each buffer needs >= 2 spp for a variance, got {m}")
-    for i, f in enumerate(frames):
-        if f.variance is None:
-            raise FrameError(f"combine_buffers: buffer {i} has no variance")
-        if np.shape(f.color) != np.shape(frames[0].color):
-            raise FrameError(f"combine_buffers: buffer {i} has shape {np.shape(f.color)}, "
-                             f"buffer 0 {np.shape(frames[0].color)}")
-    k = len(frames)
-    means = np.stack([np.asarray(f.color, np.float64) for f in frames])
-    var_means = np.stack([np.asarray(f.variance, np.float64) for f in frames])
-    mean = means.mean(axis=0)
-    squares = (var_means * m * (m - 1)).sum(axis=0) + m * np.square(means - mean).sum(axis=0)
-    n = k * m
-    features = {}
-    if all(f.covariance is not None for f in frames):  # the same pooling, per channel pair
-        means_next = np.roll(means, -1, axis=-1)
-        cross = (np.stack([np.asarray(f.covariance, np.float64) for f in frames]).sum(axis=0)
-                 * m * (m - 1)
-                 + m * ((means - mean) * (means_next - np.roll(mean, -1, axis=-1))).sum(axis=0))
-        features["covariance"] = cross / (k * m - 1) / (k * m)
-    for name in frames[0].features():
-        if name in ("color", "variance", "covariance"):
-            continue
-        if any(getattr(f, name) is None for f in frames):
-            raise FrameError(f"combine_buffers: {name} is in buffer 0 but not in every buffer")
-        features[name] = np.mean([np.asarray(getattr(f, name), np.float64) for f in frames],
-                                 axis=0)
-    return frames[0].replace(color=mean, variance=squares / (n - 1) / n, **features,
-                             spp=np.full(np.shape(frames[0].spp), n, np.float32))
 
 
 def merge_buffer_pairs(buffers) -> np.ndarray:
