@@ -2,7 +2,7 @@
 
     python experiments/bench_guard_device.py save-frame --out bench-frame.npz      # here (Mitsuba)
     python experiments/bench_guard_device.py time --frame bench-frame.npz \
-        --check experiments/results/bench-guard-cpu.json --out RESULT                # anywhere
+        --check experiments/results/bench/bench-guard-cpu.json --out RESULT          # anywhere
 
 ``save-frame`` renders the benchmarks' frame (the Cornell box at 4 spp, seed 1, 1280 x 720,
 jaxden.bench.bench_frame) and stores its fields as float16 arrays (the GPU machine has no

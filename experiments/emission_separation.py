@@ -1,6 +1,6 @@
 """Does keeping the emission out of the filter stop a denoiser's lamp bleed?
 
-    python experiments/emission_separation.py --out experiments/results/emission-separation
+    python experiments/emission_separation.py --out experiments/results/rt/emission-separation
 
 Renders the built-in scene ``small-lights`` (four tiny, very bright sphere lamps in a dark
 room) at 96 x 96 as ``jaxden render small-lights --size 96x96 --seed 1801 --spp S`` does, for
@@ -136,7 +136,7 @@ def main(argv=None) -> int:
     parser.add_argument("--frames", type=Path, default=None,
                         help="keep the renders here (EXR) and reuse them on a rerun")
     parser.add_argument("--out", type=Path,
-                        default=REPO / "experiments" / "results" / "emission-separation",
+                        default=REPO / "experiments" / "results" / "rt" / "emission-separation",
                         help="OUT.md and OUT.json")
     args = parser.parse_args(argv)
     models = args.model or ["wskp-6"]

@@ -4,7 +4,7 @@
     python experiments/emitter_bleed.py --demo /tmp/demo-quick \\
         --model wskp-6 --model $JAXDEN_HOME/runs/sweeps/rt-main/kp-s0 \\
         --model $JAXDEN_HOME/runs/sweeps/rt-variants/wskp6_id \\
-        --out experiments/results/rt-emitter-bleed.md
+        --out experiments/results/rt/rt-emitter-bleed.md
 
 For each spp level of the demo's first scene and each model (a shipped name or a run folder),
 denoises the demo's frame, and reports its relMSE against the demo's reference, the share of

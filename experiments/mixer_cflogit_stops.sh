@@ -6,14 +6,14 @@
 # training set estimated, on the 2-core project CPU), OIDN's SURE
 # cache, the training ($JAXDEN_HOME/runs/mixer-oidn-cflogit-stops1, ~30 min), then the PD
 # table with the retrained mixer as an extra row (experiments/pd_tables.sh: every row on the
-# same build, experiments/results/pd-oidn-{test,test-high}-retrained-stops1.*).
+# same build, experiments/results/pd/pd-oidn-{test,test-high}-retrained-stops1.*).
 # Every step resumes; run it again after an interruption.
 #   experiments/mixer_cflogit_stops.sh
 # To ship the result if it beats the shipped mixer on both sets (see experiments/README.md):
 #   python experiments/ship_mixer.py --workdir "$JAXDEN_HOME/runs/mixer-oidn-cflogit-stops1" \
 #     --name oidn-pd --swap-average --config experiments/configs/mixer-oidn-cflogit-stops.toml \
-#     --report experiments/results/pd-oidn-test-retrained-stops1.json \
-#     --report experiments/results/pd-oidn-test-high-retrained-stops1.json
+#     --report experiments/results/pd/pd-oidn-test-retrained-stops1.json \
+#     --report experiments/results/pd/pd-oidn-test-high-retrained-stops1.json
 set -euo pipefail
 cd "$(dirname "$0")/.."
 H="${JAXDEN_HOME:-$HOME/jaxden-work}"

@@ -1,7 +1,7 @@
 """OIDN in JAX against pyoidn: relative RMSE of the output, per filter configuration, quality and
 frame size, on rendered frames.
 
-    python experiments/oidn_jax_closeness.py --out experiments/results/oidn-jax-closeness
+    python experiments/oidn_jax_closeness.py --out experiments/results/oidn/oidn-jax-closeness
 
 Frames: the built-in Cornell box rendered by jaxden at 4 spp (seed 3) at odd sizes and one
 HD size, with its albedo and normal. For each of OIDN's HDR configurations (colour; +albedo;

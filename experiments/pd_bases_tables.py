@@ -1,7 +1,7 @@
 """The progressive-denoising paper's Tables 1, 2 and 4 and its convergence plots on jaxden's
 data, from the PD-bases sweeps' results.
 
-    python experiments/pd_bases_tables.py [--home $JAXDEN_HOME] [--out experiments/results]
+    python experiments/pd_bases_tables.py [--home $JAXDEN_HOME] [--out experiments/results/pd]
 
 Reads ``runs/sweeps/pd-mixers/*/result.json`` under ``$JAXDEN_HOME`` (whatever runs have
 finished; missing ones are listed as such): one mixer per base of
@@ -308,7 +308,7 @@ def main(argv=None) -> int:
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--home", type=Path, default=None, help="default $JAXDEN_HOME")
-    parser.add_argument("--out", type=Path, default=REPO / "experiments" / "results")
+    parser.add_argument("--out", type=Path, default=REPO / "experiments" / "results" / "pd")
     args = parser.parse_args(argv)
     home = args.home or jaxden_home()
     results = load_results(home)

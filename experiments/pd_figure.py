@@ -3,18 +3,18 @@ and a progressive image series.
 
     # error vs spp (log-log), mean over the test crops, from `jaxden evaluate pd`'s JSON (no rendering)
     python experiments/pd_figure.py convergence \
-        --report experiments/results/pd-oidn-test-high-shipped.json \
-        --out experiments/results/fig10-convergence-high
+        --report experiments/results/pd/pd-oidn-test-high-shipped.json \
+        --out experiments/results/pd/fig10-convergence-high
     # one held-out crop at several spp: MC | OIDN | PD(OIDN) | alpha' | reference (sRGB previews)
     python experiments/pd_figure.py images --data $JAXDEN_HOME/data/test-high-chain \
-        --crop s002-c000 --spp 64 512 4096 --out experiments/results/fig10-s002
+        --crop s002-c000 --spp 64 512 4096 --out experiments/results/pd/fig10-s002
     # the same over another base denoiser and its mixer: MC | WSKP-6 | PD(WSKP-6) | ...
     python experiments/pd_figure.py images --data DIR --crop ID --spp 64 512 \
         --denoiser wskp-6 --mixer wskp-6-pd --probes 1 --out OUT
 
     # the paper's Figure 2: SURE and the input's variance against the true errors, per spp
-    python experiments/pd_figure.py sure --report experiments/results/sure-fig2.json \
-        --out experiments/results/fig2-sure
+    python experiments/pd_figure.py sure --report experiments/results/sure/sure-fig2.json \
+        --out experiments/results/sure/fig2-sure
 
 The base denoiser is named as the mixers' model cards name it (``jaxden.evaluate.denoiser_label``):
 OIDN for ``oidn``, WSKP-6 for ``wskp-6``, a checkpoint by its folder's name; ``convergence``

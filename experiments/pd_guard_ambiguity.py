@@ -2,7 +2,7 @@
 local statistics say the same thing while their truths are opposite.
 
     python experiments/pd_guard_ambiguity.py --data $JAXDEN_HOME/data/stress --denoiser oidn \
-        --spp 4 8 16 --out experiments/results/pd-guard-ambiguity
+        --spp 4 8 16 --out experiments/results/pd/pd-guard-ambiguity
 
 A progressive-denoising mixer (and the error guard after it) sees, per pixel, x, its variance,
 the denoised y and their neighbourhoods. Take the pixels where those disagree most sharply:

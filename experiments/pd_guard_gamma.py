@@ -2,7 +2,7 @@
 buys at the top spp and costs below it.
 
     python experiments/pd_guard_gamma.py --data $JAXDEN_HOME/data/stress --denoiser oidn \
-        --gamma 2 1.5 1 --out experiments/results/pd-guard-gamma-oidn-stress
+        --gamma 2 1.5 1 --out experiments/results/pd/pd-guard-gamma-oidn-stress
 
 The guard caps the mix weight at ``gamma var / E[(y - x)^2]`` (jaxden.progressive.guard):
 gamma = 2 is where the mix breaks even with x in expectation, gamma = 1 the squared-error

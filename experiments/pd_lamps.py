@@ -2,7 +2,7 @@
 small-lights scene (whole frame, lamps included), with the error guard and without it (the
 paper's t-statistic scaling alone), and what the t-test sees on the lamp pixels.
 
-    python experiments/pd_lamps.py --out experiments/results/pd-small-lights
+    python experiments/pd_lamps.py --out experiments/results/pd/pd-small-lights
 
 Renders small-lights at 96 x 96 (seed 1801) at each --spp and an 8192-spp reference (seed 999)
 into --work (reused when there), then per mixer and spp: the noise-corrected MSE, RMSE,

@@ -3,9 +3,9 @@ PD result (``jaxden evaluate pd``), made for the out-of-distribution set.
 
     jaxden evaluate pd --data $JAXDEN_HOME/data/ood --denoiser oidn \\
         --mixer oidn-pd --mixer-set closed_form_stops=1 --spp 16 32 64 128 256 512 1024 \\
-        --out experiments/results/pd-oidn-ood-shipped
-    python experiments/pd_ood.py experiments/results/pd-oidn-ood-shipped.json \\
-        --out experiments/results/pd-oidn-ood-diagnosis
+        --out experiments/results/pd/pd-oidn-ood-shipped
+    python experiments/pd_ood.py experiments/results/pd/pd-oidn-ood-shipped.json \\
+        --out experiments/results/pd/pd-oidn-ood-diagnosis
 
 For every scene and spp: PD / den in RMSE and relMSE (the bound: no worse than 1.01), and the
 quantities that say why: the 8x8-tile oracle's gain over den (how much there was to win), the

@@ -2,7 +2,7 @@
 # Progressive denoising on the stress set (dataset-stress.toml: full frames with lamps of 1-3 px,
 # their glossy reflections, glints and caustics) and its promise checked image by image:
 #   experiments/pd_stress.sh
-# Results (experiments/results/pd-stress-ROW), each with MC, the denoiser and the 8 x 8 oracle:
+# Results (experiments/results/pd/pd-stress-ROW), each with MC, the denoiser and the 8 x 8 oracle:
 #   oidn-pd               the shipped oidn-pd (OIDN with the specular-chain features)
 #   oidn-pd-t-test-only   the same with the paper's t-test alone (tstat.guard=false)
 #   wskp6-pd              the shipped wskp-6-pd, on the set's first-hit refeature (what WSKP-6
@@ -11,7 +11,7 @@
 #   wskp6-closed-form     Eq. 9 alone over WSKP-6 (no network; per-channel t, one probe)
 #   oidn-pd-strata, wskp6-pd-strata   the shipped mixers with the guard's noise strata on
 #                         (tstat.guard_strata=1, an option; jaxden/progressive/guard.py)
-# then experiments/results/pd-targets over them, the pd-test-high reports of wskp-6-pd and
+# then experiments/results/pd/pd-targets over them, the pd-test-high reports of wskp-6-pd and
 # oidn-pd's report on test (experiments/pd_tables.sh).
 # A result already made on the same build with the same options is kept (--keep-current).
 # Data: $JAXDEN_HOME/data/stress (experiments/queue.sh); the first-hit refeature is made here.
@@ -19,7 +19,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 H="${JAXDEN_HOME:-$HOME/jaxden-work}"
 python=${PYTHON:-.venv/bin/python}
-R=experiments/results
+R=experiments/results/pd
 [ -f "$H/data/stress/manifest.json" ] || { echo "pd_stress: no dataset at $H/data/stress" >&2; exit 2; }
 if [ ! -f "$H/data/stress-first-hit/manifest.json" ]; then
   "$python" -m jaxden.cli dataset refeature "$H/data/stress" aux=first-hit feature_spp=16 \

@@ -5,7 +5,7 @@
 # the model card of oidn-pd, which quotes the two held-out reports:
 #   experiments/pd_tables.sh [NAME MIXER]
 # Rows, each one `jaxden evaluate pd` result per set
-# (experiments/results/pd-oidn-{test,test-high}-ROW):
+# (experiments/results/pd/pd-oidn-{test,test-high}-ROW):
 #   shipped              the shipped mixer oidn-pd as shipped
 #   shipped-stops-none   the same weights on the plain closed form (closed_form_stops=none)
 #   closed-form-stops1   the closed-form mixer with brightness strata, no network
@@ -50,7 +50,7 @@ report() {  # report DATA OUT ARGS...: jaxden evaluate pd unless OUT is current
 for set in test test-high; do
   data="$H/data/$set-chain"
   [ -f "$data/manifest.json" ] || { echo "pd_tables: no dataset at $data" >&2; exit 2; }
-  out=experiments/results/pd-oidn-$set
+  out=experiments/results/pd/pd-oidn-$set
   report "$data" "$out-shipped" --mixer oidn-pd
   report "$data" "$out-shipped-stops-none" --mixer oidn-pd --mixer-set closed_form_stops=none
   report "$data" "$out-closed-form-stops1" --mixer closed-form:stops=1
@@ -63,23 +63,25 @@ done
 for set in ood ood-first-hit; do
   data="$H/data/$set"
   [ -f "$data/manifest.json" ] || { echo "pd_tables: no dataset at $data" >&2; exit 2; }
-  report "$data" "experiments/results/pd-oidn-$set-shipped" --mixer oidn-pd \
+  report "$data" "experiments/results/pd/pd-oidn-$set-shipped" --mixer oidn-pd \
     --spp 16 32 64 128 256 512 1024
-  "$python" experiments/pd_ood.py "experiments/results/pd-oidn-$set-shipped.json" \
-    --out "experiments/results/pd-oidn-$set-diagnosis"
+  "$python" experiments/pd_ood.py "experiments/results/pd/pd-oidn-$set-shipped.json" \
+    --out "experiments/results/pd/pd-oidn-$set-diagnosis"
 done
 
 "$python" experiments/ship_mixer.py --reship oidn-pd \
-  --report experiments/results/pd-oidn-test-shipped.json \
-  --report experiments/results/pd-oidn-test-high-shipped.json
+  --report experiments/results/pd/pd-oidn-test-shipped.json \
+  --report experiments/results/pd/pd-oidn-test-high-shipped.json
 
-"$python" experiments/pd_figure.py convergence --report experiments/results/pd-oidn-test-high-shipped.json \
+"$python" experiments/pd_figure.py convergence \
+  --report experiments/results/pd/pd-oidn-test-high-shipped.json \
   --title "test-high (32..4096 spp, 16384-spp references): mean over 8 held-out crops" \
-  --out experiments/results/fig10-convergence-high
-"$python" experiments/pd_figure.py convergence --report experiments/results/pd-oidn-test-shipped.json \
+  --out experiments/results/pd/fig10-convergence-high
+"$python" experiments/pd_figure.py convergence \
+  --report experiments/results/pd/pd-oidn-test-shipped.json \
   --title "test (2..1024 spp, 4096-spp references): mean over 8 held-out crops" \
-  --out experiments/results/fig10-convergence
-if ! current experiments/results/fig10-s002 "$H/data/test-high-chain"; then
+  --out experiments/results/pd/fig10-convergence
+if ! current experiments/results/pd/fig10-s002 "$H/data/test-high-chain"; then
   "$python" experiments/pd_figure.py images --data "$H/data/test-high-chain" --crop s002-c000 \
-    --spp 64 512 4096 --out experiments/results/fig10-s002
+    --spp 64 512 4096 --out experiments/results/pd/fig10-s002
 fi

@@ -2,8 +2,8 @@
 (jaxden evaluate pd ... --out X): at the top spp PD is at or below MC, and at every
 spp PD is at most a factor above the better of MC and its denoiser.
 
-    python experiments/pd_targets.py experiments/results/pd-stress-oidn.json ... \
-        --out experiments/results/pd-targets
+    python experiments/pd_targets.py experiments/results/pd/pd-stress-oidn.json ... \
+        --out experiments/results/pd/pd-targets
 
 Per report and image (a crop of the test set; on the stress set a whole frame):
 - top spp: PD's noise-corrected MSE against MC's, passing when PD <= MC + the noise margin of

@@ -13,10 +13,10 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 H="${JAXDEN_HOME:-$HOME/jaxden-work}"
 python=${PYTHON:-.venv/bin/python}
-R=experiments/results
+R=experiments/results/pd
 # Shipped with the paper's per-channel t-statistic (the authors' code sums the channels): on
 # the out-of-distribution scenes the shared form made every PD(OIDN) cell that broke the 1 %
-# bound (experiments/results/pd-oidn-ood-diagnosis.md), and for WSKP-6 the per-channel form
+# bound (experiments/results/pd/pd-oidn-ood-diagnosis.md), and for WSKP-6 the per-channel form
 # is as good or better at every spp there (both rows are in every report).
 ship=("$python" experiments/ship_mixer.py --workdir "$H/runs/mixer-wskp6-4k" --name wskp-6-pd
       --config experiments/configs/mixer-wskp6.toml --set tstat.per_channel=true)

@@ -85,7 +85,7 @@ for run in unet-hdr-alb-nrm-var t4-full t4-no-sure t4-no-f_act; do
 done
 for base in unet-hdr-alb-nrm kp5 wskp6; do base_steps "$base"; done
 # The sweeps' summaries (every run is finished by now) and SURE by jvp against the true error
-# of every JAX base (into the checkout's experiments/results: commit it), SURE from the
+# of every JAX base (into the checkout's experiments/results/sure: commit it), SURE from the
 # covariance and the paper's per-channel form.
 step sweep-pd-bases "${X[@]}" $J sweep experiments/sweeps/pd-bases.toml --workdir "$B"
 step sweep-pd-mixers-cov "${X[@]}" $J sweep experiments/sweeps/pd-mixers-cov.toml \
@@ -94,7 +94,7 @@ step sure-pd-bases .venv/bin/python -m jaxden.cli evaluate sure \
   --data "$H/data/pd-test-high" --denoiser wskp-6 --denoiser "$B/unet-hdr" \
   --denoiser "$B/unet-hdr-var" --denoiser "$B/unet-hdr-alb-nrm" \
   --denoiser "$B/unet-hdr-alb-nrm-var" --denoiser "$B/kp5" --denoiser "$B/wskp6" \
-  --out experiments/results/sure-pd-bases
+  --out experiments/results/sure/sure-pd-bases
 # The paper's per-channel SURE mixers (pd-mixers.toml: Tables 1, 2 and 4).
 step sweep-pd-mixers "${X[@]}" $J sweep experiments/sweeps/pd-mixers.toml \
   --workdir "$H/runs/sweeps/pd-mixers"

@@ -6,7 +6,7 @@
         --model $JAXDEN_HOME/runs/sweeps/rt-main/kp-s0 \\
         --model $JAXDEN_HOME/runs/sweeps/rt-main/kp-s1 \\
         --model $JAXDEN_HOME/runs/sweeps/rt-variants/kp1 \\
-        --out experiments/results/rt-relmse-crops.md
+        --out experiments/results/rt/rt-relmse-crops.md
 
 relMSE is a mean of per-pixel ratios ``(x - r)^2 / (r^2 + 0.01)`` (linear HDR, as the sweep
 evaluation), so one crop with a bright value spread over dark pixels can rule the mean over

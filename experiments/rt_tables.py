@@ -1,11 +1,11 @@
 """The WSKP paper's tables on jaxden's data, from the real-time sweeps' results.
 
-    python experiments/rt_tables.py [--home $JAXDEN_HOME] [--out experiments/results]
+    python experiments/rt_tables.py [--home $JAXDEN_HOME] [--out experiments/results/rt]
 
 Reads ``runs/sweeps/{rt-main,rt-variants,rt-ablation,rt-noise2noise}/*/result.json`` under
 ``$JAXDEN_HOME`` (whatever runs have finished; missing ones are listed as such), scores the
 noisy input and OIDN on the same held-out data (``data/rt-test`` at 1 spp, ``data/rt-seq``),
-reads the inference-time ratios of ``experiments/results/bench-denoisers.json`` and writes:
+reads the inference-time ratios of ``experiments/results/bench/bench-denoisers.json`` and writes:
 
 - ``rt-table1.md`` / ``.json``: Tables 1/6: PSNR / SSIM (tone-mapped), relMSE / FLIP (linear
   HDR) of every model, OIDN and the input, mean ± standard deviation over seeds, per frame and
@@ -156,7 +156,7 @@ def main(argv=None) -> int:
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--home", default=os.environ.get("JAXDEN_HOME", "~/jaxden-work"))
-    parser.add_argument("--out", default=str(REPO / "experiments" / "results"))
+    parser.add_argument("--out", default=str(REPO / "experiments" / "results" / "rt"))
     args = parser.parse_args(argv)
     home = Path(args.home).expanduser()
     out = Path(args.out)
@@ -183,7 +183,7 @@ def main(argv=None) -> int:
 
     wskp = stats(models.get("wskp", []), "den", "den").get("psnr")
     kp = stats(models.get("kp", []), "den", "den").get("psnr")
-    bench_path = REPO / "experiments" / "results" / "bench-denoisers.json"
+    bench_path = REPO / "experiments" / "results" / "bench" / "bench-denoisers.json"
     bench = json.loads(bench_path.read_text()) if bench_path.is_file() else {}
     targets = ["## Targets", ""]
     if wskp and kp:

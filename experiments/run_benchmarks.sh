@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Runs every benchmark (or those named) and stores each one's JSON result, with the machine it
-# ran on, in experiments/results/bench-NAME.json (bench-NAME$BENCH_SUFFIX.json when BENCH_SUFFIX
-# is set, e.g. -h100 on a GPU machine). Run on an otherwise idle machine:
+# ran on, in experiments/results/bench/bench-NAME.json (bench-NAME$BENCH_SUFFIX.json when
+# BENCH_SUFFIX is set, e.g. -h100 on a GPU machine). Run on an otherwise idle machine:
 #   experiments/run_benchmarks.sh [render decoder denoisers sharding sure progressive]
 # Without Mitsuba (a GPU machine), JAXDEN_BENCH_FRAME=FRAME.exr gives the benchmarks their frame
 # (see jaxden.bench.bench_frame); it is recorded in the command.
@@ -12,7 +12,7 @@ python=${PYTHON:-.venv/bin/python}
 suffix=${BENCH_SUFFIX:-}
 names=("$@")
 [ ${#names[@]} -gt 0 ] || names=(render decoder denoisers sharding sure progressive)
-mkdir -p experiments/results
+mkdir -p experiments/results/bench
 for name in "${names[@]}"; do
   echo "== jaxden bench $name --json"
   log=$(mktemp)
@@ -30,7 +30,7 @@ result["_provenance"] = {
     "machine": machine(),
     "load_average_1min_after": os.getloadavg()[0],
 }
-with open(f"experiments/results/bench-{name}{suffix}.json", "w") as handle:
+with open(f"experiments/results/bench/bench-{name}{suffix}.json", "w") as handle:
     json.dump(result, handle, indent=2, sort_keys=True)
     handle.write("\n")
 PY

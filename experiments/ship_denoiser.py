@@ -134,7 +134,7 @@ def ship(workdir: Path, name: str, sweep_file: str | None) -> Path:
         f"Final training metrics: {', '.join(f'{k} {v:.5g}' for k, v in train.items() if isinstance(v, float))}.",
         "",
         "**Limits**: trained at a far smaller scale than the paper (steps, crop size, data; "
-        "see experiments/results/rt-table1.md); scenes unlike jaxden's procedural ones may "
+        "see experiments/results/rt/rt-table1.md); scenes unlike jaxden's procedural ones may "
         "denoise worse. " + bleed + "It is a 1-spp denoiser: its error "
         "stops falling as the spp grow (progressive denoising is the remedy). Shipped at "
         "commit "

@@ -3,8 +3,8 @@ model card (NAME.md) from the training run and, when given, the PD report on the
 
     python experiments/ship_mixer.py --workdir runs/mixer-oidn --name oidn-pd [--swap-average] \
         [--config experiments/configs/mixer-oidn.toml] \
-        [--report experiments/results/pd-oidn-test-shipped.json \
-         --report experiments/results/pd-oidn-test-high-shipped.json]
+        [--report experiments/results/pd/pd-oidn-test-shipped.json \
+         --report experiments/results/pd/pd-oidn-test-high-shipped.json]
 
 The card describes the mixer's base denoiser, ``MixerConfig.denoiser``: OIDN (``oidn``), weights
 shipped in the package (``wskp-6``) or a checkpoint folder; its name, the EXR channels it reads,

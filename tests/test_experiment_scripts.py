@@ -250,13 +250,16 @@ def test_pd_tables_keeps_reports_of_the_same_build_only(tmp_path):
 
 
 def test_every_result_file_is_listed_in_the_experiments_readme():
-    """experiments/results/ keeps only current files, each named in experiments/README.md with
-    the command that regenerates it; every script in experiments/ is listed there too."""
+    """experiments/results/ keeps only current files, grouped in one sub-folder per family, each
+    named in experiments/README.md with its folder (FOLDER/STEM) and the command that
+    regenerates it; every script in experiments/ is listed there too."""
     root = Path(__file__).parent.parent / "experiments"
     index = (root / "README.md").read_text()
-    results = sorted(p for p in (root / "results").iterdir() if p.is_file())
+    results = sorted(p for p in (root / "results").rglob("*") if p.is_file())
     assert results
-    assert [p.name for p in results if p.stem not in index] == []
+    assert [p.name for p in results if p.parent == root / "results"] == []  # none left loose
+    named = [p.relative_to(root / "results").parent / p.name.split(".")[0] for p in results]
+    assert [str(n) for n in named if n.as_posix() not in index] == []
     scripts = sorted(p.name for p in root.iterdir() if p.suffix in (".py", ".sh"))
     assert [name for name in scripts if name not in index] == []
 

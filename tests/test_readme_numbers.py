@@ -243,7 +243,8 @@ def check(text: str | None = None) -> list[str]:
             value = get(cache[file])
             decimals = len(number.split(".")[1]) if "." in number else 0
             if f"{value:.{decimals}f}" != number:
-                problems.append(f"{where}: README says {number}, experiments/results/{file} "
+                problems.append(f"{where}: README says {number}, "
+                                f"{result_file(file).relative_to(ROOT).as_posix()} "
                                 f"{get.path} = {value:.6g} ({value:.{decimals}f})")
     return problems
 

@@ -2,7 +2,7 @@
 of K renders each (all seeds distinct), against the empirical variance of the R merged means.
 
     python experiments/renderers/cycles_calibration.py --blender-python $BPY/bin/python \
-        --out experiments/results/cycles-merge-calibration
+        --out experiments/results/renderers/cycles-merge-calibration
 
 Renders (cached in --work) are made by experiments/renderers/cycles_render.py in Blender's own
 Python (``pip install bpy`` in a venv of its own); everything else runs in jaxden's. Per pixel:

@@ -3,7 +3,7 @@ would type: `jaxden merge --from cycles`, then `jaxden denoise` and `jaxden prog
 merged frame, against a 4096-spp reference merged the same way.
 
     python experiments/renderers/cycles_pd.py --blender-python $BPY/bin/python \
-        --out experiments/results/cycles-pd
+        --out experiments/results/renderers/cycles-pd
 
 Renders (experiments/renderers/cycles_render.py in Blender's own Python; cached in --work):
 for each level, K renders of spp / K samples with distinct seeds; the reference is K renders

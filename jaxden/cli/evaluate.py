@@ -13,16 +13,16 @@ and config, seeds, weights hashes) and OUT.md (the tables). Examples:
 
   # the paper's Table 3 / Fig. 10 on our data: MC, OIDN, PD(OIDN) per spp
   jaxden evaluate pd --data $JAXDEN_HOME/data/test-chain --denoiser oidn --mixer oidn-pd \\
-      --out experiments/results/pd-oidn-test-shipped
+      --out experiments/results/pd/pd-oidn-test-shipped
   # SURE accuracy: image-mean SURE vs noise-corrected true MSE, per denoiser and spp
   jaxden evaluate sure --data $JAXDEN_HOME/data/test-chain --denoiser oidn \\
-      --denoiser wskp-6 --out experiments/results/sure-fig2
+      --denoiser wskp-6 --out experiments/results/sure/sure-fig2
   # the same on fresh renders made of 16 sub-buffers: Stein SURE vs sub-buffer SURE
   jaxden evaluate sure-buffers --data $JAXDEN_HOME/data/test-high --denoiser oidn \\
       --buffers 16 --spp 64 128 256 512 1024 --out OUT
   # the tile oracle cross-fitted on an independent render, beside a PD result
   jaxden evaluate oracle --data $JAXDEN_HOME/data/test-chain \\
-      --report experiments/results/pd-oidn-test-shipped.json --out OUT
+      --report experiments/results/pd/pd-oidn-test-shipped.json --out OUT
   # a denoiser's PSNR / SSIM / relMSE / FLIP at 1 spp, or per frame of sequences
   jaxden evaluate denoise --data $JAXDEN_HOME/data/rt-test --denoiser wskp-6 --out OUT
   jaxden evaluate sequences --data $JAXDEN_HOME/data/rt-seq --denoiser wskp-6 --out OUT

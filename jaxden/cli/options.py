@@ -118,7 +118,7 @@ def channel_map(args: argparse.Namespace) -> dict[str, tuple[str, ...]] | None:
 def feature_notice(frame, denoiser, path) -> None:
     """On stderr: OIDN is about to run without albedo or normal. On jaxden's test crops that
     raises its error by 4 % (RMSE) and 13 % (relMSE) on average over 2..1024 spp, up to 10 % and
-    25 % at 16-64 spp (experiments/results/oidn-no-features.md), and a mixer trained on OIDN
+    25 % at 16-64 spp (experiments/results/oidn/oidn-no-features.md), and a mixer trained on OIDN
     with features then sees inputs unlike its training data."""
     if denoiser.name.partition("+")[0] != "oidn":  # also oidn+emission-separate
         return
