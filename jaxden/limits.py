@@ -34,23 +34,30 @@ def physical_memory() -> int:
         return 0
 
 
+def parse_bytes(text: str, what: str = ENV_LIMIT) -> int:
+    """A byte count such as ``8G``, ``512M`` or ``1000000`` (K/M/G: binary units)."""
+    text = text.strip()
+    scale = {"k": 1 << 10, "m": 1 << 20, "g": 1 << 30}.get(text[-1:].lower(), 1)
+    digits = text[:-1] if scale > 1 else text
+    try:
+        value = int(float(digits) * scale)
+    except ValueError:
+        raise JaxdenError(f"{what}={text!r}: expected a byte count such as 8G") from None
+    if value <= 0:
+        raise JaxdenError(f"{what}={text!r}: expected a positive byte count such as 8G")
+    return value
+
+
 def memory_limit() -> int:
     """The byte budget of one image request (see the module docstring)."""
     text = os.environ.get(ENV_LIMIT, "").strip()
     if text:
-        scale = {"k": 1 << 10, "m": 1 << 20, "g": 1 << 30}.get(text[-1].lower(), 1)
-        digits = text[:-1] if scale > 1 else text
-        try:
-            value = int(float(digits) * scale)
-        except ValueError:
-            raise JaxdenError(f"{ENV_LIMIT}={text!r}: expected a byte count such as 8G") from None
-        if value > 0:
-            return value
+        return parse_bytes(text)
     memory = physical_memory()
     return memory // 2 if memory else 8 << 30
 
 
-def _bytes(count: float) -> str:
+def format_bytes(count: float) -> str:
     for unit, size in (("GiB", 1 << 30), ("MiB", 1 << 20), ("KiB", 1 << 10)):
         if count >= size:
             return f"{count / size:.1f} {unit}"
@@ -64,8 +71,8 @@ def check_budget(needed: float, what: str, error=JaxdenError) -> None:
     if needed > limit:
         source = (f"set by {ENV_LIMIT}" if os.environ.get(ENV_LIMIT, "").strip()
                   else f"half its memory; set {ENV_LIMIT} to change it")
-        raise error(f"{what} would need about {_bytes(needed)}, more than this machine allows "
-                    f"for one image ({_bytes(limit)}: {source})")
+        raise error(f"{what} would need about {format_bytes(needed)}, more than this machine "
+                    f"allows for one image ({format_bytes(limit)}: {source})")
 
 
 def check_render_size(width: int, height: int, what: str, error=JaxdenError) -> None:

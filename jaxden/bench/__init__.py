@@ -5,6 +5,11 @@ any module of this package (modules are discovered and imported on first use). I
 at least one ratio key (e.g. ``"ratio"``: jaxden's time / the peer's time) and any times or
 settings worth printing. :func:`run` prints a readable table and, with ``as_json``, one JSON
 object on the last line (for scripts and CI).
+
+A benchmark may also measure whole frames of given sizes (``jaxden bench NAME --size
+WxH[,WxH...]``): ``fn(quick, sizes) -> dict`` registered with ``@register_sizes("name")``
+under a name that ``@register`` also has (:mod:`jaxden.bench.frames`); ``run(name,
+sizes=[...])`` runs it instead, and refuses a name without one.
 """
 
 from __future__ import annotations
@@ -17,7 +22,10 @@ from collections.abc import Callable
 from jaxden.errors import JaxdenError
 
 BenchFn = Callable[[bool], dict]
+SizedBenchFn = Callable[[bool, list[tuple[int, int]]], dict]
 _REGISTRY: dict[str, BenchFn] = {}
+#: name -> (fn(quick, sizes), table(result) -> lines or None): the frame-size benchmarks.
+_SIZED: dict[str, tuple[SizedBenchFn, Callable[[dict], list[str]] | None]] = {}
 _discovered = False
 
 
@@ -28,6 +36,21 @@ def register(name: str) -> Callable[[BenchFn], BenchFn]:
         if name in _REGISTRY and _REGISTRY[name] is not fn:
             raise ValueError(f"benchmark {name!r} is registered twice")
         _REGISTRY[name] = fn
+        return fn
+
+    return decorate
+
+
+def register_sizes(name: str, table: Callable[[dict], list[str]] | None = None
+                   ) -> Callable[[SizedBenchFn], SizedBenchFn]:
+    """Decorator: register ``fn(quick: bool, sizes: list[(width, height)]) -> dict`` as the
+    frame-size form of benchmark ``name`` (``jaxden bench NAME --size ...``); ``table(result)``
+    gives the lines printed instead of the default key / value listing."""
+
+    def decorate(fn: SizedBenchFn) -> SizedBenchFn:
+        if name in _SIZED and _SIZED[name][0] is not fn:
+            raise ValueError(f"benchmark {name!r} with sizes is registered twice")
+        _SIZED[name] = (fn, table)
         return fn
 
     return decorate
@@ -100,21 +123,45 @@ def _format(value) -> str:
     return str(value)
 
 
-def run(name: str, as_json: bool = False, quick: bool = False) -> dict:
+def sized_names() -> list[str]:
+    """Names of the benchmarks that take sizes (``--size``), sorted."""
+    _discover()
+    return sorted(_SIZED)
+
+
+def run(name: str, as_json: bool = False, quick: bool = False,
+        sizes: list[tuple[int, int]] | None = None) -> dict:
     """Run benchmark ``name``, print a table (and a JSON line if ``as_json``), return its dict.
 
-    ``quick`` asks the benchmark for a smaller problem (for smoke tests). Raises JaxdenError
-    for an unknown name, listing the valid ones.
+    ``quick`` asks the benchmark for a smaller problem (for smoke tests). ``sizes``, a list of
+    (width, height), runs its frame-size form instead (:func:`register_sizes`). Raises
+    JaxdenError for an unknown name, listing the valid ones, and for sizes given to a benchmark
+    that takes none.
     """
     _discover()
     if name not in _REGISTRY:
         raise JaxdenError(f"unknown benchmark {name!r}; valid: {', '.join(names()) or 'none'}")
-    result = dict(_REGISTRY[name](quick))
+    table = None
+    if sizes is not None:
+        if name not in _SIZED:
+            raise JaxdenError(f"benchmark {name!r} takes no --size; those that do: "
+                              f"{', '.join(sized_names()) or 'none'}")
+        if not sizes:
+            raise JaxdenError(f"benchmark {name!r}: --size names no size")
+        fn, table = _SIZED[name]
+        result = dict(fn(quick, [tuple(size) for size in sizes]))
+    else:
+        result = dict(_REGISTRY[name](quick))
     result.setdefault("bench", name)
-    width = max(len(str(key)) for key in result)
-    print(f"benchmark {name}{' (quick)' if quick else ''}")
-    for key, value in result.items():
-        print(f"  {str(key):<{width}}  {_format(value)}")
+    shown = (f" (sizes {', '.join(f'{w}x{h}' for w, h in sizes)})" if sizes is not None else "")
+    print(f"benchmark {name}{shown}{' (quick)' if quick else ''}")
+    if table is not None:
+        for line in table(result):
+            print(line)
+    else:
+        width = max(len(str(key)) for key in result)
+        for key, value in result.items():
+            print(f"  {key!s:<{width}}  {_format(value)}")
     if as_json:
         print(json.dumps(result, sort_keys=True, default=str))
     return result

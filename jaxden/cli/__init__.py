@@ -40,6 +40,13 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _is_allocation_failure(error: BaseException) -> bool:
+    """XLA's allocation failures (``RESOURCE_EXHAUSTED``, "Out of memory allocating ...")."""
+    text = str(error)
+    return type(error).__name__ in ("JaxRuntimeError", "XlaRuntimeError") and (
+        "RESOURCE_EXHAUSTED" in text or "Out of memory" in text or "out of memory" in text)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
@@ -69,6 +76,18 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as error:  # e.g. an output folder that cannot be made: name the path
         where = f"{error.filename}: " if error.filename else ""
         print(f"jaxden: error: {where}{error.strerror or error}", file=sys.stderr)
+        code = 2
+    except MemoryError:
+        print("jaxden: error: out of memory (nothing was written); lower --memory-limit or "
+              "JAXDEN_MEMORY_LIMIT so that frames go in smaller tiles", file=sys.stderr)
+        code = 2
+    except Exception as error:  # noqa: BLE001 - only allocation failures are ours to report
+        if not _is_allocation_failure(error):
+            raise
+        first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        print(f"jaxden: error: out of memory ({first[:200]}; nothing was written); lower "
+              f"--memory-limit or JAXDEN_MEMORY_LIMIT so that frames go in smaller tiles",
+              file=sys.stderr)
         code = 2
     except KeyboardInterrupt:
         print("jaxden: interrupted (finished work is kept; run the same command to resume)",

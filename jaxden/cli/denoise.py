@@ -25,6 +25,7 @@ from pathlib import Path
 from jaxden.cli.options import (
     add_channels_option,
     add_convention_options,
+    add_memory_options,
     add_overwrite_input_option,
     channel_map,
     check_finite_result,
@@ -143,6 +144,16 @@ def _sure_from_buffers(args: argparse.Namespace, frame, denoiser, out: Path) -> 
     return 0
 
 
+def _plan_options(args: argparse.Namespace, probes: int, config) -> dict:
+    from jaxden.limits import parse_bytes
+
+    return dict(num_probes=probes, method=args.method, eps=args.eps,
+                probe_batch=args.probe_batch, tstat=None if args.no_tstat else config.tstat,
+                nonfinite=args.nonfinite, swap_average=args.swap_average, tile=args.tile,
+                limit=None if args.memory_limit is None else parse_bytes(
+                    args.memory_limit, "--memory-limit"))
+
+
 def cmd_progressive(args: argparse.Namespace) -> int:
     """``jaxden progressive IN.exr --denoiser NAME|CKPT --mixer CKPT --out OUT.exr``."""
     import jax
@@ -152,7 +163,7 @@ def cmd_progressive(args: argparse.Namespace) -> int:
     from jaxden.fileio import all_or_nothing
     from jaxden.io.exr import write_channels, write_image
     from jaxden.progressive.mixer import load_mixer
-    from jaxden.progressive.pipeline import progressive_denoise
+    from jaxden.progressive.tiled import progressive_frame
 
     out, alpha_out = exr_outputs(("--out", args.out), ("--alpha", args.alpha),
                                  inputs=(args.input,), overwrite_input=args.overwrite_input)
@@ -182,12 +193,16 @@ def cmd_progressive(args: argparse.Namespace) -> int:
                f"per-channel form, which underestimates the error of a denoiser that mixes "
                f"channels")
     probes = args.probes or config.sure_probes
-    z, alpha_prime, extras = progressive_denoise(
-        frame, denoiser, params, config, jax.random.PRNGKey(args.seed), num_probes=probes,
-        method=args.method, eps=args.eps, probe_batch=args.probe_batch,
-        tstat=None if args.no_tstat else config.tstat, nonfinite=args.nonfinite,
-        swap_average=args.swap_average,
-    )
+    keep = ("z", "alpha_prime", "alpha") if alpha_out is not None else ("z",)
+
+    def tell(plan):
+        if plan.tile:
+            stderr(f"jaxden: {args.input}: {plan.describe(*np.shape(frame.color)[-3:-1])}")
+
+    outputs, _ = progressive_frame(
+        frame, denoiser, params, config, jax.random.PRNGKey(args.seed),
+        **_plan_options(args, probes, config), keep=keep, progress=True, on_plan=tell)
+    z = outputs["z"]
     swap_average = config.swap_average if args.swap_average is None else args.swap_average
     attributes = {"source": str(args.input), "denoiser": denoiser.name, "mixer": str(args.mixer),
                   "probes": probes, "seed": args.seed, "tstat": int(not args.no_tstat),
@@ -198,8 +213,7 @@ def cmd_progressive(args: argparse.Namespace) -> int:
     with all_or_nothing():  # --out and --alpha: both or neither
         write_image(out, np.asarray(z), attributes=attributes)
         if alpha_out is not None:
-            alpha_prime = np.asarray(alpha_prime)
-            alpha = np.asarray(extras["alpha"])
+            alpha_prime, alpha = outputs["alpha_prime"], outputs["alpha"]
             channels = {name: alpha_prime[..., i] for i, name in enumerate(("R", "G", "B"))}
             channels |= {f"unscaled.{c}": alpha[..., i] for i, c in enumerate("RGB")}
             write_channels(alpha_out, channels, attributes=attributes)
@@ -246,6 +260,7 @@ def add_commands(sub) -> None:
     p.add_argument("--swap-average", action=argparse.BooleanOptionalAction, default=None,
                    help="average alpha with 1 - alpha of the swapped inputs (a second mixer "
                         "call); default: the mixer's config (on for oidn-pd)")
+    add_memory_options(p)
     add_overwrite_input_option(p)
     p.set_defaults(func=cmd_progressive)
 

@@ -273,3 +273,24 @@ def check_finite_result(array, what: str, cause: str) -> None:
         raise FrameError(f"{what} has {bad} non-finite value(s) (NaN or inf) of {values.size}, "
                          f"so nothing was written; it came from {cause}: look for huge or "
                          f"broken values there")
+
+
+def add_memory_options(parser: argparse.ArgumentParser) -> None:
+    """``--tile`` and ``--memory-limit``: how a frame is cut into tiles (jaxden.tiling)."""
+    parser.add_argument("--tile", type=_non_negative_int, default=None, metavar="PIXELS",
+                        help="tile side for frames run in pieces (0: the whole frame at once); "
+                             "default: the largest tile that fits the memory limit")
+    parser.add_argument("--memory-limit", default=None, metavar="BYTES",
+                        help="memory budget of this command, e.g. 8G (default: "
+                             "JAXDEN_MEMORY_LIMIT, else half the machine's memory); tiles are "
+                             "planned to fit it, and a frame that cannot fit is refused up front")
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
+    return value

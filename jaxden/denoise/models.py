@@ -16,8 +16,33 @@ from jaxden.config import bounded
 from jaxden.denoise.nn import wskp
 from jaxden.denoise.registry import DenoiserDef, register
 from jaxden.frame import Frame
+from jaxden.tiling import TileSpec
 
 _FEATURES = lambda config: wskp.WSKP_FEATURES  # noqa: E731
+
+
+def _depth_constants(config, frame: Frame):
+    return wskp.frame_depth_max(frame)
+
+
+def _with_depth_max(apply):
+    """``apply`` on a tile, with the whole frame's depth normalisation (see TileSpec)."""
+    return lambda packed, config, frame: apply(packed["params"], config, frame,
+                                                depth_max=packed["constants"])
+
+
+def _kernel_tiling(apply):
+    """RepVGG stacks (5 x 5 blocks: 2 pixels each) and per-pixel kernels (k // 2 pixels).
+    WSKP's kernels weigh each neighbour q by its own importance exp(I(q)), computed by the
+    network around q: the fields add up. Direct kernel prediction (kp) weighs the
+    neighbours by the kernel predicted at p: the larger of the two."""
+    def tiling(config):
+        sizes = getattr(config, "kernel_sizes", None)
+        network = 2 * config.num_layers
+        radius = (network + max(sizes) // 2 if sizes is not None
+                  else max(network, config.kernel_size // 2))
+        return TileSpec(radius=radius, constants=_depth_constants, apply=_with_depth_max(apply))
+    return tiling
 
 
 def _variant(cls, **defaults):
@@ -29,22 +54,22 @@ def _variant(cls, **defaults):
         "__doc__": cls.__doc__, "__module__": cls.__module__})
 
 
-for name, description, cls, init, apply in (
+for name, description, cls, init, apply, tiling in (
     ("wskp", "weight-sharing kernel prediction, 6 RepVGG layers, kernels 3..13", wskp.WSKPConfig,
-     wskp.wskp_init, wskp.wskp_denoise),
+     wskp.wskp_init, wskp.wskp_denoise, _kernel_tiling(wskp.wskp_denoise)),
     ("wskp3", "weight-sharing kernel prediction, 3 RepVGG layers", _variant(wskp.WSKPConfig, num_layers=3),
-     wskp.wskp_init, wskp.wskp_denoise),
+     wskp.wskp_init, wskp.wskp_denoise, _kernel_tiling(wskp.wskp_denoise)),
     ("wskp_mr", "multi-resolution WSKP (3 scales, kernels 3 and 5, paper Eq. 7)", wskp.WSKPMRConfig,
-     wskp.wskp_mr_init, wskp.wskp_mr_denoise),
+     wskp.wskp_mr_init, wskp.wskp_mr_denoise, None),
     ("kp", "direct kernel prediction, 13x13, WSKP backbone (6 layers)", wskp.KPConfig,
-     wskp.kp_init, wskp.kp_denoise),
+     wskp.kp_init, wskp.kp_denoise, _kernel_tiling(wskp.kp_denoise)),
     ("kp1", "direct kernel prediction, 2 layers, 13x13", _variant(wskp.KPConfig, num_layers=2),
-     wskp.kp_init, wskp.kp_denoise),
+     wskp.kp_init, wskp.kp_denoise, _kernel_tiling(wskp.kp_denoise)),
     ("kp2", "direct kernel prediction, 5 layers, 7x7", _variant(wskp.KPConfig, num_layers=5, kernel_size=7),
-     wskp.kp_init, wskp.kp_denoise),
+     wskp.kp_init, wskp.kp_denoise, _kernel_tiling(wskp.kp_denoise)),
 ):
     register(DenoiserDef(name=name, description=description, config_cls=cls, required=_FEATURES,
-                         apply=apply, init=init))
+                         apply=apply, init=init, tiling=tiling))
 
 
 # ------------------------------------------------------------------------------------ U-Net
@@ -92,6 +117,19 @@ def _unet_required(config: UNetConfig) -> tuple[str, ...]:
     return tuple(FEATURE_FIELDS[f] for f in check_features(config.features))
 
 
+#: The U-Net's receptive field (pixels, each side): its 3 x 3 convolutions at scales 1, 2, 4,
+#: 8, 16 (two at 1, one each at 2, 4, 8 and two at 16 going down; two each at 8, 4, 2 and
+#: three at 1 coming up: 79 pixels), plus up to one pixel of the current scale per 2 x 2 pool
+#: and per upsampling (15 + 15). Tiles start on its pooling grid (16).
+UNET_RADIUS = 79 + 15 + 15
+
+
+def _unet_tiling(config: UNetConfig):
+    from jaxden.denoise.nn.unet import POOLING_STAGES
+
+    return TileSpec(radius=UNET_RADIUS, multiple=2**POOLING_STAGES)
+
+
 register(
     DenoiserDef(
         name="unet",
@@ -100,5 +138,6 @@ register(
         required=_unet_required,
         apply=_unet_apply,
         init=_unet_init,
+        tiling=_unet_tiling,
     )
 )

@@ -46,7 +46,9 @@ class DenoiserDef:
     ``init(key, config) -> params`` (None for black boxes);
     ``apply(params, config, frame) -> image`` (pure JAX unless ``differentiable`` is False);
     ``required(config) -> field names`` the frame must carry; ``pretrained``: ``init``
-    returns trained weights (OIDN in JAX reads Intel's), so the name alone loads it.
+    returns trained weights (OIDN in JAX reads Intel's), so the name alone loads it;
+    ``tiling(config) -> TileSpec | None``: its receptive field and alignment, so frames can
+    run over tiles (:mod:`jaxden.tiling`); None: whole frames only.
     """
 
     name: str
@@ -57,6 +59,7 @@ class DenoiserDef:
     init: Callable[[jax.Array, Any], Any] | None = None
     differentiable: bool = True
     pretrained: bool = False  # init gives trained weights (read, not drawn): usable by name
+    tiling: Callable[[Any], Any] | None = None
 
 
 REGISTRY: dict[str, DenoiserDef] = {}
@@ -90,6 +93,10 @@ class Denoiser:
     @property
     def differentiable(self) -> bool:
         return self.definition.differentiable
+
+    def tile_spec(self):
+        """:class:`jaxden.tiling.TileSpec` of this denoiser, or None (whole frames only)."""
+        return None if self.definition.tiling is None else self.definition.tiling(self.config)
 
     def check_frame(self, frame: Frame) -> None:
         frame.require(*self.definition.required(self.config), who=f"denoiser '{self.name}'")
@@ -145,6 +152,15 @@ def emission_separated(definition: DenoiserDef) -> DenoiserDef:
     jit and SURE caches keyed on it hold."""
     name = f"{definition.name}+emission-separate"
     required = definition.required
+    tiling = None
+    if definition.tiling is not None:
+        @functools.cache
+        def tiling(config, base=definition.tiling):
+            spec = base(config)
+            if spec is None or spec.apply is None:
+                return spec  # the definition's own apply (below) serves the tiles
+            return dataclasses.replace(spec, apply=separated_apply(
+                spec.apply, name, definition.differentiable))
     return DenoiserDef(
         name=name,
         description=f"{definition.description}; directly visible emission kept out of the filter",
@@ -154,6 +170,7 @@ def emission_separated(definition: DenoiserDef) -> DenoiserDef:
         init=definition.init,
         differentiable=definition.differentiable,
         pretrained=definition.pretrained,
+        tiling=tiling,
     )
 
 

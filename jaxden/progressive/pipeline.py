@@ -100,11 +100,13 @@ def progressive_denoise(
 
 
 def mix_given_sure(x, y, var, sure, mixer_params, mixer_config: MixerConfig, *,
-                   tstat=_FROM_CONFIG, swap_average: bool | None = None, spp=None):
+                   tstat=_FROM_CONFIG, swap_average: bool | None = None, spp=None,
+                   sigma=None):
     """The part of :func:`progressive_denoise` after SURE: alpha from the mixer (swap-averaged
     per ``swap_average``, None: the config's), the t-statistic scaling (``tstat`` as there) and
     the mix. ``sure`` may be any map in SURE's place (the PD report feeds the true error).
     ``spp``: the sample count ``var`` was estimated from, for the error guard (None: unknown).
+    ``sigma``: the t-statistic's width (None: from ``var``; tiles pass their frame's).
     Returns ``(z_prime, alpha_prime, alpha, mixed)``, float32 JAX arrays."""
     if tstat is _FROM_CONFIG:
         tstat = mixer_config.tstat
@@ -117,7 +119,7 @@ def mix_given_sure(x, y, var, sure, mixer_params, mixer_config: MixerConfig, *,
         return mixed, alpha, alpha, mixed
     if tstat.guard:
         spp = check_spp(spp, tuple(x.shape[:-3]), "progressive_denoise")
-    alpha_prime = consistent_alpha(alpha, x, y, var, mixed, tstat, spp)
+    alpha_prime = consistent_alpha(alpha, x, y, var, mixed, tstat, spp, sigma)
     return mix_unchecked(x, y, alpha_prime), alpha_prime, alpha, mixed
 
 

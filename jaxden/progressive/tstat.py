@@ -159,9 +159,10 @@ def _max_variance_neighbour(var, diff, window: int):
     return jnp.moveaxis(var_m, 0, -1), jnp.moveaxis(diff_m, 0, -1)
 
 
-def _t_single(x, z, var, config: TStatConfig):
-    """t for one image (H, W, 3) -> (H, W, 1), or (H, W, 3) if per_channel."""
-    s = _gaussian_sigma(var, config)
+def _t_single(x, z, var, config: TStatConfig, sigma=None):
+    """t for one image (H, W, 3) -> (H, W, 1), or (H, W, 3) if per_channel. ``sigma``: the
+    Gaussian width s (None: from this image's variance; a tile gets its frame's)."""
+    s = _gaussian_sigma(var, config) if sigma is None else sigma
     radius = config.window // 2
     offsets = jnp.arange(-radius, radius + 1, dtype=x.dtype)
     g = jnp.exp(-jnp.square(offsets) / (2.0 * s * s))
@@ -186,11 +187,24 @@ def _t_single(x, z, var, config: TStatConfig):
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
-def _t_statistic(x, z, var, config: TStatConfig):
+def _t_statistic(x, z, var, config: TStatConfig, sigma=None):
     lead = x.shape[:-3]
     flat = [a.reshape((-1,) + a.shape[-3:]) for a in (x, z, var)]
-    t = jax.vmap(lambda a, b, c: _t_single(a, b, c, config))(*flat)
+    if sigma is None:
+        t = jax.vmap(lambda a, b, c: _t_single(a, b, c, config))(*flat)
+    else:
+        sigma = jnp.broadcast_to(jnp.asarray(sigma, x.dtype), lead).reshape(-1)
+        t = jax.vmap(lambda a, b, c, s: _t_single(a, b, c, config, s))(*flat, sigma)
     return t.reshape(lead + t.shape[1:])
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def tstat_sigma(var, config: TStatConfig):
+    """The t-statistic's Gaussian width s per image (the leading dims of ``var``, (..., H, W,
+    3)): a whole-frame statistic (``sigma_rule``), computed once and handed to each tile."""
+    lead = var.shape[:-3]
+    flat = var.reshape((-1,) + var.shape[-3:])
+    return jax.vmap(lambda v: _gaussian_sigma(v, config))(flat).reshape(lead)
 
 
 def _resolve_config(config: TStatConfig | None, overrides: dict) -> TStatConfig:
@@ -309,10 +323,12 @@ def error_guard(alpha, x, y, var, config: TStatConfig | None = None, *, spp=None
                        config, spp)
 
 
-def consistent_alpha(alpha, x, y, var, mixed, config: TStatConfig, spp=None):
+def consistent_alpha(alpha, x, y, var, mixed, config: TStatConfig, spp=None, sigma=None):
     """The inference stage after the mixer, on validated arrays: the t-statistic scaling of
-    alpha (``mixed`` = x + alpha (y - x)), then the error guard when ``config.guard``."""
-    scaled = _scale_alpha(alpha, _t_statistic(x, mixed, var, config), config)
+    alpha (``mixed`` = x + alpha (y - x)), then the error guard when ``config.guard``.
+    ``sigma``: the t-statistic's Gaussian width per image (None: :func:`tstat_sigma` of
+    ``var``; a tile passes its frame's)."""
+    scaled = _scale_alpha(alpha, _t_statistic(x, mixed, var, config, sigma), config)
     return guard_alpha(scaled, x, y, var, config, spp) if config.guard else scaled
 
 

@@ -230,6 +230,44 @@ def _normals(keys, shape, dtype):
     return jax.lax.map(lambda k: _probe_normal(k, shape, dtype), keys)
 
 
+def window_normal(key, frame_shape, origin, shape):
+    """The (rows, cols, C) window at ``origin`` (row, column; traced) of
+    ``_probe_normal(key, frame_shape, float32)`` for a frame of ``frame_shape`` (H, W, C),
+    computed without drawing the rest: with JAX's partitionable threefry (the default) the
+    value at flat index i is threefry2x32(key, (0, i)), turned into a normal as
+    ``jax.random.normal`` does (a uniform in (-1, 1) from the top 23 bits, then
+    sqrt(2) erfinv). Equal bit for bit to the slice of the whole draw (tested), so a tile's
+    SURE probes are the whole frame's."""
+    from jax.extend.random import threefry2x32_p
+
+    height, width, channels = frame_shape
+    if height * width * channels >= 2**32:
+        raise FrameError(f"SURE probes over tiles: a {height}x{width} frame is too large "
+                         f"(2^32 values at most)")
+    origin = jnp.asarray(origin, jnp.uint32)
+    rows = origin[0] + jnp.arange(shape[0], dtype=jnp.uint32)
+    cols = origin[1] + jnp.arange(shape[1], dtype=jnp.uint32)
+    chans = jnp.arange(channels, dtype=jnp.uint32)
+    low = (rows[:, None, None] * jnp.uint32(width) + cols[None, :, None]) * jnp.uint32(
+        channels) + chans[None, None, :]
+    data = jax.random.key_data(key) if jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key) \
+        else key
+    bits1, bits2 = threefry2x32_p.bind(jnp.broadcast_to(data[0], low.shape),
+                                       jnp.broadcast_to(data[1], low.shape),
+                                       jnp.zeros_like(low), low)
+    mantissa = jax.lax.shift_right_logical(bits1 ^ bits2, jnp.uint32(32 - 23))
+    one = jnp.uint32(np.array(1.0, np.float32).view(np.uint32))
+    floats = jax.lax.bitcast_convert_type(mantissa | one, jnp.float32) - jnp.float32(1.0)
+    low_value = np.nextafter(np.float32(-1.0), np.float32(0.0), dtype=np.float32)
+    uniform = jnp.maximum(low_value, floats * (np.float32(1.0) - low_value) + low_value)
+    return np.float32(np.sqrt(2.0)) * jax.lax.erf_inv(uniform)
+
+
+def window_normals(keys, frame_shape, origin, shape):
+    """:func:`window_normal` for each of ``keys`` (K, ...): (K, rows, cols, C)."""
+    return jax.lax.map(lambda k: window_normal(k, frame_shape, origin, shape), keys)
+
+
 def colour_factor(variance, covariance, xp=jnp):
     """Per pixel, the lower-triangular L with L L^T = Sigma, the 3 x 3 covariance of the pixel
     mean (``variance`` on the diagonal, ``covariance`` = (R, G), (G, B), (B, R) off it), as
@@ -284,10 +322,10 @@ def draw_probes(key, variance, num_probes: int, covariance=None) -> jax.Array:
 @functools.partial(
     jax.jit,
     static_argnames=("denoise_fn", "has_params", "num_probes", "method", "fd_scheme",
-                     "probe_batch"),
+                     "probe_batch", "probe_frame"),
 )
 def _sure_core(denoise_fn, params, frame, key, eps, *, has_params, num_probes, method,
-               fd_scheme, probe_batch):
+               fd_scheme, probe_batch, probe_frame=None, probe_origin=None):
     """The traced computation; ``eps`` is a traced scalar (changing it does not recompile)."""
     x = frame.color
     var = frame.variance
@@ -314,7 +352,10 @@ def _sure_core(denoise_fn, params, frame, key, eps, *, has_params, num_probes, m
     weights = (jnp.arange(padded) < num_probes).astype(x.dtype).reshape(num_chunks, probe_batch)
 
     def probes_of(chunk_keys):
-        return scale_normals(_normals(chunk_keys, x.shape, x.dtype))
+        if probe_frame is None:
+            return scale_normals(_normals(chunk_keys, x.shape, x.dtype))
+        return scale_normals(window_normals(chunk_keys, probe_frame, probe_origin,
+                                            x.shape[-3:-1]).astype(x.dtype))
 
     if method == "jvp":
 
@@ -368,6 +409,7 @@ def sure(
     fd_scheme: FdScheme = "forward",
     probe_batch: int | None = None,
     nonfinite: NonFinitePolicy = "error",
+    probe_window: tuple | None = None,
 ) -> SureResult:
     """Per-pixel Monte Carlo SURE of a JAX denoiser (see the module docstring for the math).
 
@@ -392,6 +434,10 @@ def sure(
         ``probe_batch=1`` makes K = 4 on 1280 x 720 cost one jvp's memory.
       nonfinite: ``Frame.validated`` policy for concrete frames: ``"error"`` raises on NaN/inf
         or negative variance; ``"zero"`` applies the authors' repair (NaN -> 0, clip >= 0).
+      probe_window: ``((H, W, C), (row, col))``: ``frame`` is the window at (row, col) of an
+        (H, W, C) frame (one image), and its probes are that window of the whole frame's
+        (:func:`window_normal`; ``row``/``col`` may be traced), so SURE over tiles equals
+        SURE of the whole frame.
 
     Returns:
       :class:`SureResult` with fields of shape (..., H, W, 3) in the colour's dtype.
@@ -418,6 +464,8 @@ def sure(
         method=method,
         fd_scheme=fd_scheme,
         probe_batch=batch,
+        probe_frame=None if probe_window is None else tuple(int(n) for n in probe_window[0]),
+        probe_origin=None if probe_window is None else jnp.asarray(probe_window[1], jnp.int32),
     )
 
 

@@ -59,10 +59,17 @@ def tonemap(color: jax.Array, kind: str) -> jax.Array:
     raise FrameError(f"unknown tonemap {kind!r}; choose 'gamma' or 'reinhard_gamma'")
 
 
-def network_inputs(frame: Frame, tonemap_kind: str) -> jax.Array:
-    """(..., H, W, 10): tone-mapped colour, albedo, normal * 0.5 + 0.5, depth / frame max."""
+def frame_depth_max(frame: Frame) -> jax.Array:
+    """The depth normalisation of :func:`network_inputs`: max depth per image, (..., 1, 1, 1)."""
+    return jnp.max(jnp.asarray(frame.depth, jnp.float32), axis=(-3, -2, -1), keepdims=True)
+
+
+def network_inputs(frame: Frame, tonemap_kind: str, depth_max=None) -> jax.Array:
+    """(..., H, W, 10): tone-mapped colour, albedo, normal * 0.5 + 0.5, depth / frame max
+    (``depth_max``: :func:`frame_depth_max` of the whole frame when ``frame`` is a tile)."""
     depth = jnp.asarray(frame.depth, jnp.float32)
-    depth_max = jnp.max(depth, axis=(-3, -2, -1), keepdims=True)
+    if depth_max is None:
+        depth_max = frame_depth_max(frame)
     return jnp.concatenate(
         [
             tonemap(jnp.asarray(frame.color, jnp.float32), tonemap_kind),
@@ -126,11 +133,11 @@ class WSKPConfig:
         _check_config_kernels("WSKPConfig.kernel_sizes", self.kernel_sizes)
 
 
-def wskp_denoise(params, config: WSKPConfig, frame: Frame) -> jax.Array:
-    """(..., H, W, 3) denoised radiance."""
+def wskp_denoise(params, config: WSKPConfig, frame: Frame, depth_max=None) -> jax.Array:
+    """(..., H, W, 3) denoised radiance (``depth_max``: see :func:`network_inputs`)."""
     count = len(config.kernel_sizes)
     net = RepVGGStack(config.num_layers, config.width, 2 * count, config.deploy)
-    out = net.apply(params, network_inputs(frame, config.tonemap))
+    out = net.apply(params, network_inputs(frame, config.tonemap, depth_max))
     albedo = safe_albedo(jnp.asarray(frame.albedo, jnp.float32), config.albedo_floor)
     irradiance = jnp.asarray(frame.color, jnp.float32) / albedo
     filtered = kernels.decode(
@@ -182,10 +189,10 @@ def apply_per_pixel_kernels(color: jax.Array, weights: jax.Array, kernel_size: i
     return out
 
 
-def kp_denoise(params, config: KPConfig, frame: Frame) -> jax.Array:
+def kp_denoise(params, config: KPConfig, frame: Frame, depth_max=None) -> jax.Array:
     taps = config.kernel_size**2
     net = RepVGGStack(config.num_layers, config.width, taps, config.deploy)
-    logits = net.apply(params, network_inputs(frame, config.tonemap))
+    logits = net.apply(params, network_inputs(frame, config.tonemap, depth_max))
     weights = jax.nn.softmax(logits, axis=-1)
     albedo = safe_albedo(jnp.asarray(frame.albedo, jnp.float32), config.albedo_floor)
     irradiance = jnp.asarray(frame.color, jnp.float32) / albedo

@@ -1,0 +1,415 @@
+"""Progressive denoising of frames of any size in bounded memory: the pipeline over tiles.
+
+Every stage after the denoiser is local (:mod:`jaxden.tiling`), with these receptive fields
+(pixels each side, from the architecture; ``tests/test_tiled.py`` checks each against the
+measured support and shows a smaller overlap at the seams):
+
+- the mixer network (PDNet): a 5 x 5 convolution, two residual blocks of two 3 x 3 and a 3 x 3
+  output: 2 + 4 + 1 = 7; with the closed form as an input feature, plus the closed form's;
+- the closed form (Eq. 9 with Gaussian local means): its taps, ceil(3 sigma) (36 at sigma 12),
+  plus the brightness proxy's blur (6) with range strata;
+- the t-statistic: half its window (5 for 11 x 11; the noisiest neighbour M_p lies in it too);
+  the error guard after it: its Gaussian's taps (3 at sigma 1); the two read alpha, x, y and
+  var around p, so the stage after the mixer adds max(5, 3);
+- a JAX denoiser: its :class:`jaxden.tiling.TileSpec` (WSKP-6: 6 RepVGG blocks of 5 x 5 and
+  kernels up to 13 x 13: 18; the U-Net: 109, on its 16-pixel pooling grid). SURE by jvp
+  (or finite differences) on a tile is exact within the denoiser's field: (J b)_p depends on
+  b within it, and the tile's probes are the whole frame's (:func:`jaxden.sure.window_normal`).
+
+Whole-frame statistics are taken once on the frame: the t-statistic's Gaussian width (from the
+mean variance), WSKP's depth normalisation. The guard's noise strata (``guard_strata``) pool a
+whole-frame noise level: frames with it run whole.
+
+A JAX denoiser with a TileSpec runs the whole pipeline per tile (halo = the sum of the three
+fields). Black boxes (OIDN) and JAX denoisers without one run whole-frame for y and SURE
+(OIDN tiles large frames itself; the finite differences go one probe at a time,
+:func:`jaxden.sure.denoiser.sure_blackbox_streamed`), then the mixer and the t-statistic go
+over tiles.
+
+Memory is planned before any work (:func:`plan`): the frame's own arrays, plus the working
+set of one tile as XLA's compiled memory analysis reports it; the largest tile that fits the
+budget is taken, and a frame for which even the smallest tile does not fit is refused in one
+line naming the stage.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxden.errors import ConfigError, JaxdenError
+from jaxden.frame import IMAGE_FIELDS, Frame
+from jaxden.limits import format_bytes, memory_limit
+from jaxden.progressive.closed_form import CLOSED_FORM_PROXY_SIGMA, gaussian_taps
+from jaxden.progressive.mixer import MixerConfig
+from jaxden.progressive.tstat import TStatConfig, tstat_sigma
+from jaxden.tiling import Tile, tile_grid
+
+#: The tile side tried first and the smallest one tried (pixels, before the halo).
+TILE_START, TILE_MIN = 1024, 64
+#: The working set of one tile may take at most this share of the memory limit (the rest
+#: holds the frame's arrays, the outputs and the Python process itself) and at most
+#: TILE_BUDGET_CAP bytes: tiles beyond ~1024^2 pixels are no faster on a CPU.
+TILE_BUDGET_SHARE, TILE_BUDGET_CAP = 0.25, 1 << 30
+#: Bytes a pixel that the process holds besides the frame's arrays when the denoiser runs
+#: whole-frame as a black box: the float32 probe, perturbed colour and output and the float64
+#: sum of :func:`sure_blackbox_streamed` (50), OIDN's copies of its inputs and output (48),
+#: and y and SURE (24).
+BLACKBOX_BYTES_PER_PIXEL = 122
+#: OIDN's own working memory: it tiles frames above about 2160^2 padded pixels, so its peak is
+#: bounded (measured with pyoidn 2.5.1 'high', 1920 x 1080: ~1.3 GB above its inputs).
+OIDN_WORKING_BYTES = 1_600 << 20
+
+
+class MemoryPlanError(JaxdenError):
+    """A frame whose smallest tile, or whose own arrays, do not fit the memory limit."""
+
+
+# --------------------------------------------------------------------------- receptive fields
+def taps_radius(sigma: float) -> int:
+    return len(gaussian_taps(sigma)) // 2
+
+
+def closed_form_radius(config: MixerConfig) -> int:
+    radius = taps_radius(config.closed_form_sigma)
+    if config.closed_form_stops is not None:
+        radius += taps_radius(CLOSED_FORM_PROXY_SIGMA)
+    return radius
+
+
+def mixer_radius(config: MixerConfig) -> int:
+    """Pixels each side that the mixer's alpha at p reads of x, y, var and SURE."""
+    closed_form = closed_form_radius(config)
+    if config.kind == "closed_form":
+        return closed_form
+    network = 2 + 2 * 2 + 1  # conv_in 5x5, two residual blocks of two 3x3, conv_out 3x3
+    if "closed_form" in config.features:
+        network += closed_form
+    if config.head == "closed_form_logit":
+        return max(network, closed_form)
+    return network
+
+
+def tstat_radius(tstat: TStatConfig | None) -> int:
+    """Pixels each side that the t-statistic scaling and the error guard read of alpha, x, y
+    and var (0 without the scaling)."""
+    if tstat is None:
+        return 0
+    radius = tstat.window // 2
+    if tstat.guard:
+        radius = max(radius, taps_radius(tstat.guard_sigma))
+    return radius
+
+
+def whole_frame_reason(denoiser, tstat: TStatConfig | None) -> str | None:
+    """Why nothing of the pipeline may be tiled (None: the mixer stage can be)."""
+    if tstat is not None and tstat.guard and tstat.guard_strata is not None:
+        return "the error guard's noise strata (tstat.guard_strata) pool a whole-frame level"
+    return None
+
+
+# ------------------------------------------------------------------------------------- plan
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    """How a frame will run: ``tile`` 0 = whole; ``stage`` what runs per tile (``all``: the
+    denoiser, SURE, mixer and t-statistic; ``mixer``: the mixer and t-statistic after a
+    whole-frame denoiser); the estimated peak and its parts (bytes)."""
+
+    tile: int
+    halo: int
+    multiple: int
+    stage: str
+    frame_bytes: int
+    tile_bytes: int
+    limit: int
+
+    @property
+    def peak(self) -> int:
+        return self.frame_bytes + self.tile_bytes
+
+    def describe(self, height: int, width: int) -> str:
+        if not self.tile:
+            return f"whole frame, about {format_bytes(self.peak)}"
+        count = len(tile_grid(height, width, self.tile, self.halo, self.multiple))
+        return (f"{count} tiles of {self.tile} px + {self.halo} px overlap ({self.stage}), "
+                f"about {format_bytes(self.peak)} of {format_bytes(self.limit)}")
+
+
+def _analysed_bytes(compiled) -> int | None:
+    try:
+        stats = compiled.memory_analysis()
+    except Exception:  # noqa: BLE001 - a backend without the analysis: fall back
+        return None
+    if stats is None:
+        return None
+    return int(stats.temp_size_in_bytes + stats.argument_size_in_bytes
+               + stats.output_size_in_bytes)
+
+
+# ------------------------------------------------------------------------------------ stages
+def _tile_all(denoiser_params, mixer_params, frame, key, origin, eps, sigma, *, apply,
+              mixer_config, tstat, swap_average, spp, num_probes, method, probe_batch,
+              frame_shape, keep):
+    """Denoiser, SURE (the tile's window of the frame's probes), mixer, t-statistic: one tile."""
+    from jaxden.progressive.pipeline import mix_given_sure
+    from jaxden.sure.stein import sure
+
+    result = sure(apply, frame, key, num_probes, method, eps, params=denoiser_params,
+                  probe_batch=probe_batch, probe_window=(frame_shape, origin))
+    z, alpha_prime, alpha, _ = mix_given_sure(
+        frame.color, result.denoised, frame.variance, result.sure, mixer_params, mixer_config,
+        tstat=tstat, swap_average=swap_average, spp=spp, sigma=sigma)
+    parts = {"z": z, "alpha_prime": alpha_prime, "alpha": alpha, "denoised": result.denoised,
+             "sure": result.sure, "divergence": result.divergence_term}
+    return {name: parts[name] for name in keep}
+
+
+def _tile_mixer(mixer_params, x, y, var, sure_map, sigma, *, mixer_config, tstat, swap_average,
+                spp, keep):
+    """Mixer and t-statistic on one tile of a whole-frame denoiser's y and SURE."""
+    from jaxden.progressive.pipeline import mix_given_sure
+
+    z, alpha_prime, alpha, _ = mix_given_sure(x, y, var, sure_map, mixer_params, mixer_config,
+                                              tstat=tstat, swap_average=swap_average, spp=spp,
+                                              sigma=sigma)
+    parts = {"z": z, "alpha_prime": alpha_prime, "alpha": alpha}
+    return {name: parts[name] for name in keep if name in parts}
+
+
+@functools.lru_cache(maxsize=64)
+def _apply_fn(apply, config):
+    """A stable ``(params, frame) -> image`` per (apply, config) (SURE compiles per function)."""
+    return lambda params, frame: apply(params, config, frame)
+
+
+#: What :func:`progressive_denoise_tiled` can return (``keep``): z', alpha', alpha, y, SURE,
+#: var dy/dx.
+OUTPUTS = ("z", "alpha_prime", "alpha", "denoised", "sure", "divergence")
+
+
+def tile_halo(denoiser, mixer_config: MixerConfig, tstat: TStatConfig | None) -> int:
+    """The overlap the pipeline needs (module docstring): the denoiser's field when it runs
+    per tile, the mixer's and the t-statistic's."""
+    spec = denoiser.tile_spec() if denoiser.differentiable else None
+    return (mixer_radius(mixer_config) + tstat_radius(tstat)
+            + (spec.radius if spec is not None else 0))
+
+
+def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config: MixerConfig,
+                              key, *, num_probes: int, tstat: TStatConfig | None,
+                              method: str = "auto", eps: float | None = None,
+                              probe_batch: int | None = None, swap_average: bool | None = None,
+                              keep: tuple[str, ...] = ("z", "alpha_prime", "alpha"),
+                              tile: int | None = None, halo: int | None = None,
+                              limit: int | None = None, progress: bool = False,
+                              plan_only: bool = False, on_plan=None):
+    """:func:`jaxden.progressive.progressive_denoise` over tiles: the same outputs (to float
+    rounding) in memory set by the tile (module docstring).
+
+    ``frame``: one validated image (H, W, 3), NumPy (the caller validates it once, as
+    :func:`jaxden.sure.denoise_with_sure` does). ``keep``: which of :data:`OUTPUTS` to return.
+    ``tile``: the tile side (None: the largest that fits ``limit``, default
+    :func:`jaxden.limits.memory_limit`; 0: the whole frame as one tile). ``halo``: the overlap
+    (None: :func:`tile_halo`; smaller only to show the seams). ``progress``: a bar over tiles.
+    ``plan_only``: return ``(None, plan)`` without running; ``on_plan(plan)`` is called
+    before the work starts (the command line tells the plan).
+
+    Returns ``(outputs, plan)``: float32 NumPy arrays (H, W, 3) by name, and the :class:`Plan`.
+    Raises MemoryPlanError when the frame's arrays, or its smallest tile, do not fit.
+    """
+    from jaxden.sure.denoiser import (default_eps, resolve_denoiser, resolve_method,
+                                      sure_blackbox_streamed)
+
+    denoiser = resolve_denoiser(denoiser)
+    unknown = sorted(set(keep) - set(OUTPUTS))
+    if unknown:
+        raise ConfigError(f"progressive_denoise_tiled: unknown outputs {unknown}; "
+                          f"choose from {', '.join(OUTPUTS)}")
+    color = np.asarray(frame.color, np.float32)
+    if color.ndim != 3:
+        raise ConfigError(f"progressive_denoise_tiled: one image (H, W, 3), got {color.shape}")
+    reason = whole_frame_reason(denoiser, tstat)
+    if reason is not None and tile != 0:
+        raise ConfigError(f"progressive_denoise_tiled: {reason}: run the frame whole")
+    spec = denoiser.tile_spec() if denoiser.differentiable else None
+    if denoiser.differentiable and spec is None:
+        raise ConfigError(
+            f"progressive_denoise_tiled: denoiser '{denoiser.name}' declares no receptive "
+            f"field (TileSpec): it runs on whole frames only")
+    if not mixer_config.sure_covariance:
+        frame = frame.replace(covariance=None)  # the per-channel SURE the mixer learned
+    if swap_average is None:
+        swap_average = mixer_config.swap_average
+    method = resolve_method(method, denoiser)
+    if eps is None:
+        eps = default_eps(method, denoiser.differentiable) or 1e-4
+    height, width = color.shape[:2]
+    spp = None if frame.spp is None else float(np.asarray(frame.spp))
+    sigma = None if tstat is None else tstat_sigma(jnp.asarray(frame.variance), tstat)
+    stage = "all" if spec is not None else "mixer"
+    multiple = spec.multiple if spec is not None else 1
+    halo = tile_halo(denoiser, mixer_config, tstat) if halo is None else int(halo)
+    limit = memory_limit() if limit is None else int(limit)
+    frame_bytes = sum(np.asarray(a).nbytes for a in jax.tree_util.tree_leaves(frame))
+    frame_bytes += len(keep) * color.nbytes
+    if stage == "mixer":
+        frame_bytes += BLACKBOX_BYTES_PER_PIXEL * height * width + OIDN_WORKING_BYTES
+
+    if stage == "all":
+        if spec.constants is not None:
+            device_frame = jax.tree_util.tree_map(jnp.asarray, frame)
+            params = {"params": denoiser.params,
+                      "constants": spec.constants(denoiser.config, device_frame)}
+            apply = _apply_fn(spec.apply, denoiser.config)
+            del device_frame
+        else:
+            params = denoiser.params
+            apply = _apply_fn(denoiser.definition.apply, denoiser.config)
+        run_tile = functools.partial(
+            _tile_all, apply=apply, mixer_config=mixer_config, tstat=tstat,
+            swap_average=bool(swap_average), spp=spp, num_probes=int(num_probes), method=method,
+            probe_batch=probe_batch or int(num_probes), frame_shape=(height, width, 3),
+            keep=tuple(keep))
+
+        def tile_args(tile_: Tile, arrays):
+            rows, cols = tile_.src_slices
+            sub = jax.tree_util.tree_map(
+                lambda a: np.asarray(a)[rows, cols] if np.ndim(a) >= 3 else a, frame)
+            origin = np.asarray([tile_.src[0][0], tile_.src[1][0]], np.int32)
+            return (params, mixer_params, sub, key, origin, np.float32(eps), sigma)
+    else:
+        run_tile = functools.partial(
+            _tile_mixer, mixer_config=mixer_config, tstat=tstat,
+            swap_average=bool(swap_average), spp=spp, keep=tuple(keep))
+
+        def tile_args(tile_: Tile, arrays):
+            rows, cols = tile_.src_slices
+            return (mixer_params, *(arrays[n][rows, cols] for n in ("x", "y", "var", "sure")),
+                    sigma)
+
+    compiled: dict[tuple[int, int], object] = {}
+    jitted = jax.jit(run_tile)
+
+    def compiled_for(tile_: Tile, arrays):
+        shape = tile_.src_shape
+        if shape not in compiled:
+            compiled[shape] = jitted.lower(*tile_args(tile_, arrays)).compile()
+        return compiled[shape]
+
+    # ------------------------------------------------------------------------- planning
+    if frame_bytes > limit:
+        raise MemoryPlanError(
+            f"progressive denoising of a {width}x{height} frame: its own arrays"
+            f"{' and the whole-frame denoiser' if stage == 'mixer' else ''} need about "
+            f"{format_bytes(frame_bytes)}, more than the memory limit {format_bytes(limit)} "
+            f"(JAXDEN_MEMORY_LIMIT or --memory-limit set it)")
+    budget = min(int(limit * TILE_BUDGET_SHARE), TILE_BUDGET_CAP, limit - frame_bytes)
+    shapes = {"x": color, "y": color, "var": color, "sure": color}  # shapes for planning
+    estimate = 0
+    if tile is None:
+        side = min(TILE_START, max(height, width))
+        while True:
+            probe = tile_grid(height, width, side, halo, multiple)[0]
+            needed = _analysed_bytes(compiled_for(probe, shapes))
+            if needed is None or needed <= budget:
+                break
+            if side <= TILE_MIN:
+                what = ("the denoiser, SURE, mixer and t-statistic" if stage == "all"
+                        else "the mixer and t-statistic")
+                raise MemoryPlanError(
+                    f"progressive denoising of a {width}x{height} frame: {what} on the "
+                    f"smallest tile ({TILE_MIN} px + {halo} px overlap) need about "
+                    f"{format_bytes(needed)}, more than the {format_bytes(budget)} left of the "
+                    f"memory limit {format_bytes(limit)} after the frame's arrays")
+            compiled.clear()
+            side = max(TILE_MIN, side // 2)
+        tile, estimate = side, needed or 0
+    tile = tile or max(height, width)
+    tiles = tile_grid(height, width, tile, halo, multiple)
+    plan = Plan(tile=0 if len(tiles) == 1 else tile, halo=halo, multiple=multiple, stage=stage,
+                frame_bytes=frame_bytes, tile_bytes=estimate, limit=limit)
+    if plan_only:
+        return None, plan
+    if on_plan is not None:
+        on_plan(plan)
+
+    # ------------------------------------------------------------------------------ run
+    outputs = {name: np.empty_like(color) for name in keep}
+    arrays = {"x": color, "var": np.asarray(frame.variance, np.float32)}
+    if stage == "mixer":
+        result = sure_blackbox_streamed(denoiser.function(), frame, key, int(num_probes), eps)
+        arrays |= {"y": result.denoised, "sure": result.sure}
+        for name, value in (("denoised", result.denoised), ("sure", result.sure),
+                            ("divergence", result.divergence_term)):
+            if name in outputs:
+                outputs[name][...] = value
+        del result
+    bar = None
+    if progress and len(tiles) > 1:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(tiles), desc="tiles", unit="tile", leave=False)
+    for tile_ in tiles:
+        produced = compiled_for(tile_, arrays)(*tile_args(tile_, arrays))
+        rows, cols = tile_.out_slices
+        for name, value in produced.items():
+            outputs[name][rows, cols] = np.asarray(value)[tile_.inner]
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    return outputs, plan
+
+
+def progressive_frame(frame: Frame, denoiser, mixer_params, mixer_config: MixerConfig, key, *,
+                      num_probes: int | None = None, tstat="config", method: str = "auto",
+                      eps: float | None = None, probe_batch: int | None = None,
+                      swap_average: bool | None = None, nonfinite: str = "error",
+                      keep: tuple[str, ...] = ("z", "alpha_prime", "alpha"),
+                      tile: int | None = None, limit: int | None = None,
+                      progress: bool = False, on_plan=None):
+    """Progressive denoising of one frame as the command line runs it: validated once, then
+    over tiles when every stage allows (:func:`progressive_denoise_tiled`, planned from the
+    memory limit), else whole (:func:`jaxden.progressive.progressive_denoise`: batched frames,
+    the guard's noise strata, JAX denoisers without a receptive field, ``tile=0``).
+
+    ``tstat``: ``"config"`` (the mixer's), a :class:`TStatConfig` or None (no scaling).
+    Returns ``(outputs, plan)``: float32 NumPy arrays by name (``keep``, from :data:`OUTPUTS`)
+    and the :class:`Plan` (None when the frame ran whole through the untiled pipeline).
+    """
+    from jaxden.progressive.pipeline import progressive_denoise
+    from jaxden.sure.denoiser import resolve_denoiser
+    from jaxden.sure.stein import require_variance
+
+    denoiser = resolve_denoiser(denoiser)
+    if isinstance(tstat, str):
+        tstat = mixer_config.tstat
+    if num_probes is None:
+        num_probes = mixer_config.sure_probes
+    require_variance(frame, "progressive_denoise", held_in="EXR channels variance.R/G/B")
+    # Fields no stage reads (depth for OIDN, motion, position, ...) are dropped first: at
+    # 7680 x 4320 each three-channel field is 400 MB.
+    used = {"color", "variance", "covariance", *denoiser.definition.required(denoiser.config)}
+    frame = frame.replace(**{name: None for name in IMAGE_FIELDS if name not in used})
+    frame = frame.numpy().validated(where="progressive_denoise", nonfinite=nonfinite)
+    denoiser.check_frame(frame)
+    tileable = (np.ndim(frame.color) == 3 and whole_frame_reason(denoiser, tstat) is None
+                and (not denoiser.differentiable or denoiser.tile_spec() is not None))
+    if tile != 0 and tileable:
+        return progressive_denoise_tiled(
+            frame, denoiser, mixer_params, mixer_config, key, num_probes=num_probes,
+            tstat=tstat, method=method, eps=eps, probe_batch=probe_batch,
+            swap_average=swap_average, keep=keep, tile=tile, limit=limit, progress=progress,
+            on_plan=on_plan)
+    z, alpha_prime, extras = progressive_denoise(
+        frame, denoiser, mixer_params, mixer_config, key, num_probes=num_probes, tstat=tstat,
+        method=method, eps=eps, probe_batch=probe_batch, nonfinite=nonfinite,
+        swap_average=swap_average)
+    everything = {"z": z, "alpha_prime": alpha_prime, "alpha": extras["alpha"],
+                  "denoised": extras["denoised"], "sure": extras["sure"],
+                  "divergence": extras["divergence"]}
+    return {name: np.asarray(everything[name], np.float32) for name in keep}, None
