@@ -20,6 +20,8 @@ import dataclasses
 from collections.abc import Callable, Iterator
 from typing import Any
 
+from jaxden.errors import JaxdenError
+
 
 @dataclasses.dataclass(frozen=True)
 class Tile:
@@ -71,8 +73,9 @@ def _round_up(n: int, multiple: int) -> int:
 
 
 def tile_grid(height: int, width: int, tile: int, halo: int, multiple: int = 1) -> list[Tile]:
-    """Tiles of side ``tile`` (rounded up to ``multiple``) covering a ``height`` x ``width``
-    frame; each reads its region grown by at least ``halo`` on every side inside the frame.
+    """Tiles of side at most ``tile`` (rounded up to ``multiple``; equal along each axis)
+    covering a ``height`` x ``width`` frame; each reads its region grown by at least ``halo``
+    on every side inside the frame.
 
     Every tile reads a window of the same size, ``tile + 2 halo`` (or the frame's side when
     smaller): tiles at the frame's edges slide their window inward instead of clipping it, so
@@ -81,12 +84,16 @@ def tile_grid(height: int, width: int, tile: int, halo: int, multiple: int = 1) 
     ``multiple - 1`` larger). One tile when the frame fits in one."""
     if tile < 1 or halo < 0 or multiple < 1:
         raise ValueError(f"tile_grid: tile {tile}, halo {halo}, multiple {multiple}")
-    tile = _round_up(tile, multiple)
 
     def spans(length: int) -> Iterator[tuple[tuple[int, int], tuple[int, int]]]:
-        size = min(length, tile + 2 * halo)
-        for start in range(0, length, tile):
-            stop = min(start + tile, length)
+        # As many tiles along the axis as side ``tile`` needs, made equal: 1080 rows in
+        # tiles of 512 are three of 360, not 512 + 512 + 56 (whose window would be mostly
+        # overlap).
+        count = -(-length // _round_up(tile, multiple))
+        step = _round_up(-(-length // count), multiple)
+        size = min(length, step + 2 * halo)
+        for start in range(0, length, step):
+            stop = min(start + step, length)
             src_start = min(max(0, start - halo), length - size) // multiple * multiple
             src_stop = min(length, max(src_start + size, stop + halo))
             yield (start, stop), (src_start, src_stop)
@@ -99,3 +106,108 @@ def tile_count(height: int, width: int, tile: int) -> int:
     return -(-height // tile) * -(-width // tile)
 
 
+
+
+# ------------------------------------------------------------------------------- running
+#: The tile side tried first and the smallest one tried (pixels, before the overlap).
+TILE_START, TILE_MIN = 1024, 64
+#: The working set of one tile may take at most this share of the memory limit (the rest
+#: holds the frame's arrays, the outputs and the Python process itself) and at most
+#: TILE_BUDGET_CAP bytes: tiles beyond ~1024^2 pixels are no faster on a CPU.
+TILE_BUDGET_SHARE, TILE_BUDGET_CAP = 0.25, 1 << 30
+
+
+class MemoryPlanError(JaxdenError):
+    """A frame whose own arrays, or whose smallest tile, do not fit the memory limit."""
+
+
+class TileProgram:
+    """``fn(*args_for(tile)) -> {name: (h, w, C) array}`` jitted, compiled once per window
+    shape (every tile of :func:`tile_grid` but the aligned last ones shares one), with the
+    compiled working set of a tile from XLA's memory analysis."""
+
+    def __init__(self, fn: Callable[..., dict], args_for: Callable[[Tile], tuple]):
+        import jax
+
+        self._jitted = jax.jit(fn)
+        self._args_for = args_for
+        self._compiled: dict[tuple[int, int], Any] = {}
+
+    def compiled(self, tile: Tile):
+        shape = tile.src_shape
+        if shape not in self._compiled:
+            self._compiled[shape] = self._jitted.lower(*self._args_for(tile)).compile()
+        return self._compiled[shape]
+
+    def working_bytes(self, tile: Tile) -> int | None:
+        """Arguments + outputs + temporaries of ``tile``'s program (None: not reported)."""
+        try:
+            stats = self.compiled(tile).memory_analysis()
+        except Exception:
+            return None
+        if stats is None:
+            return None
+        return int(stats.temp_size_in_bytes + stats.argument_size_in_bytes
+                   + stats.output_size_in_bytes)
+
+    def forget(self) -> None:
+        self._compiled.clear()
+
+    def __call__(self, tile: Tile) -> dict:
+        return self.compiled(tile)(*self._args_for(tile))
+
+
+def tile_budget(limit: int, frame_bytes: int, what: str) -> int:
+    """Bytes one tile may use: TILE_BUDGET_SHARE of ``limit``, at most TILE_BUDGET_CAP and
+    what the frame's own arrays (``frame_bytes``) leave. Refuses (MemoryPlanError, naming
+    ``what``) a frame whose arrays alone exceed the limit."""
+    from jaxden.limits import format_bytes
+
+    if frame_bytes > limit:
+        raise MemoryPlanError(
+            f"{what}: the frame's own arrays need about {format_bytes(frame_bytes)}, more than "
+            f"the memory limit {format_bytes(limit)} (JAXDEN_MEMORY_LIMIT or --memory-limit "
+            f"set it)")
+    return min(int(limit * TILE_BUDGET_SHARE), TILE_BUDGET_CAP, limit - frame_bytes)
+
+
+def largest_tile(program: TileProgram, height: int, width: int, halo: int, multiple: int,
+                 budget: int, what: str) -> tuple[int, int]:
+    """The largest tile side (TILE_START, halved down to TILE_MIN) whose compiled working set
+    fits ``budget``, and that working set; MemoryPlanError naming ``what`` when even the
+    smallest does not fit."""
+    from jaxden.limits import format_bytes
+
+    side = min(TILE_START, max(height, width))
+    while True:
+        needed = program.working_bytes(tile_grid(height, width, side, halo, multiple)[0])
+        if needed is None or needed <= budget:
+            return side, needed or 0
+        if side <= TILE_MIN:
+            raise MemoryPlanError(
+                f"{what} on the smallest tile ({TILE_MIN} px + {halo} px overlap) needs about "
+                f"{format_bytes(needed)}, more than the {format_bytes(budget)} a tile may use")
+        program.forget()
+        side = max(TILE_MIN, side // 2)
+
+
+def run_tiles(program: TileProgram, tiles: list[Tile], outputs: dict, progress: bool = False):
+    """Run ``program`` on every tile, writing each tile's centre into ``outputs`` (NumPy
+    arrays of the frame, by the names the program returns), with a bar when asked."""
+    import numpy as np
+
+    bar = None
+    if progress and len(tiles) > 1:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(tiles), desc="tiles", unit="tile", leave=False)
+    for tile in tiles:
+        produced = program(tile)
+        rows, cols = tile.out_slices
+        for name, value in produced.items():
+            if name in outputs:
+                outputs[name][rows, cols] = np.asarray(value)[tile.inner]
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()

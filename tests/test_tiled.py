@@ -15,9 +15,15 @@ import pytest
 from jaxden.denoise.registry import make_denoiser
 from jaxden.frame import Frame
 from jaxden.progressive.mixer import MixerConfig, closed_form_mixer, mixer_alpha, mixer_init
-from jaxden.progressive.tiled import (MemoryPlanError, closed_form_radius, mixer_radius,
-                                      progressive_denoise_tiled, progressive_frame, tile_halo,
-                                      tstat_radius)
+from jaxden.progressive.tiled import (
+    MemoryPlanError,
+    closed_form_radius,
+    mixer_radius,
+    progressive_denoise_tiled,
+    progressive_frame,
+    tile_halo,
+    tstat_radius,
+)
 from jaxden.progressive.tstat import TStatConfig, consistent_alpha
 from jaxden.render.synthetic import synthetic_render
 from jaxden.sure.stein import window_normal
@@ -214,7 +220,7 @@ def test_plan_refuses_what_cannot_fit_in_one_line(small_kp):
     frame = _frame()
     _, config = closed_form_mixer("closed-form:sigma=2")
     options = dict(num_probes=1, tstat=config.tstat)
-    with pytest.raises(MemoryPlanError, match="its own arrays need about"):
+    with pytest.raises(MemoryPlanError, match="own arrays need about"):
         progressive_denoise_tiled(frame, small_kp, {}, config, jax.random.PRNGKey(0),
                                   limit=100_000, **options)
     with pytest.raises(MemoryPlanError, match=r"smallest tile \(64 px \+ 15 px overlap\)"):

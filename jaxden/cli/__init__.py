@@ -81,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
         print("jaxden: error: out of memory (nothing was written); lower --memory-limit or "
               "JAXDEN_MEMORY_LIMIT so that frames go in smaller tiles", file=sys.stderr)
         code = 2
-    except Exception as error:  # noqa: BLE001 - only allocation failures are ours to report
+    except Exception as error:
         if not _is_allocation_failure(error):
             raise
         first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__

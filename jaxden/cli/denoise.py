@@ -43,6 +43,7 @@ def cmd_denoise(args: argparse.Namespace) -> int:
 
     from jaxden.cli.options import convention_options, exr_outputs, feature_notice
     from jaxden.denoise.registry import load_denoiser
+    from jaxden.denoise.tiled import denoise_frame
     from jaxden.io.exr import read_frame, write_image
 
     (out,) = exr_outputs(("--out", args.out), inputs=(args.input,),
@@ -52,9 +53,16 @@ def cmd_denoise(args: argparse.Namespace) -> int:
     mapping = channel_map(args) or {}
     frame = read_frame(args.input, require=(*required, *(f for f in mapping if f not in required)),
                        nonfinite=args.nonfinite, channel_map=mapping or None,
+                       keep=denoiser.fields_read(),
                        **convention_options(args))
     feature_notice(frame, denoiser, args.input)
-    image = np.asarray(denoiser(frame))
+
+    def tell(plan):
+        if plan.tile:
+            stderr(f"jaxden: {args.input}: tiles of {plan.tile} px + {plan.halo} px overlap")
+
+    image, _ = denoise_frame(denoiser, frame, tile=args.tile, limit=_memory_limit(args),
+                             progress=True, on_plan=tell)
     check_finite_result(image, "the denoised image",
                         f"{args.input} denoised by {denoiser.name} ({args.model})")
     write_image(out, image, attributes={"denoiser": denoiser.name, "source": str(args.input)})
@@ -69,12 +77,13 @@ def cmd_sure(args: argparse.Namespace) -> int:
 
     from jaxden.denoise.registry import load_denoiser
     from jaxden.progressive.cache import write_sure_exr
-    from jaxden.sure.denoiser import default_eps, denoise_with_sure, resolve_method
+    from jaxden.sure.denoiser import default_eps, resolve_method
+    from jaxden.sure.tiled import sure_frame
 
     (out,) = exr_outputs(("--out", args.out), inputs=(args.input, *(args.buffers or ())),
                          overwrite_input=args.overwrite_input)
-    frame = read_input_frame(args, "jaxden sure")
     denoiser = load_denoiser(args.denoiser)
+    frame = read_input_frame(args, "jaxden sure", None if args.buffers else denoiser)
     feature_notice(frame, denoiser, args.input)
     if args.buffers:
         return _sure_from_buffers(args, frame, denoiser, out)
@@ -82,9 +91,15 @@ def cmd_sure(args: argparse.Namespace) -> int:
         raise ConfigError("--extrapolate needs --buffers")
     method = resolve_method(args.method, denoiser)
     eps = args.eps if args.eps is not None else default_eps(method, denoiser.differentiable)
-    result, _ = denoise_with_sure(
+
+    def tell(tile, halo):
+        if tile:
+            stderr(f"jaxden: {args.input}: tiles of {tile} px + {halo} px overlap")
+
+    result, _ = sure_frame(
         denoiser, frame, jax.random.PRNGKey(args.seed), num_probes=args.probes, method=method,
         eps=eps, probe_batch=args.probe_batch, nonfinite=args.nonfinite, where=str(args.input),
+        tile=args.tile, limit=_memory_limit(args), progress=True, on_plan=tell,
     )
     for name in ("denoised", "sure"):
         check_finite_result(getattr(result, name), f"the {name} image",
@@ -144,14 +159,18 @@ def _sure_from_buffers(args: argparse.Namespace, frame, denoiser, out: Path) -> 
     return 0
 
 
-def _plan_options(args: argparse.Namespace, probes: int, config) -> dict:
+def _memory_limit(args: argparse.Namespace) -> int | None:
     from jaxden.limits import parse_bytes
 
+    return None if args.memory_limit is None else parse_bytes(args.memory_limit,
+                                                              "--memory-limit")
+
+
+def _plan_options(args: argparse.Namespace, probes: int, config) -> dict:
     return dict(num_probes=probes, method=args.method, eps=args.eps,
                 probe_batch=args.probe_batch, tstat=None if args.no_tstat else config.tstat,
                 nonfinite=args.nonfinite, swap_average=args.swap_average, tile=args.tile,
-                limit=None if args.memory_limit is None else parse_bytes(
-                    args.memory_limit, "--memory-limit"))
+                limit=_memory_limit(args))
 
 
 def cmd_progressive(args: argparse.Namespace) -> int:
@@ -180,8 +199,9 @@ def cmd_progressive(args: argparse.Namespace) -> int:
             )
         args.mixer = SHIPPED_MIXERS[base]
     params, config = load_mixer(args.mixer)
-    frame = read_input_frame(args, "jaxden progressive")
     denoiser = load_denoiser(args.denoiser)
+    frame = read_input_frame(args, "jaxden progressive", denoiser,
+                             covariance=config.sure_covariance)
     feature_notice(frame, denoiser, args.input)
     if (config.kind == "network" and config.denoiser != denoiser.name
             and Path(config.denoiser).name != Path(args.denoiser).name):
@@ -239,6 +259,7 @@ def add_commands(sub) -> None:
     p.add_argument("--extrapolate", action="store_true",
                    help="with --buffers (even K >= 4): cancel the O(1/K) bias of nonlinear "
                         "denoisers by Richardson extrapolation from K and K/2 merged buffers")
+    add_memory_options(p)
     add_overwrite_input_option(p)
     p.set_defaults(func=cmd_sure)
 
@@ -275,6 +296,7 @@ def add_commands(sub) -> None:
                    help="NaN/inf in the input: refuse (default) or replace by 0")
     add_channels_option(p)
     add_convention_options(p)
+    add_memory_options(p)
     add_overwrite_input_option(p)
     p.set_defaults(func=cmd_denoise)
 

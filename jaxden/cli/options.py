@@ -179,11 +179,18 @@ def add_overwrite_input_option(parser: argparse.ArgumentParser) -> None:
                              "then replaced)")
 
 
-def read_input_frame(args: argparse.Namespace, who: str):
-    """Read ``args.input`` for SURE: colour and variance required (clear errors otherwise)."""
+def read_input_frame(args: argparse.Namespace, who: str, denoiser=None,
+                     covariance: bool = True):
+    """Read ``args.input`` for SURE: colour and variance required (clear errors otherwise);
+    with ``denoiser``, only the fields SURE and it read are kept (memory; ``covariance``:
+    whether SURE reads the colour covariance)."""
     from jaxden.io.exr import read_frame, read_header
 
     mapping = channel_map(args)
+    keep = None
+    if denoiser is not None:
+        keep = ("color", "variance", *(("covariance",) if covariance else ()),
+                *denoiser.fields_read())
     frame = read_frame(
         args.input,
         require=("color", *(mapping or {})),  # channels named on the command line must exist
@@ -192,6 +199,7 @@ def read_input_frame(args: argparse.Namespace, who: str):
         variance_is_sample_variance=args.sample_variance,
         spp=args.spp,
         spp_override=args.override_spp,
+        keep=keep,
         **convention_options(args),
     )
     if frame.variance is None:

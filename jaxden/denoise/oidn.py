@@ -4,7 +4,9 @@ in, NumPy out, no derivatives.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import threading
 from typing import Literal
 
 import numpy as np
@@ -28,6 +30,7 @@ class OIDNConfig:
     crops of data/test "no" lowers OIDN's RMSE by 18 % at 2 spp and 9 % at 4 spp, while on
     the built-in scenes at 2-8 spp it ranges from 0.63x to 4.6x in relMSE (small-lights:
     far worse); from 16 spp up "yes" wins (docs/results.md, "OIDN's auxiliary features").
+    OIDN's memory is a resource, not part of the denoiser: :func:`max_memory` sets it.
     """
 
     quality: Literal["high", "balanced", "fast"] = "high"
@@ -57,14 +60,80 @@ def _oidn_one(config: OIDNConfig, color, albedo, normal, clean: bool) -> np.ndar
     if normal is not None and albedo is None:
         # OIDN's RT filter accepts normals only together with albedo.
         normal = None
-    return pyoidn.denoise(
-        color,
-        None if albedo is None else np.ascontiguousarray(np.clip(albedo, 0, 1), np.float32),
-        None if normal is None else np.ascontiguousarray(np.clip(normal, -1, 1), np.float32),
-        hdr=True,
-        clean_aux=clean and albedo is not None,
-        quality=config.quality,
-    )
+    albedo = None if albedo is None else np.ascontiguousarray(np.clip(albedo, 0, 1), np.float32)
+    normal = None if normal is None else np.ascontiguousarray(np.clip(normal, -1, 1),
+                                                              np.float32)
+    if _MAX_MEMORY_MB[0] is not None:
+        return _oidn_limited(config, color, albedo, normal, clean and albedo is not None,
+                             _MAX_MEMORY_MB[0])
+    return pyoidn.denoise(color, albedo, normal, hdr=True, clean_aux=clean and albedo is not None,
+                          quality=config.quality)
+
+
+_LIMITED: dict = {}  # OIDN's device and one filter per maxMemoryMB (pyoidn's denoise() hides it)
+_LIMITED_LOCK = threading.Lock()
+_MAX_MEMORY_MB: list = [None]
+#: OIDN's scratch memory with its default maxMemoryMB, measured (pyoidn 2.5.1, 'high', CPU):
+#: about 630 bytes a pixel up to its own tiling threshold, ~3.2 GB at 3840 x 2160 and above.
+OIDN_DEFAULT_BYTES_PER_PIXEL, OIDN_DEFAULT_CAP = 630, 3_300 << 20
+
+
+def default_memory(pixels: int) -> int:
+    """OIDN's scratch bytes for a frame of ``pixels`` with its default maxMemoryMB."""
+    return min(OIDN_DEFAULT_BYTES_PER_PIXEL * pixels, OIDN_DEFAULT_CAP)
+
+
+@contextlib.contextmanager
+def max_memory(megabytes: int | None):
+    """Within the block, OIDN runs with ``maxMemoryMB = megabytes`` (None: its default, about
+    3 GB at 3840 x 2160 and above): a smaller value makes OIDN split the frame into more
+    overlapping tiles of its own (measured at 3840 x 2160: 512 MB holds its scratch to
+    ~0.6 GB, from 3.2 GB). A resource, not part of the denoiser's identity (caches, mixers)."""
+    previous = _MAX_MEMORY_MB[0]
+    _MAX_MEMORY_MB[0] = None if megabytes is None else max(16, int(megabytes))
+    try:
+        yield
+    finally:
+        _MAX_MEMORY_MB[0] = previous
+
+
+def _oidn_limited(config: OIDNConfig, color, albedo, normal, clean: bool,
+                  megabytes: int) -> np.ndarray:
+    """OIDN's RT filter with ``maxMemoryMB`` set, through pyoidn's Device and Filter (what
+    ``pyoidn.denoise`` does, plus that parameter)."""
+    import pyoidn
+
+    qualities = {"high": pyoidn.OIDN_QUALITY_HIGH, "balanced": pyoidn.OIDN_QUALITY_BALANCED,
+                 "fast": pyoidn.OIDN_QUALITY_FAST}
+    output = np.empty_like(color)
+    with _LIMITED_LOCK:
+        if "device" not in _LIMITED:
+            device = pyoidn.Device()
+            device.commit()
+            _LIMITED["device"] = device
+        device = _LIMITED["device"]
+        flt = _LIMITED.get(megabytes)
+        if flt is None:
+            flt = _LIMITED[megabytes] = pyoidn.Filter(device, "RT")
+            flt.set_int("maxMemoryMB", megabytes)
+        images = {"color": color, "albedo": albedo, "normal": normal, "output": output}
+        for name, image in images.items():
+            if image is None:
+                flt.unset_image(name)
+            else:
+                flt.set_image(name, image, pyoidn.OIDN_FORMAT_FLOAT3)
+        flt.set_bool("hdr", True)
+        flt.set_bool("cleanAux", clean)
+        flt.set_quality(qualities[config.quality])
+        flt.commit()
+        flt.execute()
+        error = device.get_error()
+        for name, image in images.items():
+            if image is not None:  # OIDN shares our arrays: let go of them
+                flt.unset_image(name)
+    if error:
+        raise RuntimeError(f"OIDN failed: {error}")
+    return output
 
 
 def oidn_apply(params: None, config: OIDNConfig, frame: Frame) -> np.ndarray:
@@ -100,5 +169,7 @@ register(
         required=lambda config: ("color",),
         apply=oidn_apply,
         differentiable=False,
+        optional=lambda config: (*(("albedo",) if config.use_albedo else ()),
+                                 *(("normal",) if config.use_normal else ())),
     )
 )

@@ -48,7 +48,8 @@ class DenoiserDef:
     ``required(config) -> field names`` the frame must carry; ``pretrained``: ``init``
     returns trained weights (OIDN in JAX reads Intel's), so the name alone loads it;
     ``tiling(config) -> TileSpec | None``: its receptive field and alignment, so frames can
-    run over tiles (:mod:`jaxden.tiling`); None: whole frames only.
+    run over tiles (:mod:`jaxden.tiling`); None: whole frames only; ``optional(config)``: the
+    fields it uses when a frame has them (OIDN's albedo and normal).
     """
 
     name: str
@@ -60,6 +61,7 @@ class DenoiserDef:
     differentiable: bool = True
     pretrained: bool = False  # init gives trained weights (read, not drawn): usable by name
     tiling: Callable[[Any], Any] | None = None
+    optional: Callable[[Any], tuple[str, ...]] | None = None  # fields used when present
 
 
 REGISTRY: dict[str, DenoiserDef] = {}
@@ -97,6 +99,12 @@ class Denoiser:
     def tile_spec(self):
         """:class:`jaxden.tiling.TileSpec` of this denoiser, or None (whole frames only)."""
         return None if self.definition.tiling is None else self.definition.tiling(self.config)
+
+    def fields_read(self) -> tuple[str, ...]:
+        """Every frame field this denoiser reads: required, then used when present."""
+        optional = () if self.definition.optional is None else self.definition.optional(
+            self.config)
+        return (*self.definition.required(self.config), *optional)
 
     def check_frame(self, frame: Frame) -> None:
         frame.require(*self.definition.required(self.config), who=f"denoiser '{self.name}'")
@@ -171,6 +179,7 @@ def emission_separated(definition: DenoiserDef) -> DenoiserDef:
         differentiable=definition.differentiable,
         pretrained=definition.pretrained,
         tiling=tiling,
+        optional=definition.optional,
     )
 
 

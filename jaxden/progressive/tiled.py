@@ -26,7 +26,7 @@ fields). Black boxes (OIDN) and JAX denoisers without one run whole-frame for y 
 :func:`jaxden.sure.denoiser.sure_blackbox_streamed`), then the mixer and the t-statistic go
 over tiles.
 
-Memory is planned before any work (:func:`plan`): the frame's own arrays, plus the working
+Memory is planned before any work (:class:`Plan`): the frame's own arrays, plus the working
 set of one tile as XLA's compiled memory analysis reports it; the largest tile that fits the
 budget is taken, and a frame for which even the smallest tile does not fit is refused in one
 line naming the stage.
@@ -41,33 +41,27 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxden.errors import ConfigError, JaxdenError
+from jaxden.errors import ConfigError
 from jaxden.frame import IMAGE_FIELDS, Frame
 from jaxden.limits import format_bytes, memory_limit
 from jaxden.progressive.closed_form import CLOSED_FORM_PROXY_SIGMA, gaussian_taps
 from jaxden.progressive.mixer import MixerConfig
 from jaxden.progressive.tstat import TStatConfig, tstat_sigma
-from jaxden.tiling import Tile, tile_grid
+from jaxden.tiling import (  # MemoryPlanError: re-exported
+    MemoryPlanError,
+    Tile,
+    TileProgram,
+    largest_tile,
+    run_tiles,
+    tile_budget,
+    tile_grid,
+)
 
-#: The tile side tried first and the smallest one tried (pixels, before the halo).
-TILE_START, TILE_MIN = 1024, 64
-#: The working set of one tile may take at most this share of the memory limit (the rest
-#: holds the frame's arrays, the outputs and the Python process itself) and at most
-#: TILE_BUDGET_CAP bytes: tiles beyond ~1024^2 pixels are no faster on a CPU.
-TILE_BUDGET_SHARE, TILE_BUDGET_CAP = 0.25, 1 << 30
-#: Bytes a pixel that the process holds besides the frame's arrays when the denoiser runs
-#: whole-frame as a black box: the float32 probe, perturbed colour and output and the float64
-#: sum of :func:`sure_blackbox_streamed` (50), OIDN's copies of its inputs and output (48),
-#: and y and SURE (24).
-BLACKBOX_BYTES_PER_PIXEL = 122
-#: OIDN's own working memory: it tiles frames above about 2160^2 padded pixels, so its peak is
-#: bounded (measured with pyoidn 2.5.1 'high', 1920 x 1080: ~1.3 GB above its inputs).
-OIDN_WORKING_BYTES = 1_600 << 20
-
-
-class MemoryPlanError(JaxdenError):
-    """A frame whose smallest tile, or whose own arrays, do not fit the memory limit."""
-
+#: Bytes a pixel that the process holds besides the frame's arrays while a black box runs
+#: whole-frame (:func:`jaxden.sure.denoiser.sure_blackbox_streamed`): y, the float32 probe,
+#: perturbed colour and output (48), the float64 sum (24) and OIDN's clipped copies of its
+#: colour, albedo and normal (36).
+BLACKBOX_BYTES_PER_PIXEL = 108
 
 # --------------------------------------------------------------------------- receptive fields
 def taps_radius(sigma: float) -> int:
@@ -139,17 +133,6 @@ class Plan:
                 f"about {format_bytes(self.peak)} of {format_bytes(self.limit)}")
 
 
-def _analysed_bytes(compiled) -> int | None:
-    try:
-        stats = compiled.memory_analysis()
-    except Exception:  # noqa: BLE001 - a backend without the analysis: fall back
-        return None
-    if stats is None:
-        return None
-    return int(stats.temp_size_in_bytes + stats.argument_size_in_bytes
-               + stats.output_size_in_bytes)
-
-
 # ------------------------------------------------------------------------------------ stages
 def _tile_all(denoiser_params, mixer_params, frame, key, origin, eps, sigma, *, apply,
               mixer_config, tstat, swap_average, spp, num_probes, method, probe_batch,
@@ -178,12 +161,6 @@ def _tile_mixer(mixer_params, x, y, var, sure_map, sigma, *, mixer_config, tstat
                                               sigma=sigma)
     parts = {"z": z, "alpha_prime": alpha_prime, "alpha": alpha}
     return {name: parts[name] for name in keep if name in parts}
-
-
-@functools.lru_cache(maxsize=64)
-def _apply_fn(apply, config):
-    """A stable ``(params, frame) -> image`` per (apply, config) (SURE compiles per function)."""
-    return lambda params, frame: apply(params, config, frame)
 
 
 #: What :func:`progressive_denoise_tiled` can return (``keep``): z', alpha', alpha, y, SURE,
@@ -221,8 +198,13 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
     Returns ``(outputs, plan)``: float32 NumPy arrays (H, W, 3) by name, and the :class:`Plan`.
     Raises MemoryPlanError when the frame's arrays, or its smallest tile, do not fit.
     """
-    from jaxden.sure.denoiser import (default_eps, resolve_denoiser, resolve_method,
-                                      sure_blackbox_streamed)
+    from jaxden.denoise.tiled import blackbox_memory, bound_apply, tile_inputs, window
+    from jaxden.sure.denoiser import (
+        default_eps,
+        resolve_denoiser,
+        resolve_method,
+        sure_blackbox_streamed,
+    )
 
     denoiser = resolve_denoiser(denoiser)
     unknown = sorted(set(keep) - set(OUTPUTS))
@@ -256,19 +238,13 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
     limit = memory_limit() if limit is None else int(limit)
     frame_bytes = sum(np.asarray(a).nbytes for a in jax.tree_util.tree_leaves(frame))
     frame_bytes += len(keep) * color.nbytes
+    blackbox_context, blackbox_bytes = blackbox_memory(denoiser, height * width, limit)
     if stage == "mixer":
-        frame_bytes += BLACKBOX_BYTES_PER_PIXEL * height * width + OIDN_WORKING_BYTES
+        frame_bytes += BLACKBOX_BYTES_PER_PIXEL * height * width + blackbox_bytes
 
     if stage == "all":
-        if spec.constants is not None:
-            device_frame = jax.tree_util.tree_map(jnp.asarray, frame)
-            params = {"params": denoiser.params,
-                      "constants": spec.constants(denoiser.config, device_frame)}
-            apply = _apply_fn(spec.apply, denoiser.config)
-            del device_frame
-        else:
-            params = denoiser.params
-            apply = _apply_fn(denoiser.definition.apply, denoiser.config)
+        params, apply = tile_inputs(denoiser, frame)
+        apply = bound_apply(apply, denoiser.config)
         run_tile = functools.partial(
             _tile_all, apply=apply, mixer_config=mixer_config, tstat=tstat,
             swap_average=bool(swap_average), spp=spp, num_probes=int(num_probes), method=method,
@@ -276,9 +252,7 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
             keep=tuple(keep))
 
         def tile_args(tile_: Tile, arrays):
-            rows, cols = tile_.src_slices
-            sub = jax.tree_util.tree_map(
-                lambda a: np.asarray(a)[rows, cols] if np.ndim(a) >= 3 else a, frame)
+            sub = window(frame, tile_)
             origin = np.asarray([tile_.src[0][0], tile_.src[1][0]], np.int32)
             return (params, mixer_params, sub, key, origin, np.float32(eps), sigma)
     else:
@@ -291,43 +265,17 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
             return (mixer_params, *(arrays[n][rows, cols] for n in ("x", "y", "var", "sure")),
                     sigma)
 
-    compiled: dict[tuple[int, int], object] = {}
-    jitted = jax.jit(run_tile)
-
-    def compiled_for(tile_: Tile, arrays):
-        shape = tile_.src_shape
-        if shape not in compiled:
-            compiled[shape] = jitted.lower(*tile_args(tile_, arrays)).compile()
-        return compiled[shape]
-
-    # ------------------------------------------------------------------------- planning
-    if frame_bytes > limit:
-        raise MemoryPlanError(
-            f"progressive denoising of a {width}x{height} frame: its own arrays"
-            f"{' and the whole-frame denoiser' if stage == 'mixer' else ''} need about "
-            f"{format_bytes(frame_bytes)}, more than the memory limit {format_bytes(limit)} "
-            f"(JAXDEN_MEMORY_LIMIT or --memory-limit set it)")
-    budget = min(int(limit * TILE_BUDGET_SHARE), TILE_BUDGET_CAP, limit - frame_bytes)
-    shapes = {"x": color, "y": color, "var": color, "sure": color}  # shapes for planning
+    # ``arrays`` is read when a tile runs: stand-ins of the right shape while planning, the
+    # frame's x, var, y and SURE after the whole-frame stage.
+    program = TileProgram(run_tile, lambda tile_: tile_args(tile_, arrays))
+    what = (f"progressive denoising of a {width}x{height} frame"
+            + (": the denoiser, SURE, mixer and t-statistic" if stage == "all"
+               else ": the mixer and t-statistic"))
+    arrays = {"x": color, "y": color, "var": color, "sure": color}  # for planning: shapes
+    budget = tile_budget(limit, frame_bytes, what)
     estimate = 0
     if tile is None:
-        side = min(TILE_START, max(height, width))
-        while True:
-            probe = tile_grid(height, width, side, halo, multiple)[0]
-            needed = _analysed_bytes(compiled_for(probe, shapes))
-            if needed is None or needed <= budget:
-                break
-            if side <= TILE_MIN:
-                what = ("the denoiser, SURE, mixer and t-statistic" if stage == "all"
-                        else "the mixer and t-statistic")
-                raise MemoryPlanError(
-                    f"progressive denoising of a {width}x{height} frame: {what} on the "
-                    f"smallest tile ({TILE_MIN} px + {halo} px overlap) need about "
-                    f"{format_bytes(needed)}, more than the {format_bytes(budget)} left of the "
-                    f"memory limit {format_bytes(limit)} after the frame's arrays")
-            compiled.clear()
-            side = max(TILE_MIN, side // 2)
-        tile, estimate = side, needed or 0
+        tile, estimate = largest_tile(program, height, width, halo, multiple, budget, what)
     tile = tile or max(height, width)
     tiles = tile_grid(height, width, tile, halo, multiple)
     plan = Plan(tile=0 if len(tiles) == 1 else tile, halo=halo, multiple=multiple, stage=stage,
@@ -337,31 +285,19 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
     if on_plan is not None:
         on_plan(plan)
 
-    # ------------------------------------------------------------------------------ run
     outputs = {name: np.empty_like(color) for name in keep}
     arrays = {"x": color, "var": np.asarray(frame.variance, np.float32)}
     if stage == "mixer":
-        result = sure_blackbox_streamed(denoiser.function(), frame, key, int(num_probes), eps)
+        with blackbox_context:
+            result = sure_blackbox_streamed(denoiser.function(), frame, key, int(num_probes),
+                                            eps)
         arrays |= {"y": result.denoised, "sure": result.sure}
         for name, value in (("denoised", result.denoised), ("sure", result.sure),
                             ("divergence", result.divergence_term)):
             if name in outputs:
                 outputs[name][...] = value
         del result
-    bar = None
-    if progress and len(tiles) > 1:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(tiles), desc="tiles", unit="tile", leave=False)
-    for tile_ in tiles:
-        produced = compiled_for(tile_, arrays)(*tile_args(tile_, arrays))
-        rows, cols = tile_.out_slices
-        for name, value in produced.items():
-            outputs[name][rows, cols] = np.asarray(value)[tile_.inner]
-        if bar is not None:
-            bar.update(1)
-    if bar is not None:
-        bar.close()
+    run_tiles(program, tiles, outputs, progress)
     return outputs, plan
 
 
@@ -393,7 +329,7 @@ def progressive_frame(frame: Frame, denoiser, mixer_params, mixer_config: MixerC
     require_variance(frame, "progressive_denoise", held_in="EXR channels variance.R/G/B")
     # Fields no stage reads (depth for OIDN, motion, position, ...) are dropped first: at
     # 7680 x 4320 each three-channel field is 400 MB.
-    used = {"color", "variance", "covariance", *denoiser.definition.required(denoiser.config)}
+    used = {"color", "variance", "covariance", *denoiser.fields_read()}
     frame = frame.replace(**{name: None for name in IMAGE_FIELDS if name not in used})
     frame = frame.numpy().validated(where="progressive_denoise", nonfinite=nonfinite)
     denoiser.check_frame(frame)

@@ -184,14 +184,16 @@ def sure_blackbox_streamed(denoise_np, frame: Frame, key, num_probes: int, eps: 
             jb = (out32[band].astype(np.float64) - y32[band]) / eps
             total[band] += b32[band] * jb
         del b32, out32
-    sure_map = np.empty_like(x32)
+    del plus
     divergence = np.empty_like(x32)
     residual_sq = np.empty_like(x32)
     for band in bands:
-        div = total[band] / num_probes
-        residual = np.square(y32[band].astype(np.float64) - x32[band])
-        divergence[band] = div
-        residual_sq[band] = residual
-        sure_map[band] = residual - var32[band].astype(np.float64) + 2.0 * div
+        divergence[band] = total[band] / num_probes
+        residual_sq[band] = np.square(y32[band].astype(np.float64) - x32[band])
+    sure_map = total.astype(np.float32)  # reused as the float32 SURE (the float64 sum goes)
+    for band in bands:
+        sure_map[band] = (np.square(y32[band].astype(np.float64) - x32[band]) - var32[band]
+                          + 2.0 * (total[band] / num_probes))
+    del total
     return SureResult(sure=sure_map, residual_sq=residual_sq, divergence_term=divergence,
                       denoised=y32)
