@@ -229,3 +229,43 @@ def test_plan_refuses_what_cannot_fit_in_one_line(small_kp):
     _, plan = progressive_denoise_tiled(frame, small_kp, {}, config, jax.random.PRNGKey(0),
                                         plan_only=True, **options)
     assert plan.tile == 0 and 0 < plan.tile_bytes < plan.limit
+
+
+def test_cli_refuses_a_frame_that_cannot_fit_and_writes_nothing(tmp_path, capsys):
+    """`jaxden progressive` and `jaxden denoise` with a memory limit below what the frame
+    needs: one line naming the stage and the memory, exit 2, no output file; an allocation
+    failure from XLA is one line too."""
+    from helpers import assert_one_error_line, run_cli
+
+    from jaxden.io.exr import write_frame
+
+    source = tmp_path / "in.exr"
+    write_frame(source, _frame(64, 48))
+    out = tmp_path / "out.exr"
+    code, lines, _ = run_cli(["progressive", source, "--denoiser", "wskp-6", "--mixer",
+                              "closed-form", "--memory-limit", "20K", "--out", out], capsys)
+    assert_one_error_line(code, lines, "own arrays need about", "memory limit 20.0 KiB")
+    code, lines, _ = run_cli(["progressive", source, "--denoiser", "wskp-6", "--mixer",
+                              "closed-form", "--memory-limit", "200K", "--out", out], capsys)
+    assert_one_error_line(code, lines, "the denoiser, SURE, mixer and t-statistic",
+                          "smallest tile (64 px + 59 px overlap)")
+    code, lines, _ = run_cli(["denoise", source, "--model", "wskp-6", "--memory-limit", "1M",
+                              "--out", out], capsys)
+    assert_one_error_line(code, lines, "denoising a 64x48 frame with wskp",
+                          "smallest tile (64 px + 18 px overlap)")
+    assert not out.exists()
+    code, lines, _ = run_cli(["denoise", source, "--model", "wskp-6", "--memory-limit", "8X",
+                              "--out", out], capsys)
+    assert_one_error_line(code, lines, "--memory-limit='8X'", "such as 8G")
+
+
+def test_allocation_failures_are_one_line():
+    from jaxden.cli import _is_allocation_failure
+
+    class JaxRuntimeError(Exception):
+        pass
+
+    text = "RESOURCE_EXHAUSTED: Out of memory allocating 25878533024 bytes."
+    assert _is_allocation_failure(JaxRuntimeError(text))
+    assert not _is_allocation_failure(JaxRuntimeError("INVALID_ARGUMENT: shapes"))
+    assert not _is_allocation_failure(ValueError(text))

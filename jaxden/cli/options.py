@@ -285,7 +285,7 @@ def check_finite_result(array, what: str, cause: str) -> None:
 
 def add_memory_options(parser: argparse.ArgumentParser) -> None:
     """``--tile`` and ``--memory-limit``: how a frame is cut into tiles (jaxden.tiling)."""
-    parser.add_argument("--tile", type=_non_negative_int, default=None, metavar="PIXELS",
+    parser.add_argument("--tile", type=non_negative_int, default=None, metavar="PIXELS",
                         help="tile side for frames run in pieces (0: the whole frame at once); "
                              "default: the largest tile that fits the memory limit")
     parser.add_argument("--memory-limit", default=None, metavar="BYTES",
@@ -294,11 +294,11 @@ def add_memory_options(parser: argparse.ArgumentParser) -> None:
                              "planned to fit it, and a frame that cannot fit is refused up front")
 
 
-def _non_negative_int(text: str) -> int:
+def non_negative_int(text: str) -> int:
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
     if value < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
     return value

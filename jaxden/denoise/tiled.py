@@ -29,17 +29,18 @@ class DenoisePlan:
     frame_bytes: int
 
 
-def blackbox_memory(denoiser, pixels: int, limit: int):
-    """``(context, bytes)`` for a black box on a whole frame of ``pixels``: OIDN's scratch is
-    held to a tile's budget (:func:`jaxden.tiling.tile_budget`'s share, at most 1 GiB) when
-    its default would take more (:func:`jaxden.denoise.oidn.max_memory`), and ``bytes`` is
-    what it will use."""
+def blackbox_memory(denoiser, frame: Frame, limit: int | None = None):
+    """``(context, bytes)`` for a black box on the whole of ``frame``: OIDN's scratch is held
+    to a tile's budget (:func:`jaxden.tiling.tile_budget`'s share of ``limit``, None:
+    :func:`jaxden.limits.memory_limit`; at most 1 GiB) when its default would take more
+    (:func:`jaxden.denoise.oidn.max_memory`), and ``bytes`` is what it will use."""
     from jaxden.denoise.oidn import default_memory, max_memory
     from jaxden.tiling import TILE_BUDGET_CAP, TILE_BUDGET_SHARE
 
     if denoiser.differentiable or denoiser.name.partition("+")[0] != "oidn":
         return contextlib.nullcontext(), 0
-    needed = default_memory(pixels)
+    limit = memory_limit() if limit is None else int(limit)
+    needed = default_memory(int(np.prod(np.shape(frame.color)[:-1])))
     cap = min(TILE_BUDGET_CAP, int(limit * TILE_BUDGET_SHARE))
     if needed <= cap:
         return contextlib.nullcontext(), needed
@@ -80,10 +81,7 @@ def denoise_frame(denoiser, frame: Frame, *, tile: int | None = None, limit: int
     denoiser.check_frame(frame)
     spec = denoiser.tile_spec() if denoiser.differentiable else None
     if tile == 0 or spec is None or np.ndim(frame.color) != 3:
-        pixels = int(np.prod(np.shape(frame.color)[:-1]))
-        context, _ = blackbox_memory(denoiser, pixels, memory_limit() if limit is None
-                                     else int(limit))
-        with context:
+        with blackbox_memory(denoiser, frame, limit)[0]:
             return np.asarray(denoiser(frame), np.float32), None
     used = {"color", *denoiser.fields_read()}
     frame = frame.replace(**{name: None for name in IMAGE_FIELDS if name not in used}).numpy()

@@ -47,8 +47,8 @@ from jaxden.limits import format_bytes, memory_limit
 from jaxden.progressive.closed_form import CLOSED_FORM_PROXY_SIGMA, gaussian_taps
 from jaxden.progressive.mixer import MixerConfig
 from jaxden.progressive.tstat import TStatConfig, tstat_sigma
-from jaxden.tiling import (  # MemoryPlanError: re-exported
-    MemoryPlanError,
+from jaxden.tiling import MemoryPlanError as MemoryPlanError  # re-exported
+from jaxden.tiling import (
     Tile,
     TileProgram,
     largest_tile,
@@ -238,7 +238,7 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
     limit = memory_limit() if limit is None else int(limit)
     frame_bytes = sum(np.asarray(a).nbytes for a in jax.tree_util.tree_leaves(frame))
     frame_bytes += len(keep) * color.nbytes
-    blackbox_context, blackbox_bytes = blackbox_memory(denoiser, height * width, limit)
+    blackbox_context, blackbox_bytes = blackbox_memory(denoiser, frame, limit)
     if stage == "mixer":
         frame_bytes += BLACKBOX_BYTES_PER_PIXEL * height * width + blackbox_bytes
 

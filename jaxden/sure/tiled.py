@@ -35,17 +35,18 @@ def sure_frame(denoiser, frame: Frame, key, *, num_probes: int = 4, method: str 
     JAX denoiser with a receptive field (``tile``: the side, None: the largest that fits
     ``limit``, 0: whole). Returns ``(SureResult of NumPy float32, tile)`` (tile 0: whole)."""
     from jaxden.denoise.tiled import blackbox_memory, bound_apply, tile_inputs, window
-    from jaxden.sure.denoiser import (default_eps, denoise_with_sure, resolve_denoiser,
-                                      resolve_method)
+    from jaxden.sure.denoiser import (
+        default_eps,
+        denoise_with_sure,
+        resolve_denoiser,
+        resolve_method,
+    )
     from jaxden.sure.stein import SureResult, require_variance
 
     denoiser = resolve_denoiser(denoiser)
     spec = denoiser.tile_spec() if denoiser.differentiable else None
     if tile == 0 or spec is None or np.ndim(frame.color) != 3:
-        pixels = int(np.prod(np.shape(frame.color)[:-1]))
-        context, _ = blackbox_memory(denoiser, pixels, memory_limit() if limit is None
-                                     else int(limit))
-        with context:
+        with blackbox_memory(denoiser, frame, limit)[0]:
             result, _ = denoise_with_sure(denoiser, frame, key, num_probes=num_probes,
                                           method=method, eps=eps, probe_batch=probe_batch,
                                           nonfinite=nonfinite, where=where)
