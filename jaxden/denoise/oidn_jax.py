@@ -228,6 +228,40 @@ def oidn_jax_apply(params, config: OIDNJaxConfig, frame):
                         frame.normal if config.use_normal else None)
 
 
+#: OIDN's U-Nets' receptive field, pixels each side: the 3 x 3 convolutions at scales 1 to 16
+#: (base: 79 pixels; large, two per encoder level: 93; :mod:`jaxden.denoise.nn.oidn_net`),
+#: plus a pixel of the current scale per pool and per upsampling (15 + 15).
+OIDN_RADIUS = {"base": 79 + 30, "large": 93 + 30}
+
+
+def _exposure_constants(config: OIDNJaxConfig, frame):
+    """The whole frame's auto-exposure (per image), held constant on its tiles."""
+    color = jnp.asarray(frame.color, jnp.float32)
+    flat = color.reshape((-1,) + color.shape[-3:])
+    return jax.vmap(auto_exposure)(flat).reshape(color.shape[:-3])
+
+
+def oidn_jax_tile_apply(packed, config: OIDNJaxConfig, frame):
+    """OIDN in JAX on a tile, with the frame's input scale (see :func:`oidn_jax_tiling`)."""
+    _, spec = _loaded(config)
+    return oidn_denoise(packed["params"], spec, frame.color,
+                        frame.albedo if config.use_albedo else None,
+                        frame.normal if config.use_normal else None,
+                        input_scale=packed["constants"])
+
+
+def oidn_jax_tiling(config: OIDNJaxConfig):
+    """Tiles of OIDN in JAX: its U-Net's field, on its 16-pixel grid, with the whole frame's
+    auto-exposure held constant. Departure: on tiles, jvp SURE leaves out the exposure's own
+    derivative (a mean over the frame's 16 x 16 bins: O(1 / pixels) per pixel, below float32
+    rounding on frames worth tiling)."""
+    from jaxden.tiling import TileSpec
+
+    _, spec = _loaded(config)
+    return TileSpec(radius=OIDN_RADIUS["large" if spec.size == "large" else "base"],
+                    multiple=16, constants=_exposure_constants, apply=oidn_jax_tile_apply)
+
+
 def _register() -> None:
     from jaxden.denoise.registry import DenoiserDef, register
 
@@ -241,6 +275,7 @@ def _register() -> None:
         apply=oidn_jax_apply,
         init=oidn_jax_init,
         pretrained=True,
+        tiling=oidn_jax_tiling,
     ))
 
 
