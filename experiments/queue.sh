@@ -76,6 +76,7 @@ step pd-base-unet-hdr-alb-nrm-var "${X[@]}" $J sweep experiments/sweeps/pd-bases
 step data-pd-test-high $J dataset build experiments/configs/dataset-pd-test-high.toml \
   --out "$H/data/pd-test-high"
 step data-pd-rt4k $J dataset build experiments/configs/dataset-pd-rt4k.toml --out "$H/data/pd-rt4k"
+base_steps wskp6  # Table 2's WSKP-6 row, the one the tables still lack
 for base in unet-hdr-alb-nrm-var unet-hdr unet-hdr-var; do base_steps "$base"; done
 # Table 4 (the paper's ablations, per-channel SURE as the paper) over the U-Net on HDR + ALB +
 # NRM + VAR: the f_act mixer, without SURE, without f_act, and our closed_form_logit head.
@@ -83,7 +84,7 @@ for run in unet-hdr-alb-nrm-var t4-full t4-no-sure t4-no-f_act; do
   step "pd-mixer-$run" "${X[@]}" $J sweep experiments/sweeps/pd-mixers.toml \
     --workdir "$H/runs/sweeps/pd-mixers" --only "$run"
 done
-for base in unet-hdr-alb-nrm kp5 wskp6; do base_steps "$base"; done
+for base in unet-hdr-alb-nrm kp5; do base_steps "$base"; done
 # The sweeps' summaries (every run is finished by now) and SURE by jvp against the true error
 # of every JAX base (into the checkout's experiments/results/sure: commit it), SURE from the
 # covariance and the paper's per-channel form.

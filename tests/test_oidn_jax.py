@@ -170,3 +170,21 @@ def test_unknown_names_list_shipped_models_and_suggest():
         load_denoiser("wskp6")
     with pytest.raises(CheckpointError, match="runs/wskp: no such file or folder"):
         load_denoiser("runs/wskp")
+
+
+@pytest.mark.slow  # OIDN's U-Net at 288 x 256, whole and over tiles: ~30 s here
+def test_over_tiles_equals_the_whole_frame():
+    """OIDN in JAX over tiles (its field, 109 px, on its 16-pixel grid; the frame's
+    auto-exposure held constant) equals the whole frame."""
+    from jaxden.denoise.registry import load_denoiser
+    from jaxden.denoise.tiled import denoise_frame
+    from jaxden.render.synthetic import synthetic_render
+
+    frame = synthetic_render("oidn-tiles", 4, seed=2, size=(288, 256))
+    denoiser = load_denoiser("oidn-jax")
+    assert denoiser.tile_spec().radius == 109 and denoiser.tile_spec().multiple == 16
+    whole, _ = denoise_frame(denoiser, frame, tile=0)
+    tiled, plan = denoise_frame(denoiser, frame, tile=48)
+    assert plan.tile == 48
+    relative = np.sqrt(np.mean((tiled - whole) ** 2) / np.mean(whole ** 2))
+    assert relative < 1e-5, relative

@@ -105,6 +105,14 @@ HEADLINE = {
     ("box-sum kernel decoder / unfold decoder, 6 kernels 3..13: memory, time", "1280 x 720"): [
         ("bench-decoder.json", _key("memory_ratio")),
         ("bench-decoder.json", _key("time_ratio"))],
+    ("peak memory (GB) of `jaxden progressive`, 7680 x 4320: PD(OIDN); PD(WSKP-6)",
+     "one frame, the whole command"): [
+        ("bench-frames-progressive.json", _key("pd_oidn_7680x4320_gb")),
+        ("bench-frames-progressive.json", _key("pd_wskp6_7680x4320_gb"))],
+    ("time per megapixel, 7680 x 4320 / 1920 x 1080: PD(OIDN); PD(WSKP-6)", "the same run"): [
+        ("bench-frames-progressive.json", _key("pd_oidn_time_per_mp_7680x4320_over_1920x1080")),
+        ("bench-frames-progressive.json",
+         _key("pd_wskp6_time_per_mp_7680x4320_over_1920x1080"))],
 }
 
 #: README prose: a phrase (as in the README, whitespace collapsed; its numbers stand for any
