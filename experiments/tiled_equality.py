@@ -8,7 +8,9 @@ its ceiling lamp and the boxes' edges; tiles of 256 pixels (balanced per axis: 8
 216), so seams cross the lamp and edges everywhere. Each row runs the same computation whole
 (one tile) and over tiles with the overlap of the stages' receptive fields, and reports
 sqrt(mean (tiled - whole)^2 / mean whole^2) per output, and the same with an overlap 8
-pixels short of the field (the seams then show). Pipelines: PD(OIDN) with the shipped
+pixels short of the fields: how much that shows depends on the weight the stages put at the
+edge of their fields (a Gaussian's last taps weigh little; tests/test_tiled.py shows the
+seams with overlaps that leave a stage out). Pipelines: PD(OIDN) with the shipped
 ``oidn-pd`` (OIDN whole-frame, finite-difference SURE one probe at a time; mixer and
 t-statistic over tiles), PD(WSKP-6) with ``wskp-6-pd`` (everything per tile, SURE by jvp),
 WSKP-3 and the U-Net (``unet-rt``) with the closed-form mixer, SURE by jvp of WSKP-6 alone,
