@@ -182,6 +182,7 @@ def run_jaxden(folder: Path, env: dict, argv, *, hook_var: str = "", hook_value:
     else:
         command = [sys.executable, "-m", "jaxden.cli", *map(str, argv)]
     return subprocess.run(command, env=env, capture_output=True, text=True, timeout=300,
+                          preexec_fn=sigint_default,
                           check=False, **options)
 
 
@@ -293,3 +294,12 @@ def assert_same_state(a: Path, b: Path) -> None:
     assert int(x["step"]) == int(y["step"])
     for left, right in zip(jax.tree_util.tree_leaves(x), jax.tree_util.tree_leaves(y)):
         np.testing.assert_allclose(np.asarray(left), np.asarray(right), rtol=1e-6, atol=1e-7)
+
+
+def sigint_default() -> None:
+    """``preexec_fn`` of commands that a test interrupts: SIGINT at its default, as under a
+    terminal (a disposition of SIG_IGN would be inherited from the test process, where some
+    library may have left it, and Python then never raises KeyboardInterrupt)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

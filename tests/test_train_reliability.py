@@ -17,6 +17,7 @@ from helpers import (
     checkpoint_steps,
     cli_env,
     metrics_records,
+    sigint_default,
     write_train_config,
 )
 
@@ -91,7 +92,7 @@ def test_ctrl_c_finishes_the_checkpoint_and_prints_one_line(tmp_path, dataset):
     command = [sys.executable, "-m", "jaxden.cli", "train", str(config), "--workdir",
                str(workdir)]
     proc = subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+                            text=True, preexec_fn=sigint_default)
     metrics = workdir / "metrics.jsonl"
     deadline = time.time() + 300
     while time.time() < deadline and proc.poll() is None:
