@@ -70,13 +70,13 @@ base_steps() {  # base_steps BASE: the base, its covariance-SURE mixer, Eq. 9 al
     --workdir "$H/runs/sweeps/pd-mixers-cov" --only "$base"
   step "pd-closed-form-$base" closed_form "$base"
 }
+base_steps wskp6  # Table 2's WSKP-6 row, the one the tables still lack
 step pd-base-unet-hdr-alb-nrm-var "${X[@]}" $J sweep experiments/sweeps/pd-bases.toml \
   --workdir "$B" --only unet-hdr-alb-nrm-var
 # The held-out set and the mixers' training set.
 step data-pd-test-high $J dataset build experiments/configs/dataset-pd-test-high.toml \
   --out "$H/data/pd-test-high"
 step data-pd-rt4k $J dataset build experiments/configs/dataset-pd-rt4k.toml --out "$H/data/pd-rt4k"
-base_steps wskp6  # Table 2's WSKP-6 row, the one the tables still lack
 for base in unet-hdr-alb-nrm-var unet-hdr unet-hdr-var; do base_steps "$base"; done
 # Table 4 (the paper's ablations, per-channel SURE as the paper) over the U-Net on HDR + ALB +
 # NRM + VAR: the f_act mixer, without SURE, without f_act, and our closed_form_logit head.
