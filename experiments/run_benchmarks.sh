@@ -2,9 +2,11 @@
 # Runs every benchmark (or those named) and stores each one's JSON result, with the machine it
 # ran on, in experiments/results/bench/bench-NAME.json (bench-NAME$BENCH_SUFFIX.json when
 # BENCH_SUFFIX is set, e.g. -h100 on a GPU machine). Run on an otherwise idle machine:
-#   experiments/run_benchmarks.sh [render decoder denoisers sharding sure progressive frames]
-# "frames" is `jaxden bench progressive --size 1920x1080,3840x2160,7680x4320 --quick`: whole
-# frames, each command in its own process, stored as bench-frames-progressive.json.
+#   experiments/run_benchmarks.sh [render decoder denoisers sharding sure progressive frames
+#                                  frames-denoisers]
+# "frames" is `jaxden bench progressive --size 1280x720,1920x1080,3840x2160,7680x4320 --quick`:
+# whole frames, each command in its own process, stored as bench-frames-progressive.json;
+# "frames-denoisers" the same for `jaxden bench denoisers` (bench-frames-denoisers.json).
 # Without Mitsuba (a GPU machine), JAXDEN_BENCH_FRAME=FRAME.exr gives the benchmarks their frame
 # (see jaxden.bench.bench_frame); it is recorded in the command.
 set -euo pipefail
@@ -17,9 +19,12 @@ names=("$@")
 mkdir -p experiments/results/bench
 for name in "${names[@]}"; do
   args=("$name")
+  sizes=1280x720,1920x1080,3840x2160,7680x4320
   if [ "$name" = frames ]; then
-    args=(progressive --size 1920x1080,3840x2160,7680x4320 --quick)
+    args=(progressive --size "$sizes" --quick)
     name=frames-progressive
+  elif [ "$name" = frames-denoisers ]; then
+    args=(denoisers --size "$sizes" --quick)
   fi
   echo "== jaxden bench ${args[*]} --json"
   log=$(mktemp)
