@@ -71,6 +71,17 @@ base_steps() {  # base_steps BASE: the base, its covariance-SURE mixer, Eq. 9 al
   step "pd-closed-form-$base" closed_form "$base"
 }
 base_steps wskp6  # Table 2's WSKP-6 row, the one the tables still lack
+# PD of OIDN with SURE by jvp (OIDN-JAX, K = 1 and 4 probes) beside the finite-difference PD
+# tables of the C++ OIDN (pd-oidn-test-shipped, pd-oidn-test-high-shipped): into the
+# checkout's experiments/results/pd (commit them), then `python experiments/pd_oidn_sure_forms.py`.
+oidnjax_pd() {  # oidnjax_pd SET PROBES NAME
+  .venv/bin/python -m jaxden.cli evaluate pd --data "$H/data/$1" --denoiser oidn-jax \
+    --mixer oidn-pd --probes "$2" --keep-current --out "experiments/results/pd/$3"
+}
+step pd-oidnjax-k1-test oidnjax_pd test-chain 1 pd-oidnjax-k1-test
+step pd-oidnjax-k4-test oidnjax_pd test-chain 4 pd-oidnjax-test
+step pd-oidnjax-k1-test-high oidnjax_pd test-high-chain 1 pd-oidnjax-k1-test-high
+step pd-oidnjax-k4-test-high oidnjax_pd test-high-chain 4 pd-oidnjax-test-high
 step pd-base-unet-hdr-alb-nrm-var "${X[@]}" $J sweep experiments/sweeps/pd-bases.toml \
   --workdir "$B" --only unet-hdr-alb-nrm-var
 # The held-out set and the mixers' training set.
