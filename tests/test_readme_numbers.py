@@ -113,6 +113,11 @@ HEADLINE = {
         ("bench-frames-progressive.json", _key("pd_oidn_time_per_mp_7680x4320_over_1920x1080")),
         ("bench-frames-progressive.json",
          _key("pd_wskp6_time_per_mp_7680x4320_over_1920x1080"))],
+    ("peak memory (GB) of `jaxden denoise`, 7680 x 4320: OIDN; WSKP-6; OIDN-JAX",
+     "one frame, the whole command"): [
+        ("bench-frames-denoisers.json", _key("oidn_7680x4320_gb")),
+        ("bench-frames-denoisers.json", _key("wskp6_7680x4320_gb")),
+        ("bench-frames-denoisers.json", _key("oidnjax_7680x4320_gb"))],
 }
 
 #: README prose: a phrase (as in the README, whitespace collapsed; its numbers stand for any
