@@ -21,6 +21,9 @@ emission   (..., H, W, 3)  radiance emitted by the surface each camera ray hits 
                            own samples; the environment on camera-ray misses is not in it
                            (Cycles' ``Emit`` pass; the background is its own pass there)
 spp        (...)           samples per pixel (a float array so batches can mix spp levels)
+variance_dof (...)         degrees of freedom of the variance estimate per pixel (None: spp - 1,
+                           a sample variance of the pixel's own samples); a frame merged from K
+                           renders by their spread has K - 1 (:mod:`jaxden.data.merge`)
 =========  ============  =====================================================================
 
 Monte Carlo noise is strongly correlated across R, G and B (one path carries all three), so a
@@ -78,6 +81,7 @@ class Frame:
     spp: Any = None
     covariance: Any = None
     emission: Any = None
+    variance_dof: Any = None
 
     # ------------------------------------------------------------------ accessors
     @property
@@ -101,7 +105,8 @@ class Frame:
         return dataclasses.replace(self, **changes)
 
     def map(self, fn) -> Frame:
-        """Apply ``fn`` to every present image field (not spp), e.g. a crop or a flip."""
+        """Apply ``fn`` to every present image field (not spp or variance_dof), e.g. a crop or
+        a flip."""
         return self.replace(
             **{name: fn(getattr(self, name)) for name in IMAGE_FIELDS if getattr(self, name) is not None}
         )
@@ -135,10 +140,11 @@ class Frame:
                     or array.shape[:-1] != base
                     or not jnp.issubdtype(array.dtype, jnp.floating)):
                 return False
-        if self.spp is not None:
-            spp = np.asarray(self.spp)
-            if not np.all(np.isfinite(spp)) or np.any(spp <= 0):
-                return False
+        for count in (self.spp, self.variance_dof):
+            if count is not None:
+                values = np.asarray(count)
+                if not np.all(np.isfinite(values)) or np.any(values <= 0):
+                    return False
         return bool(_fields_pass(fields))
 
     def numpy(self) -> Frame:
@@ -163,9 +169,10 @@ class Frame:
 
         Checks: every present field is an array of shape (..., H, W, C) with the field's channel
         count and the colour's (..., H, W); variance and emission are >= 0; all fields are
-        finite. ``emission <= color`` is not checked: it holds for jaxden's renders (the same
-        samples), but not per pixel for other renderers (a clamped or differently filtered
-        combined pass), and the emission-separating denoisers clamp ``color - emission`` at 0.
+        finite; ``spp`` and ``variance_dof``, where given, are finite and > 0.
+        ``emission <= color`` is not checked: it holds for jaxden's renders (the same samples),
+        but not per pixel for other renderers (a clamped or differently filtered combined
+        pass), and the emission-separating denoisers clamp ``color - emission`` at 0.
 
         ``nonfinite``: ``'error'`` (default) raises on NaN or inf anywhere. ``'zero'`` is the
         documented repair policy of the authors' pipeline: NaN and inf are replaced by 0 and
@@ -248,10 +255,12 @@ class Frame:
             repaired.update(_checked_covariance(
                 repaired.get("covariance", arrays["covariance"]),
                 repaired.get("variance", arrays.get("variance")), where, nonfinite))
-        if self.spp is not None:
-            spp = np.asarray(self.spp)
-            if not np.all(np.isfinite(spp)) or np.any(spp <= 0):
-                raise FrameError(f"{where}: spp must be > 0, got {spp}")
+        for name in ("spp", "variance_dof"):
+            count = getattr(self, name)
+            if count is not None:
+                values = np.asarray(count)
+                if not np.all(np.isfinite(values)) or np.any(values <= 0):
+                    raise FrameError(f"{where}: {name} must be > 0, got {values}")
         return self.replace(**repaired) if repaired else self
 
 
@@ -325,7 +334,8 @@ def stack(frames: list[Frame]) -> Frame:
                 f"cannot stack frames with different features: frame 0 has {features}, "
                 f"frame {i} has {frame.features()}"
             )
-    has_spp = frames[0].spp is not None
-    if any((f.spp is not None) != has_spp for f in frames):
-        raise FrameError("cannot stack frames where only some have spp")
+    for name in ("spp", "variance_dof"):
+        given = getattr(frames[0], name) is not None
+        if any((getattr(f, name) is not None) != given for f in frames):
+            raise FrameError(f"cannot stack frames where only some have {name}")
     return jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *frames)

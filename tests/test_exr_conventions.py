@@ -95,22 +95,25 @@ def test_parts_over_other_pixels_are_refused(tmp_path):
 
 
 def test_pbrt_v4_gbuffer_layout(tmp_path):
-    """pbrt-v4's GBufferFilm: R,G,B, Albedo.*, Nsx..., Px/Py/Pz, Variance.* per sample and
-    the samplesPerPixel attribute: the variance is divided by the sample count."""
+    """pbrt-v4's GBufferFilm: R,G,B, Albedo.*, Ns.*, N.*, P.*, Variance.* and the
+    samplesPerPixel attribute. Its Variance.* (per sample, of the sensor's XYZ) is read only
+    when named, then divided by the sample count."""
     path = tmp_path / "pbrt.exr"
     channels = {"R": _ramp(1), "G": _ramp(2), "B": _ramp(3),
                 "Albedo.R": _ramp(4), "Albedo.G": _ramp(5), "Albedo.B": _ramp(6),
-                "Nsx": np.zeros(SHAPE, np.float32), "Nsy": np.zeros(SHAPE, np.float32),
-                "Nsz": np.ones(SHAPE, np.float32), "Nx": np.ones(SHAPE, np.float32),
-                "Ny": np.zeros(SHAPE, np.float32), "Nz": np.zeros(SHAPE, np.float32),
-                "Px": _ramp(7), "Py": _ramp(8), "Pz": 3 * _ramp(9),
+                "Ns.X": np.zeros(SHAPE, np.float32), "Ns.Y": np.zeros(SHAPE, np.float32),
+                "Ns.Z": np.ones(SHAPE, np.float32), "N.X": np.ones(SHAPE, np.float32),
+                "N.Y": np.zeros(SHAPE, np.float32), "N.Z": np.zeros(SHAPE, np.float32),
+                "P.X": _ramp(7), "P.Y": _ramp(8), "P.Z": 3 * _ramp(9),
                 "Variance.R": _ramp(10), "Variance.G": _ramp(11), "Variance.B": _ramp(12)}
     write_channels(path, channels, attributes={"samplesPerPixel": 64})
-    frame = read_frame(path, convention="pbrt-v4", require=("color", "variance", "normal"))
-    assert float(frame.spp) == 64.0
-    np.testing.assert_allclose(frame.variance[..., 1], channels["Variance.G"] / 64, rtol=1e-6)
+    frame = read_frame(path, convention="pbrt-v4", require=("color", "normal"))
+    assert float(frame.spp) == 64.0 and frame.variance is None
     np.testing.assert_array_equal(frame.normal[..., 2], 1.0)  # the shading normal, Ns
-    np.testing.assert_array_equal(frame.depth[..., 0], channels["Pz"])
+    np.testing.assert_array_equal(frame.depth[..., 0], channels["P.Z"])
+    named = read_frame(path, convention="pbrt-v4", variance_is_sample_variance=True,
+                       channel_map={"variance": ("Variance.R", "Variance.G", "Variance.B")})
+    np.testing.assert_allclose(named.variance[..., 1], channels["Variance.G"] / 64, rtol=1e-6)
     with pytest.raises(ExrError, match="stores the variance of the pixel mean"):
         read_frame(path, convention="jaxden", variance_is_sample_variance=True)
 

@@ -139,6 +139,27 @@ def test_guard_never_raises_alpha_and_batches():
                                   np.asarray(P.error_guard(alpha, x, y, var)))
 
 
+def test_variance_dof_takes_the_place_of_spp_minus_one():
+    """A variance of d degrees of freedom (``Frame.variance_dof``; K - 1 = 3 for 4 renders
+    merged by their spread) is bounded as a sample variance of d + 1 samples: through
+    mix_given_sure (the pipeline's mixer stage), variance_dof 3 with the renders' 64 spp gives
+    the result of spp 4, not that of spp 64."""
+    from jaxden.progressive.pipeline import mix_given_sure
+
+    _, x, y, var = scene(seed=3, bias=6.0)
+    params, config = P.load_mixer("closed-form")
+    sure = np.square(y - x) - var  # any map in SURE's place
+
+    def alpha_prime(**options):
+        return np.asarray(mix_given_sure(x, y, var, sure, params, config, **options)[1])
+
+    merged = alpha_prime(spp=64.0, variance_dof=3.0)
+    np.testing.assert_array_equal(merged, alpha_prime(spp=4.0))
+    assert not np.array_equal(merged, alpha_prime(spp=64.0))
+    with pytest.raises(FrameError, match="variance_dof"):
+        alpha_prime(spp=64.0, variance_dof=0.0)
+
+
 def test_guard_leaves_an_unbiased_denoiser_alone():
     """y = mu exactly, x = mu + noise of the stated variance: chi^2 is about 1 (the local mean
     of 3 chi^2_1 draws per pixel over ~7 x 7 pixels), so gamma / chi^2 ~ 2 and Phi(-a(chi - c))

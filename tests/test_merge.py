@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from jaxden.cli import main
-from jaxden.data.merge import merge_renders
+from jaxden.data.merge import colour_digest, merge_renders, read_buffer_list
 from jaxden.errors import FrameError
 from jaxden.frame import Frame
 from jaxden.io.exr import read_frame, read_header
@@ -101,6 +101,13 @@ def test_merge_command_on_real_cycles_renders(tmp_path, capsys):
                                atol=1e-12)
     header = read_header(out)
     assert header["spp"] == 32 and header["buffers"].count(";") == 1
+    assert header["variance_dof"] == 1 and float(merged.variance_dof) == 1
+    listed = read_buffer_list(out)
+    assert listed.convention == "cycles"
+    assert listed.digests == tuple(colour_digest(f.color) for f in inputs)
+    # sub-buffer SURE reads the renders by the convention they were merged with
+    assert main(["sure", str(out), "--buffers", *map(str, renders), "--denoiser", "oidn",
+                 "--out", str(tmp_path / "sure.exr")]) == 0
     assert main(["merge", str(renders[0]), str(renders[0]), "--from", "cycles",
                  "--out", str(tmp_path / "twice.exr")]) == 2
     assert "named twice" in capsys.readouterr().err

@@ -15,6 +15,11 @@ can be negative) and ``divergence.R/G/B`` = var * dy/dx (the same format as the 
 
 Output of ``jaxden progressive``: ``R,G,B`` = z' = x + alpha' (y - x); with ``--alpha A.exr``
 also ``R,G,B`` = alpha' (after the t-statistic scaling) and ``unscaled.R/G/B`` = alpha (before).
+
+``--buffers B1.exr .. BK.exr`` (both commands): SURE from K independent sub-buffers whose mean
+is the input (:func:`jaxden.sure.sure_buffers`) instead of probes; the header's ``method`` says
+``buffers``. An input made from buffers (``jaxden merge``, ``jaxden render --buffers``) lists
+them in its header, and ``--buffers`` must then name exactly those (:func:`read_buffers`).
 """
 
 from __future__ import annotations
@@ -89,6 +94,7 @@ def cmd_sure(args: argparse.Namespace) -> int:
         return _sure_from_buffers(args, frame, denoiser, out)
     if args.extrapolate:
         raise ConfigError("--extrapolate needs --buffers")
+    buffers_notice(args.input)
     method = resolve_method(args.method, denoiser)
     eps = args.eps if args.eps is not None else default_eps(method, denoiser.differentiable)
 
@@ -121,26 +127,12 @@ def _sure_from_buffers(args: argparse.Namespace, frame, denoiser, out: Path) -> 
     """``jaxden sure IN.exr --buffers B1.exr ... BK.exr``: sub-buffer SURE (no probes)."""
     import numpy as np
 
-    from jaxden.io.exr import read_frame
     from jaxden.progressive.cache import write_sure_exr
     from jaxden.sure.buffers import sure_buffers
 
-    if len(args.buffers) < 2:
-        raise ConfigError(f"--buffers needs at least 2 files, got {len(args.buffers)}")
-    colours, counts = [], {}
-    for path in args.buffers:
-        buffer = read_frame(path, require=("color",), nonfinite=args.nonfinite)
-        if np.shape(buffer.color) != np.shape(frame.color):
-            raise FrameError(f"{path}: shape {np.shape(buffer.color)[:-1]}, but {args.input} "
-                             f"is {np.shape(frame.color)[:-1]}")
-        if buffer.spp is not None:
-            counts.setdefault(float(buffer.spp), path)
-        colours.append(np.asarray(buffer.color))
-    if len(counts) > 1:
-        raise FrameError(f"--buffers: the sub-buffers must have equal spp, but their headers "
-                         f"say {', '.join(f'{c:g} ({p})' for c, p in sorted(counts.items()))}")
+    colours = read_buffers(args, frame)
     try:
-        result = sure_buffers(denoiser, frame, np.stack(colours), extrapolate=args.extrapolate,
+        result = sure_buffers(denoiser, frame, colours, extrapolate=args.extrapolate,
                               nonfinite=args.nonfinite)
     except FrameError as error:
         raise FrameError(f"{args.input} with --buffers {' '.join(map(str, args.buffers))}: "
@@ -157,6 +149,81 @@ def _sure_from_buffers(args: argparse.Namespace, frame, denoiser, out: Path) -> 
           f"(sub-buffer covariance from {len(colours)} buffers); image SURE (MSE estimate) = "
           f"{mse:.6g}")
     return 0
+
+
+def read_buffers(args: argparse.Namespace, frame):
+    """The colours of ``args.buffers`` as one (K, H, W, 3) float32 array, checked against
+    ``frame`` (``args.input`` as read), for ``jaxden sure`` and ``jaxden progressive`` alike.
+
+    Checks, each failure one FrameError (ConfigError for fewer than 2 files) naming the file:
+    at least 2 files, each of the input's size, equal spp where their headers state one, no
+    image given twice, and their mean equal to the input's colour
+    (:func:`jaxden.sure.buffers.check_sub_buffers`). Where the input's header lists the buffers
+    it was made from (:func:`jaxden.data.merge.read_buffer_list`), ``--buffers`` must name as many
+    files, each one's colour digest among the listed ones; they are read by the convention
+    they were merged with (``jaxden merge --from``).
+    """
+    import numpy as np
+
+    from jaxden.data.merge import colour_digest, read_buffer_list
+    from jaxden.io.exr import read_frame
+    from jaxden.sure.buffers import check_sub_buffers
+
+    paths = list(args.buffers)
+    if len(paths) < 2:
+        raise ConfigError(f"--buffers needs at least 2 files, got {len(paths)}")
+    listed = read_buffer_list(args.input)
+    if listed is not None and len(listed.digests) != len(paths):
+        raise FrameError(f"--buffers names {len(paths)} files, but {args.input} was made from "
+                         f"{len(listed.digests)} buffers ({', '.join(listed.files)}): pass "
+                         f"exactly those")
+    reading = {} if listed is None else {"convention": listed.convention,
+                                         "layer": listed.layer}
+    colours, counts, seen = [], {}, {}
+    for path in paths:
+        buffer = read_frame(path, require=("color",), nonfinite=args.nonfinite, keep=("color",),
+                            **reading)
+        if np.shape(buffer.color) != np.shape(frame.color):
+            raise FrameError(f"{path}: shape {np.shape(buffer.color)[:-1]}, but {args.input} "
+                             f"is {np.shape(frame.color)[:-1]}")
+        digest = colour_digest(buffer.color)
+        if digest in seen:
+            raise FrameError(f"--buffers: {seen[digest]} and {path} are the same image; the "
+                             f"buffers must be independent renders (other seeds)")
+        seen[digest] = path
+        if listed is not None and digest not in listed.digests:
+            raise FrameError(f"--buffers: {path} is not one of the {len(listed.digests)} buffers "
+                             f"{args.input} was made from ({', '.join(listed.files)}): its "
+                             f"colour matches none of their sha256 digests")
+        if buffer.spp is not None:
+            counts.setdefault(float(buffer.spp), path)
+        colours.append(np.asarray(buffer.color, np.float32))
+    if len(counts) > 1:
+        raise FrameError(f"--buffers: the sub-buffers must have equal spp, but their headers "
+                         f"say {', '.join(f'{c:g} ({p})' for c, p in sorted(counts.items()))}")
+    colours = np.stack(colours)
+    try:
+        check_sub_buffers(frame.color, colours)
+    except FrameError as error:
+        raise FrameError(f"{args.input} with --buffers {' '.join(map(str, paths))}: "
+                         f"{error}") from None
+    return colours
+
+
+def buffers_notice(path) -> None:
+    """One stderr line when the input at ``path`` lists the buffers it was made from and
+    ``--buffers`` was not given: they would give sub-buffer SURE."""
+    from jaxden.data.merge import read_buffer_list
+    from jaxden.errors import ExrError
+
+    try:
+        listed = read_buffer_list(path)
+    except ExrError:  # a record --buffers would refuse; without --buffers it changes nothing
+        return
+    if listed is not None:
+        stderr(f"jaxden: note: {path} was made from {len(listed.files)} buffers; --buffers "
+               f"{' '.join(listed.files)} gives sub-buffer SURE (no probes, no Gaussian "
+               f"assumption) instead of probe SURE")
 
 
 def _memory_limit(args: argparse.Namespace) -> int | None:
@@ -185,7 +252,8 @@ def cmd_progressive(args: argparse.Namespace) -> int:
     from jaxden.progressive.tiled import progressive_frame
 
     out, alpha_out = exr_outputs(("--out", args.out), ("--alpha", args.alpha),
-                                 inputs=(args.input,), overwrite_input=args.overwrite_input)
+                                 inputs=(args.input, *(args.buffers or ())),
+                                 overwrite_input=args.overwrite_input)
     if args.mixer is None:
         from jaxden.denoise.registry import split_spec
         from jaxden.progressive.pipeline import SHIPPED_MIXERS, shipped_mixer_path
@@ -201,13 +269,16 @@ def cmd_progressive(args: argparse.Namespace) -> int:
     params, config = load_mixer(args.mixer)
     denoiser = load_denoiser(args.denoiser)
     frame = read_input_frame(args, "jaxden progressive", denoiser,
-                             covariance=config.sure_covariance)
+                             covariance=config.sure_covariance and not args.buffers)
     feature_notice(frame, denoiser, args.input)
+    buffers = read_buffers(args, frame) if args.buffers else None
+    if buffers is None:
+        buffers_notice(args.input)
     if (config.kind == "network" and config.denoiser != denoiser.name
             and Path(config.denoiser).name != Path(args.denoiser).name):
         stderr(f"jaxden: note: the mixer was trained on the output of denoiser "
                 f"{config.denoiser!r}; mixing {denoiser.name!r} instead")
-    if config.sure_covariance and frame.covariance is None:
+    if config.sure_covariance and frame.covariance is None and buffers is None:
         stderr(f"jaxden: note: the mixer was trained on SURE from the colour covariance, but "
                f"{args.input} has none (channels covariance.RG/GB/BR): SURE falls back to the "
                f"per-channel form, which underestimates the error of a denoiser that mixes "
@@ -221,13 +292,20 @@ def cmd_progressive(args: argparse.Namespace) -> int:
 
     outputs, _ = progressive_frame(
         frame, denoiser, params, config, jax.random.PRNGKey(args.seed),
-        **_plan_options(args, probes, config), keep=keep, progress=True, on_plan=tell)
+        **_plan_options(args, probes, config), keep=keep, progress=True, on_plan=tell,
+        buffers=buffers)
     z = outputs["z"]
     swap_average = config.swap_average if args.swap_average is None else args.swap_average
     attributes = {"source": str(args.input), "denoiser": denoiser.name, "mixer": str(args.mixer),
                   "probes": probes, "seed": args.seed, "tstat": int(not args.no_tstat),
                   "swap_average": int(swap_average)}
-    message = f"wrote {out} (progressive denoising: {denoiser.name} + mixer {args.mixer})"
+    message = f"wrote {out} (progressive denoising: {denoiser.name} + mixer {args.mixer}"
+    if buffers is None:
+        message += ")"
+    else:  # SURE from the sub-buffers: no probes, no seed
+        del attributes["probes"], attributes["seed"]
+        attributes |= {"method": "buffers", "buffers": len(buffers)}
+        message += f", SURE from {len(buffers)} sub-buffers)"
     check_finite_result(z, "the progressive-denoising result",
                         f"{args.input}, denoiser {args.denoiser} and mixer {args.mixer}")
     with all_or_nothing():  # --out and --alpha: both or neither
@@ -252,7 +330,8 @@ def add_commands(sub) -> None:
     sure_input_options(p)
     p.add_argument("--out", required=True, help="output .exr (denoised + sure + divergence)")
     p.add_argument("--buffers", nargs="+", default=None, metavar="BUFFER.exr",
-                   help="K >= 2 independent sub-buffer renders (equal spp) whose mean is IN: "
+                   help="K >= 2 independent sub-buffer renders (equal spp) whose mean is IN, "
+                        "e.g. the renders `jaxden merge` made IN from (then exactly those): "
                         "the covariance term comes from leave-one-buffer-out denoising instead "
                         "of Stein's identity (no Gaussian assumption, K + 1 denoiser calls; "
                         "see jaxden.sure.sure_buffers); divergence.* then holds that term")
@@ -266,7 +345,8 @@ def add_commands(sub) -> None:
     p = sub.add_parser(
         "progressive", help="progressive denoising: denoise, SURE, mixer, t-statistic scaling",
         description="Writes z' = x + alpha' (y - x) as R,G,B; --alpha writes alpha' (R,G,B) and "
-                    "alpha before the t-statistic scaling (unscaled.R/G/B).",
+                    "alpha before the t-statistic scaling (unscaled.R/G/B). SURE comes from "
+                    "random probes, or with --buffers from K sub-buffers of the input.",
     )
     sure_input_options(p, probes_from_mixer=True)
     p.add_argument("--mixer", default=None,
@@ -276,6 +356,13 @@ def add_commands(sub) -> None:
                         "the mixer shipped for --denoiser (oidn-pd for oidn)")
     p.add_argument("--out", required=True, help="output .exr")
     p.add_argument("--alpha", default=None, help="also write the mixing weights to this .exr")
+    p.add_argument("--buffers", nargs="+", default=None, metavar="BUFFER.exr",
+                   help="K >= 2 independent sub-buffer renders (equal spp) whose mean is IN, "
+                        "e.g. the renders `jaxden merge` made IN from (then exactly those): "
+                        "SURE is their sub-buffer SURE (K + 1 whole-frame denoiser calls, no "
+                        "probes: --probes, --method, --eps, --probe-batch and --seed do not "
+                        "apply), fed to the mixer and the t-statistic as probe SURE is; the "
+                        "header records method=buffers")
     p.add_argument("--no-tstat", action="store_true",
                    help="skip the t-statistic scaling (the paper's 'w/o t-test' ablation)")
     p.add_argument("--swap-average", action=argparse.BooleanOptionalAction, default=None,

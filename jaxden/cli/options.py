@@ -89,7 +89,9 @@ def add_convention_options(parser: argparse.ArgumentParser) -> None:
         "--from", dest="convention", choices=tuple(CONVENTIONS), default=None,
         help="the renderer that wrote the input: its channel names for colour, albedo, normal, "
              "depth and variance, the variance's meaning and the header's sample count "
-             "(--channels wins where given)")
+             "(--channels wins where given); falcor: name any one file of a frame capture "
+             "(e.g. Mogwai.AccumulatePass.output.256.exr) and the files of the same prefix and "
+             "frame beside it are read with it (docs/renderers.md)")
     parser.add_argument("--layer", default=None,
                         help="the render layer of a layered file (--from cycles) holding several")
 
@@ -214,12 +216,15 @@ def read_input_frame(args: argparse.Namespace, who: str, denoiser=None,
                 f"K >= 2 renders with different seeds (jaxden merge R1.exr .. RK.exr --out X.exr)")
         if getattr(args, "convention", None) not in (None, "jaxden") and "variance" not in (
                 mapping or {}):
+            from jaxden.io.conventions import CONVENTIONS
+
             raise FrameError(
                 f"{args.input}: {who} needs SURE, and SURE needs the variance of the pixel "
                 f"mean, which a {args.convention} file does not hold: render the frame K >= 2 "
                 f"times with different seeds and merge them (jaxden merge R1.exr .. RK.exr "
                 f"--from {args.convention} --out X.exr), or name its variance channels with "
-                f"--channels variance=R,G,B")
+                f"--channels variance=R,G,B ({args.convention}: "
+                f"{CONVENTIONS[args.convention].note})")
         raise FrameError(
             f"{args.input}: {who} needs SURE, and SURE needs the variance of the pixel mean "
             f"(channels {names}), which the file lacks (it has {found}); name your renderer's "

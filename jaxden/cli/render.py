@@ -46,6 +46,7 @@ def _render_buffers(args: argparse.Namespace, out: Path) -> int:
     as OUT; for ``jaxden sure OUT --buffers OUT.b*.exr``."""
     import numpy as np
 
+    from jaxden.data.merge import BufferList, colour_digest
     from jaxden.fileio import all_or_nothing
     from jaxden.io.exr import write_frame
     from jaxden.render.scene_cache import render_cached
@@ -66,13 +67,17 @@ def _render_buffers(args: argparse.Namespace, out: Path) -> int:
     full = combine_buffers(parts)
     full = full.replace(**{name: np.asarray(getattr(full, name), np.float32)
                            for name in full.features()}, spp=np.float32(args.spp))
+    stored = np.float16 if args.half else np.float32  # the colour as it reads back
+    listed = BufferList(tuple(str(p) for p in paths),
+                        tuple(colour_digest(np.asarray(part.color, stored)) for part in parts))
     with all_or_nothing():  # the sub-buffers and their combination: all or none
         for i, (path, part) in enumerate(zip(paths, parts)):
             write_frame(path, part, half=args.half, attributes={
                 "seed": seeds[i], "scene": args.scene, "buffer": i, "buffers": k,
                 "aux": args.aux})
         write_frame(out, full, half=args.half, attributes={
-            "seed": args.seed, "scene": args.scene, "buffers": k, "aux": args.aux})
+            "seed": args.seed, "scene": args.scene, "buffers": k, "aux": args.aux,
+            **listed.attributes()})
     print(f"wrote {out} ({full.width}x{full.height}, {args.spp} spp = {k} sub-buffers of "
           f"{args.spp // k}) and {paths[0].name} .. {paths[-1].name}; sub-buffer SURE: jaxden "
           f"sure {out} --buffers {' '.join(str(p) for p in paths)} --denoiser oidn --out "
@@ -83,7 +88,7 @@ def _render_buffers(args: argparse.Namespace, out: Path) -> int:
 def cmd_merge(args: argparse.Namespace) -> int:
     """K independent renders of one frame -> one EXR with the variance of its mean."""
     from jaxden.cli.options import convention_options
-    from jaxden.data.merge import merge_renders
+    from jaxden.data.merge import BufferList, colour_digest, merge_renders
     from jaxden.io.exr import read_frame, write_frame
 
     (out,) = exr_outputs(("--out", args.out), inputs=tuple(args.renders))
@@ -93,13 +98,21 @@ def cmd_merge(args: argparse.Namespace) -> int:
               for path in args.renders]
     merged = merge_renders(frames, names=args.renders)
     pooled = all(f.variance is not None for f in frames)
+    convention = convention_options(args)
+    listed = BufferList(tuple(str(Path(r)) for r in args.renders),
+                        tuple(colour_digest(f.color) for f in frames),
+                        convention["convention"], convention["layer"])
     write_frame(out, merged, attributes={
+        **listed.attributes(),
         "buffers": ";".join(str(Path(r)) for r in args.renders),
         "variance_source": (f"pooled from {len(frames)} renders' own variances" if pooled else
                             f"spread of {len(frames)} independent renders "
                             f"({len(frames) - 1} degrees of freedom)")})
     print(f"wrote {args.out} ({len(frames)} renders merged"
-          + ("" if merged.spp is None else f", {float(merged.spp):g} spp") + ")")
+          + ("" if merged.spp is None else f", {float(merged.spp):g} spp")
+          + f", variance of {float(merged.variance_dof):g} degrees of freedom); sub-buffer "
+          f"SURE: jaxden progressive {args.out} --buffers {' '.join(map(str, args.renders))} "
+          f"--denoiser oidn --out OUT.exr")
     return 0
 
 
@@ -128,7 +141,13 @@ def add_commands(sub) -> None:
     p.set_defaults(func=cmd_render)
 
     p = sub.add_parser("merge", help="K independent renders of one frame (different seeds) -> "
-                                     "one frame with the variance of its mean")
+                                     "one frame with the variance of its mean",
+                       description="Writes one EXR in jaxden's layout: the mean colour and "
+                                   "features, the variance of the mean (pooled from the renders' "
+                                   "own variances, else from their spread) and its degrees of "
+                                   "freedom (jaxden.variance_dof), and a record of the renders "
+                                   "(names and a sha256 of each colour) that `jaxden sure` and "
+                                   "`jaxden progressive` check --buffers against.")
     p.add_argument("renders", nargs="+", help="the renders' EXR files (K >= 2)")
     add_convention_options(p)
     p.add_argument("--out", required=True, help="output .exr (jaxden's layout)")

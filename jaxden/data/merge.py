@@ -5,18 +5,29 @@ different seeds gives it: the K buffer means are independent estimates of the pi
 spread estimates the variance of one buffer's mean, and that over K the variance of the merged
 mean (K - 1 degrees of freedom: noisy for small K, unbiased for any K >= 2). Buffers that carry
 a variance of their own (jaxden's) are pooled exactly instead, as one render of all K m samples
-(:func:`combine_buffers`).
+(:func:`combine_buffers`; K m - 1 degrees of freedom). The merged frame records which in
+``Frame.variance_dof``, for the error guard's bound on the variance
+(:mod:`jaxden.progressive.guard`).
 
     merged = merge_renders([read_frame(p, convention="cycles") for p in paths])
+
+The merged file records its renders (:class:`BufferList`: their names and a sha256 of each
+one's colour), so that sub-buffer SURE (``jaxden sure`` / ``jaxden progressive --buffers``)
+can check it is given exactly those.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import dataclasses
+import hashlib
+import json
+import os
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
-from jaxden.errors import FrameError
+from jaxden.errors import ExrError, FrameError
 from jaxden.frame import Frame
 
 
@@ -58,7 +69,10 @@ def combine_buffers(buffers) -> Frame:
     render had taken all the samples; the covariance between channels likewise when every
     buffer has one (else none). Features (albedo, normal, ...): the mean over the
     buffers (per-sample averages, as one render of all samples gives them; a present feature
-    must be present in every buffer). Returns float64 NumPy arrays.
+    must be present in every buffer). ``variance_dof``: None (spp - 1, the sample variance of
+    all K m samples) when no buffer records one, else the sum of the buffers' (m - 1 where a
+    buffer records none) plus K - 1 for the spread of their means. Returns float64 NumPy
+    arrays.
     """
     frames = [b.numpy() if isinstance(b, Frame) else b for b in buffers]
     if len(frames) < 2 or not all(isinstance(f, Frame) for f in frames):
@@ -97,7 +111,18 @@ def combine_buffers(buffers) -> Frame:
         features[name] = np.mean([np.asarray(getattr(f, name), np.float64) for f in frames],
                                  axis=0)
     return frames[0].replace(color=mean, variance=squares / (n - 1) / n, **features,
-                             spp=np.full(np.shape(frames[0].spp), n, np.float32))
+                             spp=np.full(np.shape(frames[0].spp), n, np.float32),
+                             variance_dof=_pooled_dof(frames, m))
+
+
+def _pooled_dof(frames, m: int):
+    """The degrees of freedom of :func:`combine_buffers`' variance: None when no buffer records
+    its own (then spp - 1), else sum_k d_k + K - 1 (d_k = m - 1 where unrecorded)."""
+    if all(f.variance_dof is None for f in frames):
+        return None
+    own = [np.full(np.shape(frames[0].spp), m - 1, np.float64) if f.variance_dof is None
+           else np.asarray(f.variance_dof, np.float64) for f in frames]
+    return (np.sum(own, axis=0) + len(frames) - 1).astype(np.float32)
 
 
 def merge_renders(frames: Sequence[Frame], names: Sequence[str] | None = None) -> Frame:
@@ -107,6 +132,8 @@ def merge_renders(frames: Sequence[Frame], names: Sequence[str] | None = None) -
     every render carries its variance and spp (:func:`combine_buffers`),
     else from the spread of the K colours, sum_k (c_k - mean)^2 / ((K - 1) K), and the covariance
     between channels likewise. ``spp``: the renders' sum when they record one, else None.
+    ``variance_dof``: the variance's degrees of freedom, always set: K - 1 from the spread,
+    K m - 1 pooled (more where the renders record their own; :func:`combine_buffers`).
     ``names`` (e.g. the file paths) label the messages. Raises FrameError for fewer than 2
     renders, other sizes, fields or sample counts, a variance in some renders but not all, and
     two identical renders (the same seed).
@@ -117,8 +144,12 @@ def merge_renders(frames: Sequence[Frame], names: Sequence[str] | None = None) -
     with_variance = [f.variance is not None for f in frames]
     if all(with_variance) and frames[0].spp is not None:
         pooled = combine_buffers(frames)
+        dof = pooled.variance_dof
+        if dof is None:
+            dof = np.asarray(pooled.spp, np.float32) - np.float32(1)
         return pooled.replace(**{field: np.asarray(getattr(pooled, field), np.float32)
-                                 for field in pooled.features()})
+                                 for field in pooled.features()},
+                              variance_dof=np.float32(np.asarray(dof)))
     if any(with_variance):
         raise FrameError(f"merge: {names[with_variance.index(False)]} has no variance but "
                          f"{names[with_variance.index(True)]} has one")
@@ -135,4 +166,80 @@ def merge_renders(frames: Sequence[Frame], names: Sequence[str] | None = None) -
             fields[field] = np.mean([np.asarray(getattr(f, field), np.float64) for f in frames],
                                     axis=0)
     spp = None if frames[0].spp is None else np.float32(k * float(np.asarray(frames[0].spp)))
-    return Frame(**{name: value.astype(np.float32) for name, value in fields.items()}, spp=spp)
+    return Frame(**{name: value.astype(np.float32) for name, value in fields.items()}, spp=spp,
+                 variance_dof=np.float32(k - 1))
+
+
+# ------------------------------------------------------------- the buffers a frame is made of
+#: Header keys (``jaxden.`` prefixed) of a frame made from K buffers: their file names (a JSON
+#: list), the sha256 of each one's colour (:func:`colour_digest`, ";"-separated, same order)
+#: and the convention (and layer) they were read by, where not jaxden's own.
+BUFFER_FILES_KEY = "buffer_files"
+BUFFER_DIGESTS_KEY = "buffer_sha256"
+BUFFER_CONVENTION_KEY = "buffer_convention"
+BUFFER_LAYER_KEY = "buffer_layer"
+
+
+def colour_digest(color) -> str:
+    """sha256 (hex) of a colour image's bytes as little-endian float32, (H, W, 3) row-major:
+    names a buffer by its content (the colour as :func:`jaxden.io.exr.read_frame` returns it)."""
+    array = np.ascontiguousarray(np.asarray(color), dtype="<f4")
+    return hashlib.sha256(array.tobytes()).hexdigest()
+
+
+@dataclasses.dataclass(frozen=True)
+class BufferList:
+    """The K buffers a frame was made from: file names as given when it was made, the
+    :func:`colour_digest` of each, and the convention and layer they were read by (None:
+    jaxden's channels)."""
+
+    files: tuple[str, ...]
+    digests: tuple[str, ...]
+    convention: str | None = None
+    layer: str | None = None
+
+    def attributes(self) -> dict[str, str]:
+        """The header attributes that record the list (for :func:`jaxden.io.exr.write_frame`)."""
+        attributes = {BUFFER_FILES_KEY: json.dumps(list(self.files)),
+                      BUFFER_DIGESTS_KEY: ";".join(self.digests)}
+        if self.convention is not None:
+            attributes[BUFFER_CONVENTION_KEY] = self.convention
+        if self.layer is not None:
+            attributes[BUFFER_LAYER_KEY] = self.layer
+        return attributes
+
+
+def buffer_list(header: Mapping[str, Any], where: str) -> BufferList | None:
+    """The :class:`BufferList` a header (of :func:`jaxden.io.exr.read_header` or ``read_channels``)
+    records, or None when it records none. A malformed record is an ExrError naming
+    ``where`` (the file)."""
+    digests = header.get(BUFFER_DIGESTS_KEY)
+    if digests is None:
+        return None
+    problem = None
+    digests = tuple(str(digests).split(";"))
+    try:
+        files = json.loads(header.get(BUFFER_FILES_KEY, "null"))
+    except (TypeError, ValueError):
+        files = None
+    if files is None:
+        files = [f"buffer {i}" for i in range(len(digests))]
+    if not all(len(d) == 64 and all(c in "0123456789abcdef" for c in d) for d in digests):
+        problem = f"jaxden.{BUFFER_DIGESTS_KEY} is not a list of sha256 digests"
+    elif not isinstance(files, list) or len(files) != len(digests):
+        problem = (f"jaxden.{BUFFER_FILES_KEY} does not name the {len(digests)} buffers of "
+                   f"jaxden.{BUFFER_DIGESTS_KEY}")
+    if problem is not None:
+        raise ExrError(f"{where}: the header's record of the buffers it was made from is "
+                       f"malformed ({problem})")
+    convention, layer = (header.get(k) for k in (BUFFER_CONVENTION_KEY, BUFFER_LAYER_KEY))
+    return BufferList(tuple(str(f) for f in files), digests,
+                      None if convention is None else str(convention),
+                      None if layer is None else str(layer))
+
+
+def read_buffer_list(path: str | os.PathLike) -> BufferList | None:
+    """The buffers the EXR at ``path`` records it was made from (its header only), or None."""
+    from jaxden.io.exr import read_header
+
+    return buffer_list(read_header(path), str(path))

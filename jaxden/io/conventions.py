@@ -8,11 +8,47 @@ for a render layer's name (Blender's view layer, ``ViewLayer`` by default): it i
 the layer's colour pass, and must be named (``layer=``, ``--layer``) when a file holds
 several. Explicit channel names (``channel_map``, ``--channels``) win over a convention.
 
+A renderer that writes one file per output (Falcor) has a ``file_pattern``: the file named
+on the command line is any one of a capture's files, and its siblings (same folder, prefix
+and frame number) are read with it (:mod:`jaxden.io.siblings`); a sibling's channels are
+named ``<output>.<channel>``, e.g. ``AccumulatePass.output.R``.
+
+=========  ==================  =================================  ===========================
+renderer   file layout         colour / albedo / normal / depth   variance
+=========  ==================  =================================  ===========================
+jaxden     one EXR             R,G,B / albedo.* / normal.* /      variance.*: of the mean
+                               depth.Z
+cycles     multilayer EXR      {layer}.Combined.* / Denoising     none: jaxden merge
+                               Albedo or DiffCol / Denoising
+                               Normal or Normal / Denoising
+                               Depth or Depth.Z
+pbrt-v4    one EXR (film       R,G,B / Albedo.* / Ns.* (camera    none read: Variance.* is
+           "gbuffer")          space unless coordinatesystem      per sample, of the sensor's
+                               "world") / P.Z (camera space)      XYZ, over hits only
+mitsuba    one EXR (aov        R,G,B / albedo.* / sh_normal.* /   none: jaxden merge
+           integrator)         depth.T
+falcor     one EXR (PNG for    AccumulatePass.output or           none: jaxden merge
+           8-bit outputs) per  PathTracer.color / PathTracer.
+           render-graph        albedo or GBuffer diffuseOpacity
+           output              / PathTracer.guideNormal or
+                               GBuffer normW (world space) /
+                               GBuffer linearZ
+=========  ==================  =================================  ===========================
+
+docs/renderers.md has the full table, with how to get a variance from each renderer.
+
 Checked against files the renderers wrote: Blender 5.0 Cycles (``bpy`` from PyPI, multilayer
 EXR with the Denoising Data passes; ``experiments/renderers/cycles_render.py``) and Mitsuba 3
-(the ``aov`` integrator's film, AOVs named as below). pbrt-v4 from its ``GBufferFilm``
-source (``src/pbrt/film.cpp``: channels, variance per sample from a Welford estimator;
-``src/pbrt/util/image.cpp``: the ``samplesPerPixel`` attribute).
+(the ``aov`` integrator's film, AOVs named as below). pbrt-v4 from its source
+(``src/pbrt/film.cpp``, ``GBufferFilm::AddSample`` and ``GetImage``: its channels, and
+``Variance.*`` as a Welford estimate of the per-sample variance of the sensor's values (CIE
+XYZ with the default ``cie1931`` sensor) over the samples that hit a surface, so not the
+variance of the written R,G,B; ``src/pbrt/util/image.cpp``: the ``samplesPerPixel``
+attribute). Falcor from its source (``Source/Mogwai/Extensions/Capture/FrameCapture.cpp``
+and ``CaptureTrigger.cpp``: file names; ``Source/Falcor/Utils/Image/Bitmap.cpp`` with
+FreeImage's EXR writer: channels R,G,B as half floats, PIZ-compressed, and PNG for 8-bit
+outputs; the pass outputs in ``Source/RenderPasses/PathTracer``, ``GBuffer`` and
+``AccumulatePass``).
 """
 
 from __future__ import annotations
@@ -40,6 +76,13 @@ class Convention:
     spp_attributes: tuple[str, ...] = ()  # header attributes holding the sample count
     layer_pass: str | None = None  # the colour pass that names a layer ("{layer}.Combined")
     note: str = ""
+    #: One file per output: a regular expression of the file names with the groups
+    #: ``prefix``, ``output``, ``frame``, ``ext`` and (optional) ``mask``
+    #: (:mod:`jaxden.io.siblings`); None: one file holds the frame.
+    file_pattern: str | None = None
+    file_example: str = ""  # a file name the pattern matches, for messages
+    #: Depth at or above this (+inf included) is a miss, read as jaxden's 0 (None: as stored).
+    depth_miss: float | None = None
 
 
 def _xyz(prefix: str) -> tuple[str, str, str]:
@@ -71,14 +114,15 @@ CONVENTIONS: dict[str, Convention] = {
                 "emission": (_rgb("{layer}.Emit."),)},
         note="multilayer EXR, one part per pass; no variance: merge K renders (jaxden merge)"),
     "pbrt-v4": Convention(
-        name="pbrt-v4", variance="sample", spp_attributes=("samplesPerPixel",),
-        fields={"color": (_rgb(""),), "variance": (_rgb("Variance."),),
-                "albedo": (_rgb("Albedo."),),
-                "normal": (("Nsx", "Nsy", "Nsz"), _xyz("Ns."), ("Nx", "Ny", "Nz"), _xyz("N.")),
-                "depth": (("Pz",), ("P.Z",)),
-                "position": (("Px", "Py", "Pz"), _xyz("P."))},
-        note="film \"gbuffer\": shading normal, camera-space position (depth = Pz), "
-             "per-sample variance"),
+        name="pbrt-v4", variance="none", spp_attributes=("samplesPerPixel",),
+        fields={"color": (_rgb(""),), "albedo": (_rgb("Albedo."),),
+                "normal": (_xyz("Ns."), _xyz("N.")), "depth": (("P.Z",),),
+                "position": (_xyz("P."),)},
+        note="film \"gbuffer\": Ns, P in camera space unless \"string coordinatesystem\" "
+             "\"world\" (depth = P.Z of camera space); its Variance.R/G/B is the per-sample "
+             "variance of the sensor's values (CIE XYZ by default) over the samples that hit "
+             "a surface, not of R,G,B: merge K renders (jaxden merge), or read it anyway with "
+             "--channels variance=Variance.R,Variance.G,Variance.B --sample-variance"),
     "mitsuba": Convention(
         name="mitsuba", variance="none",
         fields={"color": (_rgb(""),),
@@ -87,6 +131,23 @@ CONVENTIONS: dict[str, Convention] = {
                 "depth": (("depth.T",), ("dd.T",), ("depth.Y",), ("dd.Y",))},
         note="aov integrator with aovs=\"albedo:albedo,sh_normal:sh_normal,depth:depth\"; "
              "no variance: merge K renders"),
+    "falcor": Convention(
+        name="falcor", variance="none",
+        file_pattern=(r"^(?P<prefix>.*)\.(?P<output>[^.]+\.[^.]+)\.(?P<frame>[0-9]+)"
+                      r"(?:\.(?P<mask>RGBA|R|G|B|A))?\.(?P<ext>exr|png)$"),
+        file_example="Mogwai.AccumulatePass.output.256.exr",
+        depth_miss=1e8,  # GBufferRT's kEnvMapDepth; +inf once stored as half
+        fields={"color": (_rgb("AccumulatePass.output."), _rgb("PathTracer.color.")),
+                "albedo": (_rgb("PathTracer.albedo."), _rgb("GBufferRT.diffuseOpacity."),
+                           _rgb("GBufferRaster.diffuseOpacity.")),
+                "normal": (_rgb("PathTracer.guideNormal."), _rgb("GBufferRT.normW."),
+                           _rgb("GBufferRaster.normW."), _rgb("GBufferRT.guideNormalW."),
+                           _rgb("GBufferRaster.guideNormalW.")),
+                "depth": (("GBufferRT.linearZ.R",), ("GBufferRaster.linearZ.R",)),
+                "position": (_rgb("GBufferRT.posW."), _rgb("GBufferRaster.posW."))},
+        note="Mogwai frame capture, one file per marked output (<prefix>.<pass>.<output>."
+             "<frame>.exr); world-space normals; no variance: capture K independent "
+             "accumulations and merge them (jaxden merge --from falcor)"),
 }
 
 

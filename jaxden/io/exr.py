@@ -5,7 +5,9 @@ Channel names follow :data:`jaxden.frame.CHANNELS` (``R,G,B``, ``variance.R/G/B`
 EXR viewer shows ordinary named layers. Files of other renderers are read through their
 conventions (:mod:`jaxden.io.conventions`: Cycles, pbrt-v4, Mitsuba), every part of a
 multi-part file included. Header attributes ``jaxden.spp``, ``jaxden.seed``,
-``jaxden.scene`` and ``jaxden.version`` record provenance.
+``jaxden.scene`` and ``jaxden.version`` record provenance; ``jaxden.variance_dof`` the degrees
+of freedom of the variance estimate (``Frame.variance_dof``); a frame made from K buffers
+lists them (:class:`jaxden.data.merge.BufferList`).
 
 Writes are atomic: the file is written to a temporary name in the same folder and renamed, so
 an interrupted job never leaves a half-written EXR under the final name. Reads never return
@@ -350,9 +352,11 @@ def write_frame(
     else:
         half_names = False
     attrs = {"version": __version__}
-    if frame.spp is not None:
-        spp = float(np.asarray(frame.spp))
-        attrs["spp"] = int(spp) if spp.is_integer() else spp
+    for name in ("spp", "variance_dof"):
+        count = getattr(frame, name)
+        if count is not None:
+            count = float(np.asarray(count))
+            attrs[name] = int(count) if count.is_integer() else count
     attrs.update(attributes or {})
     write_channels(path, channels, half=half_names, attributes=attrs)
 
@@ -382,14 +386,22 @@ def read_frame(
     ``spp``: supplies the sample count when the header has none; one that contradicts the
     header is an ExrError unless ``spp_override``.
     ``convention``: the renderer whose channel names the file follows (``cycles``,
-    ``pbrt-v4``, ``mitsuba``, ``jaxden``; :data:`jaxden.io.conventions.CONVENTIONS`): the
-    fields, the variance's meaning and the header's sample count come from it; ``layer`` picks
-    the render layer of a layered (Cycles) file that holds several. ``channel_map`` wins.
+    ``pbrt-v4``, ``mitsuba``, ``falcor``, ``jaxden``; :data:`jaxden.io.conventions.CONVENTIONS`):
+    the fields, the variance's meaning and the header's sample count come from it; ``layer``
+    picks the render layer of a layered (Cycles) file that holds several. ``channel_map`` wins.
+    A renderer that writes one file per output (``falcor``) reads ``path`` with its sibling
+    files (:mod:`jaxden.io.siblings`).
     ``keep``: the fields to return (besides ``require``; None: every field the file has):
     what a command does not use is never stacked (memory at 8K).
     """
     path = Path(path)
-    all_channels, header = read_channels(path)
+    if convention is None:
+        all_channels, header = read_channels(path)
+    else:  # a convention may spread a frame over one file per output (Falcor)
+        from jaxden.io.siblings import read_outputs
+
+        all_channels, header = read_outputs(path, convention, channel_map, read_channels,
+                                            read_header)
     present = set(all_channels)
     mapping = {field: tuple(names) for field, names in CHANNELS.items()}
     if convention is not None:
@@ -472,6 +484,17 @@ def read_frame(
         if not agrees:
             raise ExrError(f"{path}: its header says {header_spp} spp and --spp says {spp:g}; "
                            f"drop --spp, or pass --override-spp if the header is wrong")
+    variance_dof = header.get("variance_dof")
+    if variance_dof is not None:
+        try:
+            variance_dof = float(variance_dof)
+        except (TypeError, ValueError):
+            raise ExrError(f"{path}: header attribute jaxden.variance_dof is not a number: "
+                           f"{variance_dof!r}") from None
+        if not (np.isfinite(variance_dof) and variance_dof > 0):
+            raise ExrError(f"{path}: header attribute jaxden.variance_dof (the variance's "
+                           f"degrees of freedom) must be > 0, got {variance_dof:g}")
+        variance_dof = np.float32(variance_dof)
     if variance_is_sample_variance and "variance" in fields:
         if sample_count is None:
             raise ExrError(
@@ -482,7 +505,8 @@ def read_frame(
         if "covariance" in fields:  # stored alike: per sample
             fields["covariance"] = fields["covariance"] / np.float32(sample_count)
     frame = Frame(
-        **fields, spp=None if sample_count is None else np.float32(sample_count)
+        **fields, spp=None if sample_count is None else np.float32(sample_count),
+        variance_dof=variance_dof,
     )
     try:
         return frame.validated(where=str(path), nonfinite=nonfinite)

@@ -1,9 +1,14 @@
-"""8-bit sRGB PNG previews of linear HDR images, with no imaging dependency.
+"""8-bit sRGB PNG previews of linear HDR images (written with no imaging dependency), and
+reading PNG pixels.
 
 ``preview(color, exposure)`` tone maps linear radiance for display (exposure scale, clip to
 [0, 1], the sRGB transfer curve, round to 8 bits); ``write_png(path, rgb8)`` writes an
 (H, W, 3) or (H, W) uint8 array as a PNG (filter 0 on every row, zlib level 6), atomically.
 Previews are for looking at images, not for measuring them: metrics use the EXR values.
+
+``read_png(path)`` returns the stored integers of an 8-bit grey, grey + alpha, RGB or RGBA
+PNG (or a 16-bit grey one), for renderers that write a feature as PNG (Falcor's frame capture
+writes its 8-bit outputs so); it decodes with Pillow (a dependency of matplotlib).
 """
 
 from __future__ import annotations
@@ -73,4 +78,50 @@ def write_png(path, image) -> Path:
     return path
 
 
-__all__ = ["encode_png", "preview", "srgb_encode", "write_png"]
+#: PNG colour type -> channel names (greyscale, RGB, grey + alpha, RGBA).
+PNG_CHANNELS = {0: ("Y",), 2: ("R", "G", "B"), 4: ("Y", "A"), 6: ("R", "G", "B", "A")}
+
+
+def png_header(path) -> tuple[int, int, int, tuple[str, ...]]:
+    """(width, height, bits per channel, channel names) from a PNG's IHDR chunk alone.
+    Refuses (FrameError naming the file) a file that is no PNG, and colour types and depths
+    :func:`read_png` does not read exactly: palette images, 16-bit colour or grey + alpha."""
+    path = Path(path)
+    if not path.is_file():
+        raise FrameError(f"{path}: no such file")
+    with open(path, "rb") as handle:
+        head = handle.read(29)
+    if len(head) < 29 or head[:8] != PNG_SIGNATURE or head[12:16] != b"IHDR":
+        raise FrameError(f"{path}: not a PNG file (bad signature or no IHDR chunk first)")
+    width, height, depth, colour_type, _, _, _ = struct.unpack(">IIBBBBB", head[16:29])
+    if colour_type not in PNG_CHANNELS or depth not in (8, 16) or (
+            depth == 16 and colour_type != 0):
+        raise FrameError(f"{path}: a PNG of colour type {colour_type} at {depth} bits; jaxden "
+                         f"reads 8-bit grey, grey + alpha, RGB and RGBA, and 16-bit grey")
+    return width, height, depth, PNG_CHANNELS[colour_type]
+
+
+def read_png(path) -> tuple[np.ndarray, tuple[str, ...]]:
+    """The stored integers of a PNG as an (H, W, C) uint8 (uint16 for 16-bit grey) array, and
+    its channel names (:data:`PNG_CHANNELS`); what they mean (linear or sRGB) is the caller's
+    to know. A truncated or corrupt file is a FrameError naming it."""
+    from PIL import Image  # a dependency of matplotlib; imported here: keeps the writer light
+
+    path = Path(path)
+    width, height, depth, names = png_header(path)
+    try:
+        with Image.open(path) as image:
+            image.load()
+            pixels = np.array(image)
+    except (OSError, ValueError, SyntaxError) as error:
+        raise FrameError(f"{path}: PNG pixel data cannot be decoded (truncated or corrupt?): "
+                         f"{str(error).splitlines()[0] if str(error) else type(error).__name__}"
+                         ) from None
+    pixels = pixels.reshape(height, width, -1)
+    if pixels.shape[-1] != len(names):
+        raise FrameError(f"{path}: decoded {pixels.shape[-1]} channels, the header says "
+                         f"{len(names)}")
+    return pixels.astype(np.uint16 if depth == 16 else np.uint8), names
+
+
+__all__ = ["encode_png", "png_header", "preview", "read_png", "srgb_encode", "write_png"]

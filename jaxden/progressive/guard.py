@@ -46,15 +46,26 @@ around its local mean wide; a pixel whose stratum holds less than GUARD_STRATA_S
 window's weight keeps the spatial chi; pixels of zero variance belong to no stratum (at low spp
 that is a pixel none of whose samples found light, not one that is known exactly).
 
-The variance is itself an estimate. From n samples per pixel, pooled over the window's
+The variance is itself an estimate, with d degrees of freedom per pixel: d = n - 1 for the
+sample variance of a pixel's own n samples, d = K - 1 for the variance of a mean of K
+independent renders taken from their spread (``Frame.variance_dof``, :mod:`jaxden.data.merge`;
+pooled from the renders' own variances it is K m - 1 = n - 1 again). Pooled over the window's
 N_eff = (sum w)^2 / sum w^2 pixels (about 4 pi sigma^2, 12.6 at sigma 1), the local mean of
-var has a relative standard deviation of about sqrt(2 / k), k = (n - 1) N_eff (the chi-square
-law of a sample variance; neighbouring pixels taken as independent). At 2..4 spp that is 0.4
-to 0.23, so chi^2 = E[(y - x)^2] / var is often overstated (1 / var is convex) and the guard
-cut alpha where y was fine. The guard therefore divides by an upper confidence bound of the
-variance, ``var (1 + guard_confidence sqrt(2 / k))``, when the sample count is known (``spp``;
-a frame from several buffers, whose variance has buffers - 1 degrees of freedom, passes none):
-a factor of 1.8 at 2 spp, 1.025 at 1024 spp, 1 in the limit, so consistency is unchanged.
+var has a relative standard deviation of about sqrt(2 / k), k = d N_eff (the chi-square law of
+a sample variance; neighbouring pixels taken as independent). At 2..4 spp that is 0.4 to 0.23,
+so chi^2 = E[(y - x)^2] / var is often overstated (1 / var is convex) and the guard cut alpha
+where y was fine. The guard therefore divides by an upper confidence bound of the variance::
+
+    var (1 + guard_confidence sqrt(2 / k)),   k = max(d, 1) N_eff,
+    d = variance_dof where the frame records it, else spp - 1
+
+when either is known (neither: no bound, the variance is taken as exact): a factor of 1.8 at
+2 spp, 1.025 at 1024 spp, 1 in the limit; 1.46 for a frame merged from K = 4 renders by their
+spread, whatever their sample count. A bounded factor leaves the guard consistent (chi^2 still
+grows without bound as var -> 0 with y's bias fixed). The bound is approximate: at
+guard_confidence 2 it covers the true variance with probability P(chi^2_k >= k / (1 + 2
+sqrt(2 / k))), 0.93 at k = 3 N_eff (tests/test_merge_buffers.py), not the 0.977 of two normal
+standard deviations.
 """
 
 from __future__ import annotations
@@ -88,13 +99,26 @@ def _effective_pixels(taps) -> float:
     return float((taps.sum() ** 2 / np.square(taps).sum()) ** 2)
 
 
-def variance_inflation(spp, config):
-    """1 + guard_confidence sqrt(2 / ((n - 1) N_eff)) for n = ``spp`` samples per pixel
-    (n - 1 taken as at least 1): the factor by which the guard raises the local variance to
-    an upper confidence bound. Broadcasts over ``spp``."""
+def variance_inflation(spp, config, variance_dof=None):
+    """1 + guard_confidence sqrt(2 / (d N_eff)), d the variance's degrees of freedom per pixel:
+    ``variance_dof`` where given, else n - 1 for n = ``spp`` samples per pixel (d taken as at
+    least 1): the factor by which the guard raises the local variance to an upper confidence
+    bound. Broadcasts over ``spp`` (or ``variance_dof``)."""
     n_eff = _effective_pixels(gaussian_taps(config.guard_sigma))
-    dof = jnp.maximum(jnp.asarray(spp, jnp.float32) - 1.0, 1.0) * n_eff
+    per_pixel = (jnp.asarray(spp, jnp.float32) - 1.0 if variance_dof is None
+                 else jnp.asarray(variance_dof, jnp.float32))
+    dof = jnp.maximum(per_pixel, 1.0) * n_eff
     return 1.0 + config.guard_confidence * jnp.sqrt(2.0 / dof)
+
+
+def guard_sample_count(spp, variance_dof):
+    """The sample count to pass the guard (``guard_alpha``'s ``spp``) for a variance with
+    ``variance_dof`` degrees of freedom per pixel: ``spp`` itself where that is None, else
+    ``variance_dof + 1``, whose n - 1 is those degrees of freedom (the guard reads the count
+    only through n - 1, :func:`variance_inflation`). None where both are None."""
+    if variance_dof is None:
+        return spp
+    return np.asarray(variance_dof, np.float64) + 1.0
 
 
 def _ratio(local_residual, local_var):
@@ -161,7 +185,8 @@ def _guard_chi2(x, y, var, inflation, config):
 @functools.partial(jax.jit, static_argnames=("config",))
 def guard_alpha(alpha, x, y, var, config, spp=None):
     """alpha'' = min(alpha, gamma / chi_cap^2) (1 - S(a (chi_test - c))), batched over leading
-    dims; ``spp`` (None: unknown, no inflation; else a scalar or one per leading index)."""
+    dims; ``spp`` (None: unknown, no inflation; else a scalar or one per leading index; for a
+    variance of known degrees of freedom, :func:`guard_sample_count`)."""
     lead = x.shape[:-3]
     flat = [a.reshape((-1,) + a.shape[-3:]) for a in (x, y, var)]
     count = int(np.prod(lead, dtype=np.int64))

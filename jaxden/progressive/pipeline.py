@@ -8,9 +8,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxden.errors import ConfigError
+from jaxden.errors import ConfigError, FrameError
 from jaxden.frame import Frame
 from jaxden.progressive.checks import check_spp
+from jaxden.progressive.guard import guard_sample_count
 from jaxden.progressive.heads import mix_unchecked
 from jaxden.progressive.mixer import MixerConfig, inference_alpha, load_mixer
 from jaxden.progressive.tstat import TStatConfig, consistent_alpha
@@ -88,7 +89,7 @@ def progressive_denoise(
     sure_map = jnp.asarray(result.sure, jnp.float32)
     z_prime, alpha_prime, alpha, mixed = mix_given_sure(
         frame.color, y, frame.variance, sure_map, mixer_params, mixer_config, tstat=tstat,
-        swap_average=swap_average, spp=frame.spp)
+        swap_average=swap_average, spp=frame.spp, variance_dof=frame.variance_dof)
     extras = {
         "denoised": y,
         "sure": sure_map,
@@ -101,12 +102,15 @@ def progressive_denoise(
 
 def mix_given_sure(x, y, var, sure, mixer_params, mixer_config: MixerConfig, *,
                    tstat=_FROM_CONFIG, swap_average: bool | None = None, spp=None,
-                   sigma=None):
+                   sigma=None, variance_dof=None):
     """The part of :func:`progressive_denoise` after SURE: alpha from the mixer (swap-averaged
     per ``swap_average``, None: the config's), the t-statistic scaling (``tstat`` as there) and
-    the mix. ``sure`` may be any map in SURE's place (the PD report feeds the true error).
-    ``spp``: the sample count ``var`` was estimated from, for the error guard (None: unknown).
-    ``sigma``: the t-statistic's width (None: from ``var``; tiles pass their frame's).
+    the mix. ``sure`` may be any map in SURE's place (the PD report feeds the true error;
+    ``jaxden progressive --buffers`` sub-buffer SURE). ``spp``: the sample count ``var`` was
+    estimated from, for the error guard (None: unknown). ``variance_dof``: the degrees of
+    freedom of ``var`` (``Frame.variance_dof``), which the guard's bound uses in place of
+    spp - 1 where given (:mod:`jaxden.progressive.guard`). ``sigma``: the t-statistic's width
+    (None: from ``var``; tiles pass their frame's).
     Returns ``(z_prime, alpha_prime, alpha, mixed)``, float32 JAX arrays."""
     if tstat is _FROM_CONFIG:
         tstat = mixer_config.tstat
@@ -118,7 +122,13 @@ def mix_given_sure(x, y, var, sure, mixer_params, mixer_config: MixerConfig, *,
     if tstat is None:
         return mixed, alpha, alpha, mixed
     if tstat.guard:
-        spp = check_spp(spp, tuple(x.shape[:-3]), "progressive_denoise")
+        if variance_dof is not None:
+            dof = np.asarray(variance_dof, np.float64)
+            if not np.all(np.isfinite(dof)) or np.any(dof <= 0):
+                raise FrameError(f"progressive_denoise: variance_dof (the variance's degrees of "
+                                 f"freedom) must be finite and > 0, got {dof}")
+        spp = check_spp(guard_sample_count(spp, variance_dof), tuple(x.shape[:-3]),
+                        "progressive_denoise")
     alpha_prime = consistent_alpha(alpha, x, y, var, mixed, tstat, spp, sigma)
     return mix_unchecked(x, y, alpha_prime), alpha_prime, alpha, mixed
 

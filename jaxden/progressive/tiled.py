@@ -24,7 +24,9 @@ A JAX denoiser with a TileSpec runs the whole pipeline per tile (halo = the sum 
 fields). Black boxes (OIDN) and JAX denoisers without one run whole-frame for y and SURE
 (OIDN tiles large frames itself; the finite differences go one probe at a time,
 :func:`jaxden.sure.denoiser.sure_blackbox_streamed`), then the mixer and the t-statistic go
-over tiles.
+over tiles. With K sub-buffers of the frame (``buffers``), SURE is the sub-buffer SURE of
+:func:`jaxden.sure.sure_buffers` (K + 1 whole-frame denoiser calls, no probes) for every
+denoiser, and the mixer and the t-statistic go over tiles as for a black box.
 
 Memory is planned before any work (:class:`Plan`): the frame's own arrays, plus the working
 set of one tile as XLA's compiled memory analysis reports it; the largest tile that fits the
@@ -62,6 +64,13 @@ from jaxden.tiling import (
 #: perturbed colour and output (48), the float64 sum (24) and OIDN's clipped copies of its
 #: colour, albedo and normal (36).
 BLACKBOX_BYTES_PER_PIXEL = 108
+#: Bytes a pixel that sub-buffer SURE (:func:`jaxden.sure.sure_buffers`, in float64) holds
+#: besides the frame's arrays, the K float32 buffers and the denoiser's own: about ten
+#: three-channel float64 images (x, y, the buffers' mean, a leave-one-out mean and its denoised
+#: image, the running sum, the variance, the squared residual, the results and their float32
+#: copies), and SUB_BUFFER_BYTES_PER_PIXEL more a buffer (its float64 copy).
+SUB_BUFFER_SURE_BYTES_PER_PIXEL = 240
+SUB_BUFFER_BYTES_PER_PIXEL = 24
 
 # --------------------------------------------------------------------------- receptive fields
 def taps_radius(sigma: float) -> int:
@@ -135,8 +144,8 @@ class Plan:
 
 # ------------------------------------------------------------------------------------ stages
 def _tile_all(denoiser_params, mixer_params, frame, key, origin, eps, sigma, *, apply,
-              mixer_config, tstat, swap_average, spp, num_probes, method, probe_batch,
-              frame_shape, keep):
+              mixer_config, tstat, swap_average, spp, variance_dof, num_probes, method,
+              probe_batch, frame_shape, keep):
     """Denoiser, SURE (the tile's window of the frame's probes), mixer, t-statistic: one tile."""
     from jaxden.progressive.pipeline import mix_given_sure
     from jaxden.sure.stein import sure
@@ -145,20 +154,20 @@ def _tile_all(denoiser_params, mixer_params, frame, key, origin, eps, sigma, *, 
                   probe_batch=probe_batch, probe_window=(frame_shape, origin))
     z, alpha_prime, alpha, _ = mix_given_sure(
         frame.color, result.denoised, frame.variance, result.sure, mixer_params, mixer_config,
-        tstat=tstat, swap_average=swap_average, spp=spp, sigma=sigma)
+        tstat=tstat, swap_average=swap_average, spp=spp, sigma=sigma, variance_dof=variance_dof)
     parts = {"z": z, "alpha_prime": alpha_prime, "alpha": alpha, "denoised": result.denoised,
              "sure": result.sure, "divergence": result.divergence_term}
     return {name: parts[name] for name in keep}
 
 
 def _tile_mixer(mixer_params, x, y, var, sure_map, sigma, *, mixer_config, tstat, swap_average,
-                spp, keep):
+                spp, variance_dof, keep):
     """Mixer and t-statistic on one tile of a whole-frame denoiser's y and SURE."""
     from jaxden.progressive.pipeline import mix_given_sure
 
     z, alpha_prime, alpha, _ = mix_given_sure(x, y, var, sure_map, mixer_params, mixer_config,
                                               tstat=tstat, swap_average=swap_average, spp=spp,
-                                              sigma=sigma)
+                                              sigma=sigma, variance_dof=variance_dof)
     parts = {"z": z, "alpha_prime": alpha_prime, "alpha": alpha}
     return {name: parts[name] for name in keep if name in parts}
 
@@ -168,10 +177,13 @@ def _tile_mixer(mixer_params, x, y, var, sure_map, sigma, *, mixer_config, tstat
 OUTPUTS = ("z", "alpha_prime", "alpha", "denoised", "sure", "divergence")
 
 
-def tile_halo(denoiser, mixer_config: MixerConfig, tstat: TStatConfig | None) -> int:
+def tile_halo(denoiser, mixer_config: MixerConfig, tstat: TStatConfig | None,
+              whole_frame_denoiser: bool = False) -> int:
     """The overlap the pipeline needs (module docstring): the denoiser's field when it runs
-    per tile, the mixer's and the t-statistic's."""
-    spec = denoiser.tile_spec() if denoiser.differentiable else None
+    per tile (not with ``whole_frame_denoiser``: sub-buffer SURE), the mixer's and the
+    t-statistic's."""
+    spec = (denoiser.tile_spec() if denoiser.differentiable and not whole_frame_denoiser
+            else None)
     return (mixer_radius(mixer_config) + tstat_radius(tstat)
             + (spec.radius if spec is not None else 0))
 
@@ -183,7 +195,7 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
                               keep: tuple[str, ...] = ("z", "alpha_prime", "alpha"),
                               tile: int | None = None, halo: int | None = None,
                               limit: int | None = None, progress: bool = False,
-                              plan_only: bool = False, on_plan=None):
+                              plan_only: bool = False, on_plan=None, buffers=None):
     """:func:`jaxden.progressive.progressive_denoise` over tiles: the same outputs (to float
     rounding) in memory set by the tile (module docstring).
 
@@ -193,12 +205,17 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
     :func:`jaxden.limits.memory_limit`; 0: the whole frame as one tile). ``halo``: the overlap
     (None: :func:`tile_halo`; smaller only to show the seams). ``progress``: a bar over tiles.
     ``plan_only``: return ``(None, plan)`` without running; ``on_plan(plan)`` is called
-    before the work starts (the command line tells the plan).
+    before the work starts (the command line tells the plan). ``buffers``: (K, H, W, 3) colours
+    of K >= 2 independent sub-buffers whose mean is the frame's colour: SURE is then their
+    sub-buffer SURE (:func:`jaxden.sure.sure_buffers`; ``divergence`` its covariance term)
+    instead of probe SURE, with the denoiser on the whole frame and the mixer stage over tiles;
+    ``num_probes``, ``method``, ``eps``, ``probe_batch`` and ``key`` then go unused.
 
     Returns ``(outputs, plan)``: float32 NumPy arrays (H, W, 3) by name, and the :class:`Plan`.
     Raises MemoryPlanError when the frame's arrays, or its smallest tile, do not fit.
     """
     from jaxden.denoise.tiled import blackbox_memory, bound_apply, tile_inputs, window
+    from jaxden.sure.buffers import sure_buffers
     from jaxden.sure.denoiser import (
         default_eps,
         resolve_denoiser,
@@ -217,8 +234,13 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
     reason = whole_frame_reason(denoiser, tstat)
     if reason is not None and tile != 0:
         raise ConfigError(f"progressive_denoise_tiled: {reason}: run the frame whole")
-    spec = denoiser.tile_spec() if denoiser.differentiable else None
-    if denoiser.differentiable and spec is None:
+    if buffers is not None:
+        buffers = np.asarray(buffers, np.float32)
+        if buffers.ndim != 4 or buffers.shape[1:] != color.shape:
+            raise ConfigError(f"progressive_denoise_tiled: buffers must be (K, *{color.shape}), "
+                              f"got {buffers.shape}")
+    spec = (denoiser.tile_spec() if denoiser.differentiable and buffers is None else None)
+    if denoiser.differentiable and spec is None and buffers is None:
         raise ConfigError(
             f"progressive_denoise_tiled: denoiser '{denoiser.name}' declares no receptive "
             f"field (TileSpec): it runs on whole frames only")
@@ -231,15 +253,21 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
         eps = default_eps(method, denoiser.differentiable) or 1e-4
     height, width = color.shape[:2]
     spp = None if frame.spp is None else float(np.asarray(frame.spp))
+    variance_dof = (None if frame.variance_dof is None
+                    else float(np.asarray(frame.variance_dof)))
     sigma = None if tstat is None else tstat_sigma(jnp.asarray(frame.variance), tstat)
     stage = "all" if spec is not None else "mixer"
     multiple = spec.multiple if spec is not None else 1
-    halo = tile_halo(denoiser, mixer_config, tstat) if halo is None else int(halo)
+    halo = (tile_halo(denoiser, mixer_config, tstat, whole_frame_denoiser=buffers is not None)
+            if halo is None else int(halo))
     limit = memory_limit() if limit is None else int(limit)
     frame_bytes = sum(np.asarray(a).nbytes for a in jax.tree_util.tree_leaves(frame))
     frame_bytes += len(keep) * color.nbytes
     blackbox_context, blackbox_bytes = blackbox_memory(denoiser, frame, limit)
-    if stage == "mixer":
+    if buffers is not None:
+        frame_bytes += buffers.nbytes + blackbox_bytes + height * width * (
+            SUB_BUFFER_SURE_BYTES_PER_PIXEL + SUB_BUFFER_BYTES_PER_PIXEL * len(buffers))
+    elif stage == "mixer":
         frame_bytes += BLACKBOX_BYTES_PER_PIXEL * height * width + blackbox_bytes
 
     if stage == "all":
@@ -247,7 +275,8 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
         apply = bound_apply(apply, denoiser.config)
         run_tile = functools.partial(
             _tile_all, apply=apply, mixer_config=mixer_config, tstat=tstat,
-            swap_average=bool(swap_average), spp=spp, num_probes=int(num_probes), method=method,
+            swap_average=bool(swap_average), spp=spp, variance_dof=variance_dof,
+            num_probes=int(num_probes), method=method,
             probe_batch=probe_batch or int(num_probes), frame_shape=(height, width, 3),
             keep=tuple(keep))
 
@@ -258,7 +287,8 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
     else:
         run_tile = functools.partial(
             _tile_mixer, mixer_config=mixer_config, tstat=tstat,
-            swap_average=bool(swap_average), spp=spp, keep=tuple(keep))
+            swap_average=bool(swap_average), spp=spp, variance_dof=variance_dof,
+            keep=tuple(keep))
 
         def tile_args(tile_: Tile, arrays):
             rows, cols = tile_.src_slices
@@ -270,7 +300,8 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
     program = TileProgram(run_tile, lambda tile_: tile_args(tile_, arrays))
     what = (f"progressive denoising of a {width}x{height} frame"
             + (": the denoiser, SURE, mixer and t-statistic" if stage == "all"
-               else ": the mixer and t-statistic"))
+               else ": the mixer and t-statistic")
+            + ("" if buffers is None else f" (SURE from {len(buffers)} sub-buffers)"))
     arrays = {"x": color, "y": color, "var": color, "sure": color}  # for planning: shapes
     budget = tile_budget(limit, frame_bytes, what)
     estimate = 0
@@ -289,8 +320,11 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
     arrays = {"x": color, "var": np.asarray(frame.variance, np.float32)}
     if stage == "mixer":
         with blackbox_context:
-            result = sure_blackbox_streamed(denoiser.function(), frame, key, int(num_probes),
-                                            eps)
+            if buffers is None:
+                result = sure_blackbox_streamed(denoiser.function(), frame, key,
+                                                int(num_probes), eps)
+            else:
+                result = sure_buffers(denoiser, frame, buffers)
         arrays |= {"y": result.denoised, "sure": result.sure}
         for name, value in (("denoised", result.denoised), ("sure", result.sure),
                             ("divergence", result.divergence_term)):
@@ -307,13 +341,16 @@ def progressive_frame(frame: Frame, denoiser, mixer_params, mixer_config: MixerC
                       swap_average: bool | None = None, nonfinite: str = "error",
                       keep: tuple[str, ...] = ("z", "alpha_prime", "alpha"),
                       tile: int | None = None, limit: int | None = None,
-                      progress: bool = False, on_plan=None):
+                      progress: bool = False, on_plan=None, buffers=None):
     """Progressive denoising of one frame as the command line runs it: validated once, then
     over tiles when every stage allows (:func:`progressive_denoise_tiled`, planned from the
     memory limit), else whole (:func:`jaxden.progressive.progressive_denoise`: batched frames,
     the guard's noise strata, JAX denoisers without a receptive field, ``tile=0``).
 
     ``tstat``: ``"config"`` (the mixer's), a :class:`TStatConfig` or None (no scaling).
+    ``buffers``: (K, H, W, 3) sub-buffer colours of the (one) frame: SURE from them
+    (:func:`progressive_denoise_tiled`; whole-frame denoiser, the mixer stage over tiles, or
+    as one tile where something must run whole).
     Returns ``(outputs, plan)``: float32 NumPy arrays by name (``keep``, from :data:`OUTPUTS`)
     and the :class:`Plan` (None when the frame ran whole through the untiled pipeline).
     """
@@ -333,6 +370,15 @@ def progressive_frame(frame: Frame, denoiser, mixer_params, mixer_config: MixerC
     frame = frame.replace(**{name: None for name in IMAGE_FIELDS if name not in used})
     frame = frame.numpy().validated(where="progressive_denoise", nonfinite=nonfinite)
     denoiser.check_frame(frame)
+    if buffers is not None:
+        if np.ndim(frame.color) != 3:
+            raise ConfigError(f"progressive_denoise: sub-buffer SURE takes one image (H, W, 3), "
+                              f"got {np.shape(frame.color)}")
+        whole = tile == 0 or whole_frame_reason(denoiser, tstat) is not None
+        return progressive_denoise_tiled(
+            frame, denoiser, mixer_params, mixer_config, key, num_probes=num_probes,
+            tstat=tstat, swap_average=swap_average, keep=keep, tile=0 if whole else tile,
+            limit=limit, progress=progress, on_plan=on_plan, buffers=buffers)
     tileable = (np.ndim(frame.color) == 3 and whole_frame_reason(denoiser, tstat) is None
                 and (not denoiser.differentiable or denoiser.tile_spec() is not None))
     if tile != 0 and tileable:

@@ -52,6 +52,37 @@ def merge_buffer_pairs(buffers) -> np.ndarray:
     return 0.5 * (xk[0::2] + xk[1::2])
 
 
+def check_sub_buffers(color, buffers, *, rtol: float = 2e-3,
+                      where: str = "sure_buffers") -> np.ndarray:
+    """The (K, ..., H, W, 3) sub-buffer colours ``buffers`` as float64, checked against the
+    frame colour ``color`` (..., H, W, 3) they are to be the mean of: the shape, K >= 2, finite
+    values, no two identical (a buffer given twice is not independent: the covariance would be
+    wrong), and their mean equal to ``color`` to ``rtol`` of its largest value (see
+    :func:`sure_buffers`). Raises FrameError prefixed with ``where``."""
+    xk = np.asarray(buffers, dtype=np.float64)
+    x = np.asarray(color, dtype=np.float64)
+    if xk.ndim != x.ndim + 1 or xk.shape[1:] != x.shape:
+        raise FrameError(f"{where}: buffers have shape {xk.shape}, expected (K, *{x.shape})")
+    k = xk.shape[0]
+    if k < 2:
+        raise FrameError(f"{where}: need K >= 2 sub-buffers, got {k}")
+    if not np.all(np.isfinite(xk)):
+        raise FrameError(f"{where}: the sub-buffers have NaN or infinite values")
+    first_seen: dict[bytes, int] = {}
+    for i in range(k):
+        digest = hashlib.sha1(np.ascontiguousarray(xk[i]).tobytes()).digest()
+        if digest in first_seen:
+            raise FrameError(f"{where}: sub-buffers {first_seen[digest]} and {i} are "
+                             f"identical; the buffers must be independent renders (other seeds)")
+        first_seen[digest] = i
+    scale = max(float(np.max(np.abs(x))), 1e-12)
+    gap = float(np.max(np.abs(xk.mean(axis=0) - x)))
+    if gap > rtol * scale:
+        raise FrameError(f"{where}: the frame's colour is not the mean of the {k} buffers "
+                         f"(max difference {gap:.3g}, colour scale {scale:.3g})")
+    return xk
+
+
 def sure_buffers(denoise: Callable[[Frame], Any], frame: Frame, buffers,
                  *, extrapolate: bool = False, rtol: float = 2e-3,
                  nonfinite: NonFinitePolicy = "error") -> SureResult:
@@ -90,27 +121,9 @@ def sure_buffers(denoise: Callable[[Frame], Any], frame: Frame, buffers,
             raise FrameError(f"sure_buffers: the sub-buffers must have equal spp, got "
                              f"{sorted(counts)}")
         buffers = [np.asarray(b.color) for b in buffers]
-    xk = np.asarray(buffers, dtype=np.float64)
+    xk = check_sub_buffers(frame.color, buffers, rtol=rtol)
     x = np.asarray(frame.color, dtype=np.float64)
-    if xk.ndim != x.ndim + 1 or xk.shape[1:] != x.shape:
-        raise FrameError(f"sure_buffers: buffers have shape {xk.shape}, expected (K, *{x.shape})")
     k = xk.shape[0]
-    if k < 2:
-        raise FrameError(f"sure_buffers: need K >= 2 sub-buffers, got {k}")
-    if not np.all(np.isfinite(xk)):
-        raise FrameError("sure_buffers: the sub-buffers have NaN or infinite values")
-    first_seen: dict[bytes, int] = {}
-    for i in range(k):  # a buffer given twice is not independent: the covariance would be wrong
-        digest = hashlib.sha1(np.ascontiguousarray(xk[i]).tobytes()).digest()
-        if digest in first_seen:
-            raise FrameError(f"sure_buffers: sub-buffers {first_seen[digest]} and {i} are "
-                             f"identical; the buffers must be independent renders (other seeds)")
-        first_seen[digest] = i
-    scale = max(float(np.max(np.abs(x))), 1e-12)
-    gap = float(np.max(np.abs(xk.mean(axis=0) - x)))
-    if gap > rtol * scale:
-        raise FrameError(f"sure_buffers: the frame's colour is not the mean of the {k} buffers "
-                         f"(max difference {gap:.3g}, colour scale {scale:.3g})")
 
     def call(color: np.ndarray) -> np.ndarray:
         out = np.asarray(denoise(frame.replace(color=color.astype(np.float32))), np.float64)
