@@ -1,4 +1,5 @@
-"""`jaxden dataset build | refeature | verify | sure-cache`: datasets and their SURE caches."""
+"""`jaxden dataset build | import | refeature | verify | sure-cache`: datasets and their SURE
+caches."""
 
 from __future__ import annotations
 
@@ -19,6 +20,45 @@ def cmd_dataset_build(args: argparse.Namespace) -> int:
                              ray_address=args.ray_address)
     print(f"dataset complete: {args.out} ({len(manifest.items)} items)")
     return 0
+
+
+def cmd_dataset_import(args: argparse.Namespace) -> int:
+    from jaxden.data.importer import import_dataset
+
+    manifest = import_dataset(
+        args.source, args.out, convention=args.convention, layer=args.layer,
+        crop_size=args.crop, crops_per_view=args.crops_per_view, seed=args.seed,
+        held_out=_view_list(args.held_out), val=_view_list(args.val),
+        reference_spp=args.reference_spp, name=args.name, half=args.half,
+        nonfinite=args.nonfinite, progress=not args.quiet)
+    config, counts = manifest.config, manifest.split_counts()
+    print(f"dataset complete: {args.out} ({len(manifest.items)} items: {len(manifest.scenes)} "
+          f"views x {config['crops_per_scene']} crops of {config['crop_size']} pixels, inputs "
+          f"{', '.join(map(str, config['spp']))} spp, references {config['reference_spp']} spp; "
+          f"crops train {counts['train']}, val {counts['val']}, test {counts['test']})")
+    return 0
+
+
+def _view_list(text: str | None) -> tuple[str, ...]:
+    return tuple(name.strip() for name in (text or "").split(",") if name.strip())
+
+
+IMPORT_DESCRIPTION = """\
+Turn a folder of another renderer's EXRs into a jaxden dataset that `jaxden train`,
+`jaxden sweep`, `jaxden evaluate` and `jaxden dataset verify` read like a built one.
+Source layout, one folder per camera view:
+
+  SRC/<view>/reference.exr          the reference, carrying its variance of the mean, or
+  SRC/<view>/reference/b0.exr ..    K >= 2 independent renders of it (different seeds)
+  SRC/<view>/spp<N>.exr             an N-spp input (with its variance when N > 1), or
+  SRC/<view>/spp<N>/b0.exr ..       K >= 2 independent renders whose spp sum to N
+
+Buffers are merged as `jaxden merge` merges them. Every view has the same levels N, every
+file the same size, and the colour, albedo, normal and depth. Resumable: run the same
+command again after an interruption. Example (docs/your-renderer.md):
+
+  jaxden dataset import renders/ --from cycles --crop 128 --held-out v12,v13 \\
+      --out $JAXDEN_HOME/data/cycles"""
 
 
 def cmd_dataset_refeature(args: argparse.Namespace) -> int:
@@ -78,7 +118,7 @@ def cmd_sure_cache(args: argparse.Namespace) -> int:
 
 
 def add_commands(sub) -> None:
-    p = sub.add_parser("dataset", help="build or verify a dataset")
+    p = sub.add_parser("dataset", help="build, import or verify a dataset")
     dsub = p.add_subparsers(dest="dataset_command", required=True, metavar="ACTION")
     b = dsub.add_parser("build", help="render a dataset from a TOML config (resumable)")
     b.add_argument("config", help="dataset config .toml")
@@ -90,6 +130,42 @@ def add_commands(sub) -> None:
                    help="renders at once (default: 1 per 8 cores locally, the cluster's CPUs on Ray)")
     add_ray_address_option(b)
     b.set_defaults(func=cmd_dataset_build)
+    i = dsub.add_parser("import", help="a folder of another renderer's EXRs (one folder per "
+                                       "view) -> a dataset (resumable)",
+                        description=IMPORT_DESCRIPTION,
+                        formatter_class=argparse.RawDescriptionHelpFormatter)
+    i.add_argument("source", metavar="SRC", help="the source folder (layout above)")
+    i.add_argument("--out", required=True, help="the dataset folder")
+    from jaxden.io.conventions import CONVENTIONS
+
+    i.add_argument("--from", dest="convention", choices=tuple(CONVENTIONS), default=None,
+                   help="the renderer that wrote the files: its channel names, the meaning of "
+                        "its variance and the header's sample count (docs/renderers.md; "
+                        "default: jaxden's channels). A renderer that writes one file per "
+                        "output (falcor) is merged into one file per render first")
+    i.add_argument("--layer", default=None,
+                   help="the render layer of a layered file (--from cycles) holding several")
+    i.add_argument("--crop", type=positive_int, default=128, metavar="N",
+                   help="side of the square crops in pixels (default 128; at most the views' "
+                        "smaller side: give it to keep whole square views)")
+    i.add_argument("--crops-per-view", type=positive_int, default=4, metavar="N",
+                   help="random crops per view, placed as `dataset build` places them "
+                        "(default 4; they may overlap)")
+    i.add_argument("--seed", type=int, default=0,
+                   help="seeds the crop placement (default 0)")
+    i.add_argument("--held-out", default=None, metavar="VIEW,...",
+                   help="views of the test split (default: none)")
+    i.add_argument("--val", default=None, metavar="VIEW,...",
+                   help="views of the val split (default: none); every other view is train")
+    i.add_argument("--reference-spp", type=positive_int, default=None, metavar="N",
+                   help="the references' sample count, where their headers record none")
+    i.add_argument("--name", default=None, help="the dataset's label (default: SRC's name)")
+    i.add_argument("--half", action="store_true",
+                   help="store the channels as float16 (the variance stays float32)")
+    i.add_argument("--nonfinite", choices=("error", "zero"), default="error",
+                   help="a NaN or inf in a source file: refuse it (default) or replace it by 0")
+    i.add_argument("--quiet", action="store_true", help="no progress bars")
+    i.set_defaults(func=cmd_dataset_import)
     r = dsub.add_parser("refeature", help="copy a dataset, re-rendering only its features "
                                           "(aux=..., feature_spp=...; resumable)")
     r.add_argument("source", help="a complete dataset folder")
