@@ -17,6 +17,8 @@ X=(env XLA_FLAGS=--xla_force_host_platform_device_count=2)
 mkdir -p "$H/data" "$H/runs"
 step() {  # step NAME COMMAND...: run unless $H/done/NAME exists, time it
   local name=$1; shift
+  # QUEUE_ONLY=REGEX runs only the steps whose names match (a second queue beside the first).
+  if [ -n "${QUEUE_ONLY:-}" ] && ! [[ $name =~ $QUEUE_ONLY ]]; then return 0; fi
   if [ -e "$H/done/$name" ]; then echo "queue: $name already done"; return 0; fi
   echo "queue: $name started $(date -Is)"
   local t0=$SECONDS
@@ -82,6 +84,21 @@ step pd-oidnjax-k1-test oidnjax_pd test-chain 1 pd-oidnjax-k1-test
 step pd-oidnjax-k4-test oidnjax_pd test-chain 4 pd-oidnjax-test
 step pd-oidnjax-k1-test-high oidnjax_pd test-high-chain 1 pd-oidnjax-k1-test-high
 step pd-oidnjax-k4-test-high oidnjax_pd test-high-chain 4 pd-oidnjax-test-high
+# Blender Cycles renders (experiments/renderers/cycles_dataset.py, Blender's bpy in
+# $H/bpy-venv) imported as a dataset, WSKP-6 fine-tuned on them, stock against fine-tuned on
+# the held-out views (into the checkout's experiments/results/renderers: commit them).
+cycles_eval() {  # cycles_eval DENOISER NAME
+  $J evaluate denoise --data "$H/data/cycles" --split test --spp 1 --denoiser "$1" \
+    --out "experiments/results/renderers/$2"
+}
+step data-cycles-src "$H/bpy-venv/bin/python" experiments/renderers/cycles_dataset.py \
+  --out "$H/cycles-src"
+step data-cycles $J dataset import "$H/cycles-src" --from cycles --crop 128 --crops-per-view 4 \
+  --val s06v0,s06v1 --held-out s07v0,s07v1,s08v0,s08v1 --out "$H/data/cycles" --quiet
+step finetune-wskp6-cycles "${X[@]}" $J train experiments/configs/finetune-wskp6-cycles.toml \
+  --workdir "$H/runs/finetune-wskp6-cycles"
+step cycles-wskp6-stock cycles_eval wskp-6 cycles-wskp6-stock
+step cycles-wskp6-finetuned cycles_eval "$H/runs/finetune-wskp6-cycles" cycles-wskp6-finetuned
 step pd-base-unet-hdr-alb-nrm-var "${X[@]}" $J sweep experiments/sweeps/pd-bases.toml \
   --workdir "$B" --only unet-hdr-alb-nrm-var
 # The held-out set and the mixers' training set.

@@ -25,7 +25,7 @@ import logging
 import os
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import jax
 import numpy as np
@@ -71,7 +71,10 @@ def _checkpoint_root(directory: str | os.PathLike) -> Path:
 
 
 class Checkpointer:
-    """Save/restore a training state with its meta record; keeps the newest ``max_to_keep``."""
+    """Save/restore a training state with its meta record; keeps the newest ``max_to_keep``.
+
+    Orbax works in background threads: :meth:`close` (or a ``with`` block) stops them, and must
+    run on every way out, errors included (else they report "Event loop is closed" at exit)."""
 
     def __init__(self, directory: str | os.PathLike, max_to_keep: int = 3, create: bool = True):
         ocp = _ocp()
@@ -164,8 +167,10 @@ class Checkpointer:
         device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
         try:
             if target is None:
-                reader = ocp.StandardCheckpointer()
-                tree = reader.metadata(self.directory / str(step) / "state").item_metadata
+                # Closed on every way out: an orbax checkpointer left open when its read fails
+                # prints "Event loop is closed" tracebacks at interpreter exit.
+                with ocp.StandardCheckpointer() as reader:
+                    tree = reader.metadata(self.directory / str(step) / "state").item_metadata
                 abstract = jax.tree_util.tree_map(
                     lambda m: jax.ShapeDtypeStruct(m.shape, m.dtype, sharding=device), tree
                 )
@@ -206,6 +211,12 @@ class Checkpointer:
 
     def close(self) -> None:
         self._manager.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
 
 
 _WRITE_FAILURES = ("No space left on device", "Disk quota exceeded", "Read-only file system",

@@ -8,8 +8,10 @@ decoded), the closed-form mixer's Gaussian window. Each call names what it guard
 error says where the size came from.
 
 The limit is half the machine's physical memory (``JAXDEN_MEMORY_LIMIT`` in bytes, or with a
-K/M/G suffix, overrides it). Per-pixel costs are estimates of the peak working set (stated
-next to each constant); they err on the large side.
+K/M/G suffix, overrides it), and never more than the process may still map under its own
+limits: ``RLIMIT_AS`` (``ulimit -v``) less the address space it maps already, ``RLIMIT_DATA``
+(``ulimit -d``) less its data segment (:func:`address_space_room`). Per-pixel costs are
+estimates of the peak working set (stated next to each constant); they err on the large side.
 """
 
 from __future__ import annotations
@@ -48,13 +50,64 @@ def parse_bytes(text: str, what: str = ENV_LIMIT) -> int:
     return value
 
 
-def memory_limit() -> int:
-    """The byte budget of one image request (see the module docstring)."""
+def _status_bytes(field: str) -> int:
+    """A ``kB`` field of ``/proc/self/status`` (``VmSize``, ``VmData``) in bytes; 0 when the
+    system has no such file."""
+    try:
+        with open("/proc/self/status", encoding="ascii", errors="replace") as handle:
+            for line in handle:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0
+
+
+def address_space_room() -> tuple[int, str] | None:
+    """``(bytes, which limit)``: what this process may still map under its soft
+    ``RLIMIT_AS`` (less ``VmSize``, what it maps now) and ``RLIMIT_DATA`` (less ``VmData``),
+    the smaller of the two; None when neither is set."""
+    try:
+        import resource
+    except ImportError:  # not a POSIX system
+        return None
+    room = None
+    for name, field, label in (("RLIMIT_AS", "VmSize", "address-space limit (ulimit -v)"),
+                               ("RLIMIT_DATA", "VmData", "data-segment limit (ulimit -d)")):
+        kind = getattr(resource, name, None)
+        if kind is None:
+            continue
+        try:
+            soft, _ = resource.getrlimit(kind)
+        except (OSError, ValueError):
+            continue
+        if soft == resource.RLIM_INFINITY or soft < 0:
+            continue
+        left = max(int(soft) - _status_bytes(field), 0)
+        if room is None or left < room[0]:
+            room = (left, label)
+    return room
+
+
+def _limit_and_source() -> tuple[int, str]:
+    """:func:`memory_limit` and the words that say where it comes from."""
     text = os.environ.get(ENV_LIMIT, "").strip()
     if text:
-        return parse_bytes(text)
-    memory = physical_memory()
-    return memory // 2 if memory else 8 << 30
+        limit, source = parse_bytes(text), f"set by {ENV_LIMIT}"
+    else:
+        memory = physical_memory()
+        limit = memory // 2 if memory else 8 << 30
+        source = f"half its memory; set {ENV_LIMIT} to change it"
+    room = address_space_room()
+    if room is not None and room[0] < limit:
+        limit, source = room[0], (f"what this process's {room[1]} leaves beside the "
+                                  f"{format_bytes(_status_bytes('VmSize'))} it maps already")
+    return limit, source
+
+
+def memory_limit() -> int:
+    """The byte budget of one image request (see the module docstring)."""
+    return _limit_and_source()[0]
 
 
 def format_bytes(count: float) -> str:
@@ -67,10 +120,8 @@ def format_bytes(count: float) -> str:
 def check_budget(needed: float, what: str, error=JaxdenError) -> None:
     """Raise ``error`` when ``needed`` bytes exceed :func:`memory_limit`; ``what`` names the
     request and where its size came from."""
-    limit = memory_limit()
+    limit, source = _limit_and_source()
     if needed > limit:
-        source = (f"set by {ENV_LIMIT}" if os.environ.get(ENV_LIMIT, "").strip()
-                  else f"half its memory; set {ENV_LIMIT} to change it")
         raise error(f"{what} would need about {format_bytes(needed)}, more than this machine "
                     f"allows for one image ({format_bytes(limit)}: {source})")
 

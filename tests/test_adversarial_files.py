@@ -7,19 +7,29 @@ result, the variant cache), a redo or a miss, never a silently wrong result. Dat
 manifests are mutated by Hypothesis (types, values, deleted keys, paths leaving the folder,
 truncation) and must verify, load or fail in one line.
 
-Data: a tiny Mitsuba-free dataset (``synthetic_render``) and a 2-step KP model.
+Data: a tiny Mitsuba-free dataset (``synthetic_render``) and a 2-step KP model. Also here:
+a checkpoint whose state files were cut short, and an EXR whose header declares 12000 x 12000
+pixels read under an address-space limit (``ulimit -v``), both in a subprocess: one line, no
+traceback.
 """
 
 from __future__ import annotations
 
 import json
+import resource
 import shutil
+import struct
+import subprocess
+import sys
+import zlib
 from pathlib import Path
 
+import numpy as np
 import pytest
 from helpers import (
     assert_one_error_line,
     build_tiny_dataset,
+    cli_env,
     drop,
     fill_disk,
     json_paths,
@@ -352,3 +362,100 @@ def test_mutated_dataset_manifests_verify_and_load_or_give_one_line(manifest_cas
         assert snapshot(folder) == before
     finally:
         (folder / "manifest.json").write_text(text)
+
+
+# ------------------------------------------------------------ a truncated checkpoint
+def test_a_truncated_checkpoint_state_is_one_line_without_orbax_noise(finished_run, tmp_path):
+    """Resuming from a checkpoint whose array files were cut in half: one error line, and
+    orbax's background threads are stopped (no "Event loop is closed" tracebacks at exit)."""
+    config, run = finished_run
+    workdir = tmp_path / "run"
+    shutil.copytree(run, workdir)
+    state = workdir / "2" / "state"
+    data = [p for p in state.rglob("*") if p.is_file() and p.stat().st_size > 64]
+    assert data
+    for path in data:
+        path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    result = subprocess.run([sys.executable, "-m", "jaxden.cli", "train", str(config),
+                             "--workdir", str(workdir)], env=cli_env(tmp_path / "cache"),
+                            capture_output=True, text=True, timeout=300, check=False)
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert result.returncode == 2, result.stderr
+    assert len(lines) == 1 and lines[0].startswith("jaxden: error: "), result.stderr
+    assert str(workdir / "2") in lines[0]
+    assert "Traceback" not in result.stderr and "Event loop is closed" not in result.stderr
+
+
+# --------------------------------------------------- a huge EXR under an address-space limit
+def _attribute(name: str, kind: str, value: bytes) -> bytes:
+    return name.encode() + b"\0" + kind.encode() + b"\0" + struct.pack("<i", len(value)) + value
+
+
+def zip_exr_of_a_constant(path: Path, width: int, height: int, channels, value=0.5) -> None:
+    """A scanline EXR, ZIP-compressed, HALF channels, every pixel ``value``, written by hand
+    (OpenEXR's layout: header, chunk offset table, chunks of 16 scanlines each of which holds
+    every channel's row in name order; ZIP: the bytes split into even and odd halves, a delta
+    predictor, zlib). One compressed chunk serves all rows: 12000 x 12000 takes ~1 MB."""
+    names = sorted(channels)
+    assert height % 16 == 0
+    chlist = b"".join(n.encode() + b"\0" + struct.pack("<iB3xii", 1, 0, 1, 1) for n in names)
+    box = struct.pack("<4i", 0, 0, width - 1, height - 1)
+    header = (b"\x76\x2f\x31\x01" + struct.pack("<i", 2)
+              + _attribute("channels", "chlist", chlist + b"\0")
+              + _attribute("compression", "compression", b"\x03")
+              + _attribute("dataWindow", "box2i", box)
+              + _attribute("displayWindow", "box2i", box)
+              + _attribute("lineOrder", "lineOrder", b"\x00")
+              + _attribute("pixelAspectRatio", "float", struct.pack("<f", 1.0))
+              + _attribute("screenWindowCenter", "v2f", struct.pack("<2f", 0.0, 0.0))
+              + _attribute("screenWindowWidth", "float", struct.pack("<f", 1.0)) + b"\0")
+    raw = np.frombuffer(np.full((16, len(names), width), value, np.float16).tobytes(), np.uint8)
+    halves = np.concatenate([raw[0::2], raw[1::2]]).astype(np.int16)
+    halves[1:] = (np.diff(halves) + 128) & 0xFF
+    block = zlib.compress(halves.astype(np.uint8).tobytes(), 9)
+    count = height // 16
+    first = len(header) + 8 * count
+    offsets = struct.pack(f"<{count}Q", *(first + i * (8 + len(block)) for i in range(count)))
+    with open(path, "wb") as handle:
+        handle.write(header + offsets)
+        handle.writelines(struct.pack("<ii", 16 * index, len(block)) + block
+                          for index in range(count))
+
+
+FRAME_CHANNELS = ("R", "G", "B", "albedo.R", "albedo.G", "albedo.B", "normal.X", "normal.Y",
+                  "normal.Z")
+
+
+def test_the_hand_written_exr_reads_back(tmp_path):
+    from jaxden.io.exr import read_channels
+
+    zip_exr_of_a_constant(tmp_path / "small.exr", 40, 48, FRAME_CHANNELS, value=0.25)
+    channels, _ = read_channels(tmp_path / "small.exr")
+    assert sorted(channels) == sorted(FRAME_CHANNELS)
+    for pixels in channels.values():
+        assert pixels.shape == (48, 40) and np.all(pixels == 0.25)
+
+
+def _address_space_10g() -> None:
+    """``preexec_fn``: ``ulimit -v 10G`` (the soft limit; one system call)."""
+    resource.setrlimit(resource.RLIMIT_AS, (10 << 30, resource.getrlimit(resource.RLIMIT_AS)[1]))
+
+
+def test_a_declared_huge_exr_under_ulimit_v_is_refused_in_one_line(tmp_path):
+    """12000 x 12000 pixels x 9 channels would need ~10 GiB to decode: more than the 10 GiB
+    address space leaves beside what the process maps. JAXDEN_MEMORY_LIMIT is set far above,
+    so only the address-space limit can refuse it, before any pixel is decoded."""
+    big = tmp_path / "big.exr"
+    zip_exr_of_a_constant(big, 12000, 12000, FRAME_CHANNELS)
+    assert big.stat().st_size < 8 << 20
+    result = subprocess.run(
+        [sys.executable, "-m", "jaxden.cli", "denoise", str(big), "--model", "oidn",
+         "--out", str(tmp_path / "out.exr")],
+        env=cli_env(tmp_path / "cache", JAXDEN_MEMORY_LIMIT="4096G"),
+        preexec_fn=_address_space_10g, capture_output=True, text=True, timeout=300, check=False)
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert result.returncode == 2, result.stderr
+    assert len(lines) == 1 and lines[0].startswith("jaxden: error: "), result.stderr
+    assert str(big) in lines[0] and "12000x12000" in lines[0]
+    assert "address-space limit (ulimit -v)" in lines[0]
+    assert not (tmp_path / "out.exr").exists()

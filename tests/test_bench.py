@@ -134,10 +134,14 @@ def test_progressive_bench(tiny, capsys):
                            "tstat_over_oidn", "guard_over_oidn", "closed_form_over_oidn",
                            "closed_form_stops_over_closed_form", "guard_strata_over_guard",
                            "pd_wskp6_over_wskp6",
-                           "pd_wskp6_closed_form_k1_over_wskp6"])
+                           "pd_wskp6_closed_form_k1_over_wskp6", "pd_oidnjax_over_oidn",
+                           "oidnjax_over_oidn", "oidnjax_sure_over_oidn",
+                           "oidnjax_mixer_over_oidn", "oidnjax_tstat_over_oidn"])
     assert (result["width"], result["height"]) == FRAME_SIZE and result["mixer"] == "oidn-pd"
     # PD around a JAX base does at least the base's own forward
     assert result["pd_wskp6_s"] > result["wskp6_s"]
+    assert result["pd_oidnjax_s"] > result["oidnjax_s"]
+    assert result["pd_oidnjax_sure"] == "jvp, 1 probe"
 
 
 def test_render_bench(tiny, capsys):

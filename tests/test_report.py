@@ -426,3 +426,51 @@ def test_cli_help_documents_the_convention(capsys):
     for part in ("SCENE/reference.exr", "SCENE/sppN.exr", "sppN.METHOD.exr",
                  "sppN.METHOD.alpha.exr", "jaxden evaluate pd"):
         assert part in text
+
+
+# ------------------------------------------------------------------------ training runs
+def _curve_points(svg: str, key: str) -> np.ndarray:
+    """The (x, y) vertices of the line with SVG id ``curve-KEY`` (matplotlib's path data)."""
+    group = re.search(rf'<g id="curve-{re.escape(key)}">(.*?)</g>', svg, re.DOTALL).group(1)
+    path = re.search(r'<path d="([^"]*)"', group).group(1)
+    return np.array([[float(a), float(b)]
+                     for a, b in re.findall(r"[ML] ?([-0-9.e]+) ([-0-9.e]+)", path)])
+
+
+def test_report_draws_a_runs_training_curves(tmp_path):
+    from jaxden.train.workdir import MetricsLog
+
+    run = tmp_path / "runs" / "tiny-run"
+    run.mkdir(parents=True)
+    log = MetricsLog(run / "metrics.jsonl", 0)  # as jaxden train writes it
+    log.write({"step": 0, "val_loss": 0.5, "val_baseline_loss": 0.9})
+    for step in range(1, 13):
+        log.write({"step": step, "loss": 1.0 / step, "grad_norm": 1.0, "lr": 1e-3,
+                   "seconds": 0.1})
+        if step % 6 == 0:
+            log.write({"step": step, "val_loss": 0.5 / step, "val_baseline_loss": 0.9})
+    (run / "checkpoints").mkdir()
+    for source in (tmp_path / "runs", run):  # a folder of runs, or the workdir itself
+        text = build_report(source, tmp_path / "r.html").read_text()
+        assert "tiny-run (training)" in text and 'href="#run-0"' in text
+        plots = re.findall(r'<img class="plot" alt="training curves of tiny-run" '
+                           r'src="data:image/svg\+xml;base64,([^"]+)"', text)
+        assert len(plots) == 1
+        svg = base64.b64decode(plots[0]).decode()
+        loss = _curve_points(svg, "loss")
+        assert len(loss) == 12
+        assert len(_curve_points(svg, "val_loss")) == len(_curve_points(
+            svg, "val_baseline_loss")) == 3
+        # x is linear in the step, y in log(loss): the loss 1/step spans 12x (log scale)
+        steps = np.arange(1, 13)
+        for column, against in ((0, steps), (1, np.log(1.0 / steps))):
+            fit = np.polyval(np.polyfit(against, loss[:, column], 1), against)
+            np.testing.assert_allclose(loss[:, column], fit, atol=0.05)
+        assert "last values: loss 0.08333 (step 12)" in text
+    narrow = figures.training_figure({"loss": [(1, 0.3), (2, 0.2)]})
+    wide = figures.training_figure({"loss": [(1, 1.0), (2, 0.1)]})
+    assert (narrow.axes[0].get_yscale(), wide.axes[0].get_yscale()) == ("linear", "log")
+    with (run / "metrics.jsonl").open("a") as handle:
+        handle.write("garbage\n")
+    with pytest.raises(ReportError, match=r"metrics.jsonl: line 16 .*not valid JSON"):
+        build_report(run, tmp_path / "r.html")

@@ -28,7 +28,15 @@ compiled and warmed up before timing, timed alternately, median of the repeats:
   real-time base, so this ratio says what PD adds. (Without ``wskp-6-pd`` in the package it
   falls back to ``oidn-pd``'s weights with 4 probes, and ``pd_wskp6_mixer`` says so);
 - ``pd_wskp6_closed_form_k1_over_wskp6``: the same with the closed-form mixer (range-aware,
-  ``closed-form:stops=1``) and one probe: the cheapest PD(WSKP-6) jaxden offers.
+  ``closed-form:stops=1``) and one probe: the cheapest PD(WSKP-6) jaxden offers;
+- ``pd_oidnjax_over_oidn``: the whole pipeline around OIDN in JAX (``oidn-jax``: Intel's
+  weights, the same network as the OIDN call, jitted) with SURE by ``jax.jvp`` and one probe,
+  the shipped mixer ``oidn-pd`` as shipped (as in ``pd_over_oidn``) and the t-statistic / one
+  pyoidn call: PD(OIDN) with a differentiable OIDN, beside the finite-difference PD(OIDN)
+  above. Its parts, each / one pyoidn call: ``oidnjax_over_oidn`` the forward alone,
+  ``oidnjax_sure_over_oidn`` SURE (y and its SURE map from one jvp pass),
+  ``oidnjax_mixer_over_oidn`` the mixer as the pipeline calls it, ``oidnjax_tstat_over_oidn``
+  the t-statistic scaling.
 """
 
 from __future__ import annotations
@@ -47,11 +55,16 @@ def bench_progressive(quick: bool) -> dict:
     import numpy as np
 
     from jaxden.denoise.registry import load_denoiser
-    from jaxden.sure.denoiser import denoise_with_sure
-    from jaxden.progressive.mixer import (closed_form_alpha, closed_form_mixer, load_mixer,
-                                          mixer_alpha)
+    from jaxden.progressive.mixer import (
+        closed_form_alpha,
+        closed_form_mixer,
+        inference_alpha,
+        load_mixer,
+        mixer_alpha,
+    )
     from jaxden.progressive.pipeline import progressive_denoise, shipped_mixer_path
     from jaxden.progressive.tstat import error_guard, t_statistic_scaling
+    from jaxden.sure.denoiser import denoise_with_sure
 
     size = QUICK_SIZE if quick else (1280, 720)
     repeats = QUICK_REPEATS if quick else 3
@@ -88,8 +101,35 @@ def bench_progressive(quick: bool) -> dict:
                                   num_probes=probes, swap_average=False)[0]
         return jax.block_until_ready(out)
 
+    oidnjax = load_denoiser("oidn-jax")
+    oidnjax_forward = oidnjax.function()
+    # The frame as the pipeline hands it to SURE (per-channel probes unless the mixer's differ).
+    sure_frame = device_frame if config.sure_covariance else device_frame.replace(covariance=None)
+
+    def oidnjax_sure():
+        result, _ = denoise_with_sure(oidnjax, sure_frame, key, num_probes=1, method="jvp")
+        return result.sure
+
+    jax_result = denoise_with_sure(oidnjax, sure_frame, key, num_probes=1, method="jvp")[0]
+    jax_y, jax_sure = np.asarray(jax_result.denoised), np.asarray(jax_result.sure)
+    jax_alpha = np.asarray(inference_alpha(params, x, jax_y, var, jax_sure, config,
+                                           config.swap_average))
+    jax_mixed = np.asarray(x + jax_alpha * (jax_y - x))
+
+    def pd_oidnjax():
+        out = progressive_denoise(device_frame, oidnjax, params, config, key, num_probes=1,
+                                  method="jvp")[0]
+        return jax.block_until_ready(out)
+
     runners = {
         "oidn": lambda: oidn(frame),
+        "pd_oidnjax": pd_oidnjax,
+        "oidnjax": lambda: jax.block_until_ready(oidnjax_forward(device_frame)),
+        "oidnjax_sure": oidnjax_sure,
+        "oidnjax_mixer": lambda: inference_alpha(params, x, jax_y, var, jax_sure, config,
+                                                 config.swap_average),
+        "oidnjax_tstat": lambda: t_statistic_scaling(jax_alpha, x, jax_mixed, var,
+                                                     config.tstat),
         "wskp6": lambda: jax.block_until_ready(wskp6_forward(device_frame)),
         "pd_wskp6": pd_wskp6,
         "pd_wskp6_closed_form_k1": lambda: pd_wskp6(closed_params, closed_config, 1),
@@ -106,7 +146,9 @@ def bench_progressive(quick: bool) -> dict:
     median = median_times(runners, repeats)
     return {
         **{f"{name}_over_oidn": median[name] / median["oidn"]
-           for name in ("pd", "pd_single", "mixer", "tstat", "guard", "closed_form")},
+           for name in ("pd", "pd_single", "mixer", "tstat", "guard", "closed_form",
+                        "pd_oidnjax", "oidnjax", "oidnjax_sure", "oidnjax_mixer",
+                        "oidnjax_tstat")},
         "closed_form_stops_over_closed_form": median["closed_form_stops"] / median["closed_form"],
         "guard_strata_over_guard": median["guard_strata"] / median["guard"],
         "pd_wskp6_over_wskp6": median["pd_wskp6"] / median["wskp6"],
@@ -117,6 +159,9 @@ def bench_progressive(quick: bool) -> dict:
         "sure": "forward differences, 4 probes",
         "pd_wskp6_mixer": wskp6_mixer_name,
         "pd_wskp6_sure": f"jvp, {wskp6_config.sure_probes} probes",
+        "pd_oidnjax_denoiser": f"oidn-jax ({oidnjax.config.quality} quality, albedo + normal)",
+        "pd_oidnjax_sure": "jvp, 1 probe",
+        "pd_oidnjax_mixer": f"oidn-pd (swap_average {config.swap_average})",
         "width": size[0],
         "height": size[1],
         "repeats": repeats,

@@ -78,8 +78,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"jaxden: error: {where}{error.strerror or error}", file=sys.stderr)
         code = 2
     except MemoryError:
-        print("jaxden: error: out of memory (nothing was written); lower --memory-limit or "
-              "JAXDEN_MEMORY_LIMIT so that frames go in smaller tiles", file=sys.stderr)
+        from jaxden.limits import address_space_room, format_bytes
+
+        room = address_space_room()  # under ulimit -v / -d: say how much was left
+        limit = f"; the {room[1]} leaves {format_bytes(room[0])}" if room else ""
+        print(f"jaxden: error: out of memory (nothing was written{limit}); lower "
+              f"--memory-limit or JAXDEN_MEMORY_LIMIT so that frames go in smaller tiles",
+              file=sys.stderr)
         code = 2
     except Exception as error:
         if not _is_allocation_failure(error):

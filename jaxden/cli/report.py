@@ -12,7 +12,8 @@ Write one self-contained HTML page (images embedded, no network) over a folder o
 per scene an A/B comparison slider between any two methods and the reference, every method
 at a chosen spp, false-colour error maps (relative squared error, FLIP) and mixer alpha maps,
 one zoom and pan for all views, an exposure control in stops, a convergence plot (log-log
-error vs spp with MC's 1/spp rate as a guide) and the metrics table.
+error vs spp with MC's 1/spp rate as a guide) and the metrics table; per training run its
+curves (train loss and validation metrics against the step).
 
 DIR follows the layout `jaxden demo` writes:
   DIR/SCENE/reference.exr           the reference of SCENE (required)
@@ -20,7 +21,10 @@ DIR follows the layout `jaxden demo` writes:
   DIR/SCENE/sppN.METHOD.exr         METHOD's result at N spp (N may be zero-padded)
   DIR/SCENE/sppN.METHOD.alpha.exr   optional: the mixer's alpha map behind METHOD
   DIR/*.json                        optional: `jaxden evaluate pd` results (metrics only)
-DIR may also be one scene folder, or a single `jaxden evaluate pd` JSON file."""
+  DIR/RUN/metrics.jsonl             optional: a training run (a `jaxden train` workdir or
+                                    a sweep's run folder): its loss curves
+DIR may also be one scene folder, one training workdir (jaxden report RUNS/wskp6 draws its
+curves), or a single `jaxden evaluate pd` JSON file."""
 
 
 def cmd_report(args: argparse.Namespace) -> int:
@@ -39,15 +43,18 @@ def cmd_report(args: argparse.Namespace) -> int:
                         progress=True, found=found)
     scenes = len(found.scenes)
     print(f"wrote {path} ({scenes} scene{'s' * (scenes != 1)}, "
-          f"{len(found.metric_files)} metric file(s), {path.stat().st_size / 1e6:.1f} MB)")
+          f"{len(found.metric_files)} metric file(s), {len(found.runs)} training run(s), "
+          f"{path.stat().st_size / 1e6:.1f} MB)")
     return 0
 
 
 def add_commands(sub) -> None:
-    p = sub.add_parser("report", help="an HTML page comparing methods on a folder of EXRs",
+    p = sub.add_parser("report", help="an HTML page comparing methods on a folder of EXRs "
+                                      "(and training runs' loss curves)",
                        description=DESCRIPTION,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("dir", metavar="DIR", help="results folder (layout above) or a PD result's JSON")
+    p.add_argument("dir", metavar="DIR",
+                   help="results folder (layout above), a training workdir or a PD result's JSON")
     p.add_argument("--out", default=None,
                    help="the .html file to write (default: DIR/report.html)")
     p.add_argument("--title", default=None, help="page title (default: from DIR)")

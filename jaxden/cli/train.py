@@ -35,7 +35,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from jaxden.train.loop import train_and_evaluate
 
     config = load_train_config(args.config, args.overrides)
-    result = train_and_evaluate(config, args.workdir)
+    result = train_and_evaluate(config, args.workdir, tensorboard=args.tensorboard)
     if not is_primary():
         return 0
     print("finished: " + ", ".join(f"{k}={v:.5g}" if isinstance(v, float) else f"{k}={v}"
@@ -73,10 +73,21 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 def add_commands(sub) -> None:
     from jaxden.sweep import MAX_RUNS
 
-    p = sub.add_parser("train", help="train a denoiser or the mixer from a TOML config (resumable)")
+    p = sub.add_parser(
+        "train", help="train a denoiser or the mixer from a TOML config (resumable)",
+        description="Train a denoiser or the mixer from a TOML config; the same command resumes "
+                    "from the newest checkpoint in --workdir. Fine-tuning: set init = "
+                    "\"wskp-6\" (a shipped model), a .msgpack weights file or a training "
+                    "workdir in the config, with the source's model and [model_config]; the "
+                    "parameters start from those weights, the optimiser state fresh.")
     p.add_argument("config", help="training config .toml")
     p.add_argument("overrides", nargs="*", help="key=value overrides, e.g. optim.steps=500")
-    p.add_argument("--workdir", required=True, help="run folder: config, metrics.jsonl, checkpoints")
+    p.add_argument("--workdir", required=True,
+                   help="run folder: config, metrics.jsonl, TensorBoard event files, checkpoints")
+    p.add_argument("--no-tensorboard", dest="tensorboard", action="store_false",
+                   help="write no TensorBoard event files (default: the scalars of metrics.jsonl "
+                        "also go to WORKDIR/events.out.tfevents.*; view them with "
+                        "`tensorboard --logdir WORKDIR`)")
     g = p.add_argument_group(
         "several processes (hosts), one model: start the same command in every process "
         "(docs/scaling.md)")

@@ -31,6 +31,8 @@ class OIDNConfig:
     the built-in scenes at 2-8 spp it ranges from 0.63x to 4.6x in relMSE (small-lights:
     far worse); from 16 spp up "yes" wins (docs/results.md, "OIDN's auxiliary features").
     OIDN's memory is a resource, not part of the denoiser: :func:`max_memory` sets it.
+    Spec options (:data:`OIDN_OPTIONS`) set these from the command line, as on ``oidn-jax``:
+    ``oidn:aux=albedo,clean_aux=no,quality=balanced``.
     """
 
     quality: Literal["high", "balanced", "fast"] = "high"
@@ -51,6 +53,22 @@ class OIDNConfig:
         if self.clean_aux != "auto":
             return self.clean_aux == "yes"
         return spp is None or float(spp) >= self.clean_aux_min_spp
+
+
+#: Spec options of ``oidn`` (``oidn:KEY=VALUE,...``), the first value the default; ``aux``:
+#: the features passed when the frame has them (values as
+#: :data:`jaxden.denoise.oidn_jax.AUX_INPUTS`).
+OIDN_OPTIONS = (("aux", ("albedo+normal", "albedo", "none")), ("clean_aux", ("yes", "no", "auto")),
+                ("quality", ("high", "balanced", "fast")))
+
+
+def configure_oidn(config: OIDNConfig, options: dict[str, str]) -> OIDNConfig:
+    """``config`` with spec options (:data:`OIDN_OPTIONS`, values already checked)."""
+    changes: dict = {key: options[key] for key in ("quality", "clean_aux") if key in options}
+    if "aux" in options:
+        changes["use_albedo"] = options["aux"] != "none"
+        changes["use_normal"] = options["aux"] == "albedo+normal"
+    return dataclasses.replace(config, **changes)
 
 
 def _oidn_one(config: OIDNConfig, color, albedo, normal, clean: bool) -> np.ndarray:
@@ -171,5 +189,7 @@ register(
         differentiable=False,
         optional=lambda config: (*(("albedo",) if config.use_albedo else ()),
                                  *(("normal",) if config.use_normal else ())),
+        options=OIDN_OPTIONS,
+        configure=configure_oidn,
     )
 )

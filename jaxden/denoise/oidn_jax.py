@@ -17,9 +17,15 @@ pyoidn on this CPU, tests/test_oidn_jax.py):
   PU(65504); albedo clamped to [0, 1]; normal clamped to [-1, 1] and mapped to n / 2 + 1/2;
   NaN as 0 everywhere;
 - **padding**: to multiples of 16 at the bottom and right, zeros in the transformed domain;
-- **output**: clamped at 0, the inverse transfer, divided by the scale, cropped.
-OIDN tiles frames above 2160^2 padded pixels with overlapping tiles; this function runs the
-whole frame at once (identical away from OIDN's tile seams).
+- **output**: clamped at 0, the inverse transfer, divided by the scale, cropped;
+- **tiles** (:func:`oidn_tile_plan`): above 2160^2 padded pixels OIDN splits the frame into
+  overlapping tiles of a fixed buffer size; ``tiling="oidn"`` (the default) does the same, so
+  the output matches pyoidn there too; ``tiling="off"`` runs the whole frame at once (the
+  same away from OIDN's tile seams, where OIDN's tiles see zeros beyond their edges).
+
+``precision="bfloat16"`` runs the network's convolutions, pools and skips in bfloat16 (inputs,
+transfer functions and outputs stay float32): for accelerators with bfloat16 units; on the CPU
+it runs, slower than float32, about 1e-2 relative RMSE from it.
 """
 
 from __future__ import annotations
@@ -27,15 +33,21 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+from typing import Literal
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxden.denoise.nn.oidn_net import OIDNUNet, layers_of
+from jaxden.denoise.nn.oidn_net import RECEPTIVE_FIELD, OIDNUNet, layers_of
 from jaxden.errors import ConfigError, FrameError
 
 QUALITIES = ("high", "balanced", "fast")
+PRECISIONS = ("float32", "bfloat16")
+#: ``tiling``: "oidn" tiles as OIDN does above its threshold; "off" always runs whole frames.
+TILINGS = ("oidn", "off")
+#: The auxiliary inputs, as spec values: (albedo, normal).
+AUX_INPUTS = {"albedo+normal": (True, True), "albedo": (True, False), "none": (False, False)}
 # The perceptual-uniform (PU) curve of OIDN's HDR transfer function.
 _PU_A, _PU_B, _PU_C, _PU_D = 1.41283765e3, 1.64593172, 4.31384981e-1, -2.94139609e-3
 _PU_E, _PU_F, _PU_G = 1.92653254e-1, 6.26026094e-3, 9.98620152e-1
@@ -141,8 +153,119 @@ def _round_up(n: int, multiple: int = 16) -> int:
     return (n + multiple - 1) // multiple * multiple
 
 
-@functools.partial(jax.jit, static_argnames=("spec",))
-def _denoise_one(params, spec: OIDNSpec, color, albedo, normal, scale):
+# ------------------------------------------------------------------------------ OIDN's tiles
+#: OIDN's largest tile buffer with its default memory settings (pixels), its tile alignment
+#: on the CPU (pixels; the pooling grid) and its smallest tile side (pixels).
+OIDN_MAX_TILE_PIXELS = 2160 * 2160
+OIDN_TILE_ALIGNMENT = 16
+OIDN_MIN_TILE_SIDE = 768
+
+
+@dataclasses.dataclass(frozen=True)
+class AxisTile:
+    """One tile along one axis: it reads ``[start, start + size)`` of the frame into its
+    buffer at ``offset`` (zeros before and after) and writes ``[start + begin, start + begin
+    + keep)``, read from buffer position ``offset + begin``."""
+
+    start: int
+    size: int
+    offset: int
+    begin: int
+    keep: int
+
+
+@dataclasses.dataclass(frozen=True)
+class OIDNTilePlan:
+    """OIDN's tiles of an H x W frame: buffers of ``tile`` = (rows, columns) pixels, multiples
+    of 16, on a grid of ``rows`` x ``columns`` (:class:`AxisTile` each) with ``overlap``
+    pixels between neighbours on each side. One tile: the whole frame, padded."""
+
+    tile: tuple[int, int]
+    overlap: int
+    rows: tuple[AxisTile, ...]
+    columns: tuple[AxisTile, ...]
+
+    @property
+    def count(self) -> int:
+        return len(self.rows) * len(self.columns)
+
+
+def _axis_tiles(length: int, tile: int, count: int, overlap: int) -> tuple[AxisTile, ...]:
+    step = tile - 2 * overlap
+    tiles = []
+    for i in range(count):
+        start = i * step
+        begin = overlap if i > 0 else 0
+        end = overlap if i < count - 1 else 0
+        size = min(length - start, tile)
+        # A short last tile sits at the bottom (right) of its buffer, on the 16-pixel grid.
+        tiles.append(AxisTile(start, size, tile - _round_up(size, OIDN_TILE_ALIGNMENT), begin,
+                              size - begin - end))
+    return tuple(tiles)
+
+
+def oidn_tile_plan(height: int, width: int, size: str = "large", *,
+                   max_tile_pixels: int = OIDN_MAX_TILE_PIXELS) -> OIDNTilePlan:
+    """OIDN 2's tiles (``UNetFilter::init``, one CPU device, no ``maxMemoryMB``) of an
+    ``height`` x ``width`` frame for its ``size`` ("base" or "large") U-Net.
+
+    The overlap is half the receptive field rounded up to 16 (96 base, 112 large); the buffer
+    starts as the frame padded to multiples of 16; while it holds more than
+    ``max_tile_pixels``, the longer side (the columns on a tie), if above the smallest side
+    max(4 overlap, 768), shrinks to ceil((length + 2 overlap n) / (n + 1)) rounded up to 16,
+    n the tiles along it so far (by 16 at least, never below the smallest side), and the
+    count along it becomes max(ceil((length - 2 overlap) / (tile - 2 overlap)), 1); the loop
+    stops when neither side may shrink. Tile i starts at i (tile - 2 overlap) and keeps all
+    but ``overlap`` pixels on each side that has a neighbour."""
+    if height < 1 or width < 1:
+        raise FrameError(f"OIDN's tiles need a frame of at least 1 x 1 pixels, got "
+                         f"{width} x {height}")
+    align = OIDN_TILE_ALIGNMENT
+    overlap = _round_up(RECEPTIVE_FIELD[size] // 2, align)
+    smallest = _round_up(max(4 * overlap, OIDN_MIN_TILE_SIDE), align)
+    tile = [_round_up(height, align), _round_up(width, align)]
+    count = [1, 1]
+    lengths = (height, width)
+    while tile[0] * tile[1] > max_tile_pixels:
+        if tile[0] > smallest and tile[0] > tile[1]:
+            axis = 0
+        elif tile[1] > smallest:
+            axis = 1
+        else:
+            break
+        length, halo = lengths[axis], 2 * overlap
+        wanted = -(-(length + halo * count[axis]) // (count[axis] + 1))
+        tile[axis] = min(max(_round_up(wanted, align), smallest), tile[axis] - align)
+        count[axis] = max(-(-(length - halo) // (tile[axis] - halo)), 1)
+    return OIDNTilePlan((tile[0], tile[1]), overlap,
+                        _axis_tiles(height, tile[0], count[0], overlap),
+                        _axis_tiles(width, tile[1], count[1], overlap))
+
+
+def _run_tiled(net, params, inputs, plan: OIDNTilePlan):
+    """The network over OIDN's tiles of ``inputs`` (H, W, C), already transferred: each tile
+    in its zero-padded buffer, one after another (``lax.map``), its kept part put in place."""
+    rows, cols = plan.tile
+    buffers = jnp.stack([
+        jnp.pad(inputs[r.start:r.start + r.size, c.start:c.start + c.size],
+                ((r.offset, rows - r.offset - r.size), (c.offset, cols - c.offset - c.size),
+                 (0, 0)))
+        for r in plan.rows for c in plan.columns])
+    outputs = jax.lax.map(lambda buffer: net.apply(params, buffer[None])[0], buffers)
+    bands = []
+    for i, r in enumerate(plan.rows):
+        pieces = []
+        for j, c in enumerate(plan.columns):
+            top, left = r.offset + r.begin, c.offset + c.begin
+            pieces.append(outputs[i * len(plan.columns) + j, top:top + r.keep,
+                                  left:left + c.keep])
+        bands.append(jnp.concatenate(pieces, axis=1))
+    return jnp.concatenate(bands, axis=0)
+
+
+@functools.partial(jax.jit, static_argnames=("spec", "precision", "tiling"))
+def _denoise_one(params, spec: OIDNSpec, color, albedo, normal, scale, precision: str,
+                 tiling: str):
     height, width = color.shape[:2]
     x = jnp.clip(jnp.nan_to_num(color * scale, nan=0.0), 0.0, np.finfo(np.float32).max)
     parts = [pu_forward(x) / PU_NORM]
@@ -150,19 +273,33 @@ def _denoise_one(params, spec: OIDNSpec, color, albedo, normal, scale):
         parts.append(jnp.clip(jnp.nan_to_num(albedo, nan=0.0), 0.0, 1.0))
     if spec.normal:
         parts.append(jnp.clip(jnp.nan_to_num(normal, nan=0.0), -1.0, 1.0) * 0.5 + 0.5)
-    inputs = jnp.concatenate(parts, axis=-1)
-    padded = jnp.pad(inputs, ((0, _round_up(height) - height), (0, _round_up(width) - width),
-                              (0, 0)))
-    net = OIDNUNet(spec.size, spec.widths)
-    out = net.apply(params, padded[None])[0, :height, :width]
-    out = jnp.maximum(jnp.nan_to_num(out, nan=0.0), 0.0)
+    dtype = jnp.dtype(precision)
+    inputs = jnp.concatenate(parts, axis=-1).astype(dtype)
+    net = OIDNUNet(spec.size, spec.widths, dtype=dtype)
+    plan = oidn_tile_plan(height, width, spec.size)
+    if tiling == "oidn" and plan.count > 1:
+        out = _run_tiled(net, params, inputs, plan)
+    else:
+        padded = jnp.pad(inputs, ((0, _round_up(height) - height),
+                                  (0, _round_up(width) - width), (0, 0)))
+        out = net.apply(params, padded[None])[0, :height, :width]
+    out = jnp.maximum(jnp.nan_to_num(out.astype(jnp.float32), nan=0.0), 0.0)
     return pu_inverse(out * PU_NORM) / scale
 
 
-def oidn_denoise(params, spec: OIDNSpec, color, albedo=None, normal=None, *, input_scale=None):
+def oidn_denoise(params, spec: OIDNSpec, color, albedo=None, normal=None, *, input_scale=None,
+                 precision: str = "float32", tiling: str = "oidn"):
     """OIDN's HDR denoising of ``color`` (..., H, W, 3), float32, with the features ``spec``
     takes (albedo / normal of the same shape); ``input_scale`` None: OIDN's auto-exposure per
-    image. Differentiable in every input (the auto-exposure scale included)."""
+    image. ``precision``: the network's arithmetic, "float32" or "bfloat16" (the output is
+    float32 either way); ``tiling``: "oidn" runs frames above OIDN's threshold over its tiles
+    (:func:`oidn_tile_plan`), "off" runs every frame whole. Differentiable in every input
+    (the auto-exposure scale included)."""
+    if precision not in PRECISIONS:
+        raise ConfigError(f"OIDN precision must be one of {', '.join(PRECISIONS)}, got "
+                          f"{precision!r}")
+    if tiling not in TILINGS:
+        raise ConfigError(f"OIDN tiling must be one of {', '.join(TILINGS)}, got {tiling!r}")
     color = jnp.asarray(color, jnp.float32)
     if color.ndim < 3 or color.shape[-1] != 3:
         raise FrameError(f"OIDN needs colour of shape (..., H, W, 3), got {color.shape}")
@@ -180,7 +317,7 @@ def oidn_denoise(params, spec: OIDNSpec, color, albedo=None, normal=None, *, inp
     else:
         scales = jnp.broadcast_to(jnp.asarray(input_scale, jnp.float32), lead).reshape(-1)
     zeros = jnp.zeros_like(flat)
-    run = jax.vmap(lambda c, a, n, s: _denoise_one(params, spec, c, a, n, s))
+    run = jax.vmap(lambda c, a, n, s: _denoise_one(params, spec, c, a, n, s, precision, tiling))
     out = run(flat, zeros if features[0] is None else features[0],
               zeros if features[1] is None else features[1], scales)
     return out.reshape(color.shape)
@@ -190,28 +327,52 @@ def oidn_denoise(params, spec: OIDNSpec, color, albedo=None, normal=None, *, inp
 @dataclasses.dataclass(frozen=True)
 class OIDNJaxConfig:
     """OIDN in JAX with Intel's weights: which of OIDN's networks (the inputs it takes and the
-    quality), chosen as OIDN chooses (:func:`blob_name`). Unlike the black box, which picks
-    per call from the features a frame carries, the network is fixed by the config, so a
-    frame must carry the features the config names (``required``)."""
+    quality), chosen as OIDN chooses (:func:`blob_name`), its arithmetic (``precision``:
+    float32 or bfloat16) and ``tiling`` (:func:`oidn_denoise`). Unlike the black box, which
+    picks per call from the features a frame carries, the network is fixed by the config, so
+    a frame must carry the features the config names (``required``)."""
 
     quality: str = "high"
     use_albedo: bool = True
     use_normal: bool = True
     clean_aux: bool = True
+    precision: Literal["float32", "bfloat16"] = "float32"
+    tiling: Literal["oidn", "off"] = "oidn"
 
     def __post_init__(self) -> None:
-        if self.quality not in QUALITIES:
-            raise ConfigError(f"oidn-jax quality must be one of {', '.join(QUALITIES)}, got "
-                              f"{self.quality!r}")
+        for name, allowed in (("quality", QUALITIES), ("precision", PRECISIONS),
+                              ("tiling", TILINGS)):
+            if getattr(self, name) not in allowed:
+                raise ConfigError(f"oidn-jax {name} must be one of {', '.join(allowed)}, got "
+                                  f"{getattr(self, name)!r}")
         if self.use_normal and not self.use_albedo:
             raise ConfigError("oidn-jax: use_normal needs use_albedo (OIDN takes a normal only "
                               "together with an albedo)")
 
 
+#: Spec options of ``oidn-jax`` (``oidn-jax:KEY=VALUE,...``), the first value the default.
+OIDN_JAX_OPTIONS = (("aux", tuple(AUX_INPUTS)), ("clean_aux", ("yes", "no")),
+                    ("quality", QUALITIES), ("precision", PRECISIONS), ("tiling", TILINGS))
+
+
+def configure_oidn_jax(config: OIDNJaxConfig, options: dict[str, str]) -> OIDNJaxConfig:
+    """``config`` with spec options (:data:`OIDN_JAX_OPTIONS`, values already checked)."""
+    changes: dict = {key: options[key] for key in ("quality", "precision", "tiling")
+                     if key in options}
+    if "aux" in options:
+        changes["use_albedo"], changes["use_normal"] = AUX_INPUTS[options["aux"]]
+    if "clean_aux" in options:
+        changes["clean_aux"] = options["clean_aux"] == "yes"
+    return dataclasses.replace(config, **changes)
+
+
 @functools.cache
+def _weights(albedo: bool, normal: bool, clean_aux: bool, quality: str):
+    return load_oidn(albedo=albedo, normal=normal, clean_aux=clean_aux, quality=quality)
+
+
 def _loaded(config: OIDNJaxConfig):
-    return load_oidn(albedo=config.use_albedo, normal=config.use_normal,
-                     clean_aux=config.clean_aux, quality=config.quality)
+    return _weights(config.use_albedo, config.use_normal, config.clean_aux, config.quality)
 
 
 def oidn_jax_init(key, config: OIDNJaxConfig):
@@ -225,7 +386,8 @@ def oidn_jax_apply(params, config: OIDNJaxConfig, frame):
     _, spec = _loaded(config)
     return oidn_denoise(params, spec, frame.color,
                         frame.albedo if config.use_albedo else None,
-                        frame.normal if config.use_normal else None)
+                        frame.normal if config.use_normal else None,
+                        precision=config.precision, tiling=config.tiling)
 
 
 #: OIDN's U-Nets' receptive field, pixels each side: the 3 x 3 convolutions at scales 1 to 16
@@ -247,7 +409,8 @@ def oidn_jax_tile_apply(packed, config: OIDNJaxConfig, frame):
     return oidn_denoise(packed["params"], spec, frame.color,
                         frame.albedo if config.use_albedo else None,
                         frame.normal if config.use_normal else None,
-                        input_scale=packed["constants"])
+                        input_scale=packed["constants"], precision=config.precision,
+                        tiling=config.tiling)
 
 
 def oidn_jax_tiling(config: OIDNJaxConfig):
@@ -276,6 +439,8 @@ def _register() -> None:
         init=oidn_jax_init,
         pretrained=True,
         tiling=oidn_jax_tiling,
+        options=OIDN_JAX_OPTIONS,
+        configure=configure_oidn_jax,
     ))
 
 

@@ -14,6 +14,7 @@ blob whose header, table or data run outside it is refused whole, never half-loa
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import re
@@ -119,8 +120,27 @@ def _cache_path(library_sha: str) -> Path:
 
 def load_blobs(library: str | os.PathLike | None = None) -> dict[str, dict[str, np.ndarray]]:
     """Every weights blob of the installed (or given) OIDN library, ``{blob: {tensor: array}}``,
-    parsed once and then read from the user cache."""
+    parsed once and then read from the user cache; held in memory per library file (path,
+    size and modification time) for the process. The arrays are shared: read them only."""
     path = Path(library) if library is not None else find_library()
+    try:
+        stat = path.stat()
+    except OSError as error:
+        raise CheckpointError(f"{path}: cannot read the OIDN library: {error.strerror}") from None
+    return _load_blobs(str(path), stat.st_size, stat.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=2)
+def _load_blobs(where: str, size: int, mtime_ns: int) -> dict[str, dict[str, np.ndarray]]:
+    del size, mtime_ns  # the cache key: a changed library file is read again
+    blobs = _read_blobs(Path(where))
+    for tensors in blobs.values():
+        for array in tensors.values():
+            array.flags.writeable = False
+    return blobs
+
+
+def _read_blobs(path: Path) -> dict[str, dict[str, np.ndarray]]:
     try:
         data = path.read_bytes()
     except OSError as error:

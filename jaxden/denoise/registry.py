@@ -9,10 +9,12 @@ differences for them.
 >>> den = make_denoiser("unet", key=key)      # freshly initialised parameters
 >>> den = load_denoiser("wskp-6:emission=separate")   # a spec with options
 
-A spec ``SPEC:KEY=VALUE,...`` takes the options of :data:`DENOISER_OPTIONS` after the last
-colon, for every denoiser: ``emission=separate`` keeps the directly visible emission
-(``Frame.emission``) out of the filter, ``D(colour - emission) + emission``
-(:mod:`jaxden.denoise.emission`); ``emission=filter`` is the default.
+A spec ``SPEC:KEY=VALUE,...`` takes options after the last colon: those of
+:data:`DENOISER_OPTIONS`, for every denoiser: ``emission=separate`` keeps the directly visible
+emission (``Frame.emission``) out of the filter, ``D(colour - emission) + emission``
+(:mod:`jaxden.denoise.emission`); ``emission=filter`` is the default; and a registered
+denoiser's own (``DenoiserDef.options``), e.g. OIDN's inputs, quality and precision:
+``oidn-jax:aux=albedo,quality=balanced,precision=bfloat16``, ``oidn:quality=fast``.
 
 The registered denoisers live beside this module (:mod:`jaxden.denoise.oidn`,
 :mod:`jaxden.denoise.models`); the package imports them, so any import of
@@ -49,7 +51,9 @@ class DenoiserDef:
     returns trained weights (OIDN in JAX reads Intel's), so the name alone loads it;
     ``tiling(config) -> TileSpec | None``: its receptive field and alignment, so frames can
     run over tiles (:mod:`jaxden.tiling`); None: whole frames only; ``optional(config)``: the
-    fields it uses when a frame has them (OIDN's albedo and normal).
+    fields it uses when a frame has them (OIDN's albedo and normal); ``options``: its own
+    spec options ``((KEY, (VALUE, ...)), ...)``, the first value the default, and
+    ``configure(config, {KEY: VALUE}) -> config`` applies them (:func:`with_options`).
     """
 
     name: str
@@ -62,6 +66,8 @@ class DenoiserDef:
     pretrained: bool = False  # init gives trained weights (read, not drawn): usable by name
     tiling: Callable[[Any], Any] | None = None
     optional: Callable[[Any], tuple[str, ...]] | None = None  # fields used when present
+    options: tuple[tuple[str, tuple[str, ...]], ...] = ()
+    configure: Callable[[Any, dict[str, str]], Any] | None = None
 
 
 REGISTRY: dict[str, DenoiserDef] = {}
@@ -180,34 +186,61 @@ def emission_separated(definition: DenoiserDef) -> DenoiserDef:
         pretrained=definition.pretrained,
         tiling=tiling,
         optional=definition.optional,
+        options=definition.options,
+        configure=definition.configure,
     )
+
+
+def spec_options(definition: DenoiserDef | None = None) -> dict[str, tuple[str, ...]]:
+    """The spec options ``{KEY: (VALUE, ...)}`` a denoiser takes: :data:`DENOISER_OPTIONS`
+    plus ``definition``'s own."""
+    return {**DENOISER_OPTIONS, **dict(definition.options if definition is not None else ())}
 
 
 def split_spec(spec: str | os.PathLike) -> tuple[str | os.PathLike, dict[str, str]]:
     """``(base spec, {option: value})`` of ``SPEC[:KEY=VALUE,...]``: options follow the last
-    colon (:data:`DENOISER_OPTIONS`); a spec that names an existing path has none. An unknown
-    option or value is a ConfigError naming the allowed ones."""
+    colon (:func:`spec_options`: :data:`DENOISER_OPTIONS`, and a registered name's own); a
+    spec that names an existing path has none. An unknown option or value is one ConfigError
+    naming the allowed ones."""
     if not isinstance(spec, str) or ":" not in spec or Path(spec).exists():
         return spec, {}
     base, _, tail = spec.rpartition(":")
+    valid = spec_options(REGISTRY.get(base))
     options: dict[str, str] = {}
     for option in (part.strip() for part in tail.split(",")):
         key, equals, value = (p.strip() for p in option.partition("="))
-        if not equals or key not in DENOISER_OPTIONS:
+        if not equals or key not in valid:
             raise ConfigError(
                 f"denoiser {spec!r}: expected options KEY=VALUE after the last ':' with KEY one "
-                f"of {', '.join(DENOISER_OPTIONS)}, got {option!r}")
-        if value not in DENOISER_OPTIONS[key]:
+                f"of {', '.join(valid)}, got {option!r}")
+        if value not in valid[key]:
             raise ConfigError(f"denoiser {spec!r}: {key} must be one of "
-                              f"{', '.join(DENOISER_OPTIONS[key])}, got {value!r}")
+                              f"{', '.join(valid[key])}, got {value!r}")
         options[key] = value
     return base, options
 
 
-def with_options(denoiser: Denoiser, emission: str = "filter") -> Denoiser:
-    """The denoiser with the spec options of :data:`DENOISER_OPTIONS` applied."""
+def with_options(denoiser: Denoiser, emission: str = "filter", **options: str) -> Denoiser:
+    """The denoiser with spec options applied: ``emission`` (:data:`DENOISER_OPTIONS`) and
+    its definition's own (``options``; a pretrained denoiser's weights are read again for
+    the new config, since they may differ with it)."""
     if emission not in EMISSION_MODES:
         raise ConfigError(f"emission must be one of {', '.join(EMISSION_MODES)}, got {emission!r}")
+    if options:
+        definition = denoiser.definition
+        valid = dict(definition.options)
+        for key, value in options.items():
+            if key not in valid:
+                raise ConfigError(f"denoiser '{denoiser.name}': unknown option {key!r}; its "
+                                  f"options: {', '.join(spec_options(definition))}")
+            if value not in valid[key]:
+                raise ConfigError(f"denoiser '{denoiser.name}': {key} must be one of "
+                                  f"{', '.join(valid[key])}, got {value!r}")
+        config = definition.configure(denoiser.config, options)
+        params = denoiser.params
+        if definition.pretrained and definition.init is not None:
+            params = definition.init(jax.random.PRNGKey(0), config)
+        denoiser = Denoiser(definition, config, params)
     if emission == "filter":
         return denoiser
     return Denoiser(emission_separated(denoiser.definition), denoiser.config, denoiser.params)
@@ -222,15 +255,18 @@ def load_denoiser(spec: str | os.PathLike) -> Denoiser:
     ``spec``: a registered black-box name (``oidn``); a name with weights shipped in the
     package (``jaxden/weights/<name>.msgpack``); a training workdir or checkpoint folder from
     ``jaxden train``; or a released ``.msgpack`` weights file; any of these followed by
-    ``:KEY=VALUE,...`` options (:func:`split_spec`, e.g. ``wskp-6:emission=separate``). The
-    checkpoint's meta record says which model and config it holds; a mixer checkpoint or an
-    unknown model is a CheckpointError.
+    ``:KEY=VALUE,...`` options (:func:`split_spec`, e.g. ``wskp-6:emission=separate``,
+    ``oidn-jax:aux=albedo,precision=bfloat16``). The checkpoint's meta record says which
+    model and config it holds; a mixer checkpoint or an unknown model is a CheckpointError.
     """
     base, options = split_spec(spec)
-    return with_options(_load_base(base), **options)
+    generic = {key: options.pop(key) for key in DENOISER_OPTIONS if key in options}
+    return with_options(_load_base(base, options), **generic)
 
 
-def _load_base(spec: str | os.PathLike) -> Denoiser:
+def _load_base(spec: str | os.PathLike, options: dict[str, str] | None = None) -> Denoiser:
+    """The denoiser ``spec`` names; ``options``: a registered name's own spec options
+    (checked by :func:`split_spec`), applied to its config before its weights are read."""
     from jaxden.checkpoint import load_trained_params, read_checkpoint_meta
     from jaxden.config import load_config
 
@@ -247,7 +283,11 @@ def _load_base(spec: str | os.PathLike) -> Denoiser:
                 f"denoiser '{spec}' needs trained weights: pass a checkpoint folder from "
                 f"`jaxden train` (or a .msgpack weights file) instead of its name"
             )
-        return make_denoiser(str(spec))
+        config = definition.configure(definition.config_cls(), options) if options else None
+        return make_denoiser(str(spec), config)
+    if options:  # split_spec takes a denoiser's own options only after a registered name
+        raise ConfigError(f"denoiser {spec!r}: options {', '.join(options)} apply to "
+                          f"registered names only")
     meta = read_checkpoint_meta(path)
     if meta.get("kind") != "denoiser":
         raise CheckpointError(

@@ -1,15 +1,15 @@
 """``build_report``: a folder (or a `jaxden evaluate pd` result) in, one self-contained HTML page out.
 
-Finds the files (:mod:`jaxden.report.discover`), measures and encodes every scene
-(:mod:`jaxden.report.content`), renders the page (:mod:`jaxden.report.html`) and writes it
-atomically.
+Finds the files (:mod:`jaxden.report.discover`), measures and encodes every scene and draws
+every training run's curves (:mod:`jaxden.report.content`), renders the page
+(:mod:`jaxden.report.html`) and writes it atomically.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from jaxden.report.content import metric_file_content, scene_content
+from jaxden.report.content import metric_file_content, run_content, scene_content
 from jaxden.report.discover import Discovery, ReportError, discover
 from jaxden.report.html import render_page
 
@@ -50,8 +50,9 @@ def build_report(source, out=None, *, title: str | None = None, max_size: int | 
                                        if name == scene.name})
               for scene in found.scenes]
     metric_sets = [metric_file_content(m) for m in found.metric_files]
+    runs = [run_content(run) for run in found.runs]
     title = title or f"jaxden report: {Path(source).resolve().name}"
-    atomic_write_text(out, render_page(title, str(source), scenes, metric_sets))
+    atomic_write_text(out, render_page(title, str(source), scenes, metric_sets, runs))
     return out
 
 

@@ -4,19 +4,28 @@ Per scene (:func:`scene_content`): every image read from its EXR (linear, checke
 the reference's size), its error maps against the reference (relative squared error, FLIP),
 alpha maps where present, every metric (:func:`jaxden.report.errormaps.image_metrics`), a
 convergence plot, and the automatic exposure. Per `jaxden evaluate pd` result (:func:`metric_file_content`):
-the per-spp means over its crops and their plot. Pixels are stored as
+the per-spp means over its crops and their plot. Per training run (:func:`run_content`): its
+curves from ``metrics.jsonl`` and their plot. Pixels are stored as
 :mod:`jaxden.report.encode` describes.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 
 import numpy as np
 
 from jaxden.report import encode, errormaps, figures
-from jaxden.report.discover import REFERENCE, MetricFile, ReportError, SceneFiles, mean_rows
+from jaxden.report.discover import (
+    REFERENCE,
+    MetricFile,
+    ReportError,
+    RunFiles,
+    SceneFiles,
+    mean_rows,
+)
 from jaxden.report.tonemap import auto_stops, log_range
 
 #: Error-map layers: name -> (title, colour map, scale).
@@ -58,6 +67,52 @@ class MetricContent:
     metrics: tuple[str, ...]
     rows: list[dict]
     plot_svg: bytes
+
+
+@dataclasses.dataclass
+class RunContent:
+    """A training run: ``curves[key]`` = ``[(step, value)]`` of the train loss and every
+    validation metric of its metrics.jsonl, ``last[key]`` = each curve's last value,
+    ``steps``: the last step logged, and their plot (None: nothing logged yet)."""
+
+    name: str
+    folder: str
+    curves: dict[str, list[tuple[int, float]]]
+    last: dict[str, float]
+    steps: int
+    plot_svg: bytes | None
+
+
+def training_curves(records: list[dict]) -> dict[str, list[tuple[int, float]]]:
+    """``{key: [(step, value)]}`` of metrics.jsonl records: the train loss (``loss``) and
+    every validation metric (``val_*``), finite values only, in the order logged."""
+    curves: dict[str, list[tuple[int, float]]] = {}
+    for record in records:
+        for key, value in record.items():
+            if key != "loss" and not key.startswith("val_"):
+                continue
+            if isinstance(value, (int, float)) and not isinstance(value, bool) \
+                    and math.isfinite(value):
+                curves.setdefault(key, []).append((int(record["step"]), float(value)))
+    order = ["loss", *sorted(k for k in curves if k != "loss")]
+    return {key: curves[key] for key in order if key in curves}
+
+
+def run_content(run: RunFiles) -> RunContent:
+    """A training run's curves and their plot (:func:`jaxden.report.figures.training_figure`).
+    A broken metrics.jsonl is a ReportError naming the file and the line (a last line cut
+    short by a kill is left out)."""
+    from jaxden.fileio import read_jsonl
+
+    records, _ = read_jsonl(run.metrics, "the metrics log", error=ReportError,
+                            fields={"step": int})
+    curves = training_curves(records)
+    plot = None
+    if curves:
+        plot = figures.svg_bytes(figures.training_figure(curves, title=f"{run.name}: training"))
+    return RunContent(name=run.name, folder=str(run.folder), curves=curves,
+                      last={key: points[-1][1] for key, points in curves.items()},
+                      steps=max((int(r["step"]) for r in records), default=0), plot_svg=plot)
 
 
 def load_image(path: Path, shape: tuple[int, ...] | None = None, alpha: bool = False
@@ -150,5 +205,5 @@ def metric_file_content(metric_file: MetricFile) -> MetricContent:
                          rows, figures.svg_bytes(figure))
 
 
-__all__ = ["ALPHA_LAYER", "ERROR_LAYERS", "MetricContent", "SceneContent", "load_image",
-           "metric_file_content", "scene_content"]
+__all__ = ["ALPHA_LAYER", "ERROR_LAYERS", "MetricContent", "RunContent", "SceneContent",
+           "load_image", "metric_file_content", "run_content", "scene_content", "training_curves"]

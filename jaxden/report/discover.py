@@ -8,10 +8,12 @@ A report reads a folder laid out like ``jaxden demo``'s output::
     DIR/SCENE/sppN.METHOD.alpha.exr    optional: the mixer's alpha map behind METHOD at N spp
                                        (1 = METHOD's denoiser, 0 = the MC input)
     DIR/*.json                         optional: jaxden evaluate results (metrics only)
+    DIR/RUN/metrics.jsonl              optional: a training run (`jaxden train` or a sweep's
+                                       run folder): its loss curves
 
 N may be zero-padded (``spp00004``). Images are read as R,G,B (alpha maps: R,G,B or their one
-channel), linear HDR. ``DIR`` may itself be one scene folder (it holds ``reference.exr``), or a
-single `jaxden evaluate pd` result file. Other files are ignored (``.exr`` files that do not follow the
+channel), linear HDR. ``DIR`` may itself be one scene folder (it holds ``reference.exr``), one training run's
+folder (it holds ``metrics.jsonl``), or a single `jaxden evaluate pd` result file. Other files are ignored (``.exr`` files that do not follow the
 convention are listed in :attr:`Discovery.ignored`, so a typo does not go unnoticed).
 """
 
@@ -72,11 +74,21 @@ class MetricFile:
 
 
 @dataclasses.dataclass(frozen=True)
+class RunFiles:
+    """A training run's folder: its ``metrics.jsonl`` (:class:`jaxden.train.workdir.MetricsLog`)."""
+
+    name: str
+    folder: Path
+    metrics: Path
+
+
+@dataclasses.dataclass(frozen=True)
 class Discovery:
     root: Path
     scenes: tuple[SceneFiles, ...]
     metric_files: tuple[MetricFile, ...]
     ignored: tuple[Path, ...]
+    runs: tuple[RunFiles, ...] = ()
 
 
 def order_methods(methods) -> list[str]:
@@ -181,8 +193,22 @@ def read_metric_file(path: Path, required: bool) -> MetricFile | None:
     return MetricFile(path.stem, path, rows, metrics, note)
 
 
+RUN_LOG = "metrics.jsonl"
+
+
+def find_runs(root: Path) -> list[RunFiles]:
+    """The training runs of ``root``: itself, or each of its folders, holding ``metrics.jsonl``."""
+    if (root / RUN_LOG).is_file():
+        return [RunFiles(root.resolve().name, root, root / RUN_LOG)]
+    return [RunFiles(folder.name, folder, folder / RUN_LOG)
+            for folder in sorted(p for p in root.iterdir() if p.is_dir()
+                                 and not p.name.startswith("."))
+            if (folder / RUN_LOG).is_file()]
+
+
 def discover(path) -> Discovery:
-    """The scenes and metric files under ``path`` (module docstring: the convention).
+    """The scenes, metric files and training runs under ``path`` (module docstring: the
+    convention).
 
     Raises :class:`ReportError` naming the path when there is nothing to show."""
     root = Path(path)
@@ -207,11 +233,12 @@ def discover(path) -> Discovery:
                 scenes.append(scene)
     metric_files = [m for m in (read_metric_file(p, required=False)
                                 for p in sorted(root.glob("*.json"))) if m is not None]
-    if not scenes and not metric_files:
+    runs = find_runs(root)
+    if not scenes and not metric_files and not runs:
         what = "is empty" if not any(root.iterdir()) else "has nothing a report can show"
-        raise ReportError(f"{root}: {what}: expected scene folders ({CONVENTION}) or "
-                          f"jaxden evaluate JSON files")
-    return Discovery(root, tuple(scenes), tuple(metric_files), tuple(ignored))
+        raise ReportError(f"{root}: {what}: expected scene folders ({CONVENTION}), "
+                          f"jaxden evaluate JSON files or training runs (RUN/{RUN_LOG})")
+    return Discovery(root, tuple(scenes), tuple(metric_files), tuple(ignored), tuple(runs))
 
 
 def mean_rows(rows: list[dict], scene: str) -> list[dict]:

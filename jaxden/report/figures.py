@@ -1,9 +1,11 @@
-"""Convergence plots (error vs samples per pixel, log-log) with matplotlib.
+"""The report's plots with matplotlib: convergence (error vs samples per pixel, log-log) and
+training curves (loss vs step).
 
 :func:`convergence_figure` draws one panel per metric (rows: scenes), a line per method and,
 in the panels of metrics whose Monte Carlo error falls at a known rate, the guide line of that
 rate through MC's first point: relMSE and MSE fall as 1/spp, RMSE as 1/sqrt(spp) (the same
-rate of the MSE). FLIP has no such rate and gets no guide. :func:`svg_bytes` and
+rate of the MSE). FLIP has no such rate and gets no guide. :func:`training_figure` draws a
+run's curves (train loss, validation metrics) over its steps. :func:`svg_bytes` and
 :func:`png_bytes` render a figure reproducibly (no date, fixed SVG ids).
 """
 
@@ -108,6 +110,48 @@ def convergence_figure(rows: list[dict], metrics=DEFAULT_METRICS, title: str | N
     return figure
 
 
+#: Training curves: metrics.jsonl key -> (legend, colour); the noisy input's loss is dashed.
+TRAINING_CURVES = {"loss": ("train loss", "#1f77b4"), "val_loss": ("validation loss", "#d62728"),
+                   "val_baseline_loss": ("validation: noisy input", "#7f7f7f")}
+#: The y axis of a training plot is logarithmic when its values span more than this ratio.
+LOG_SCALE_RATIO = 5.0
+
+
+def training_figure(curves: dict[str, list[tuple[int, float]]], title: str | None = None):
+    """A matplotlib Figure of a training run: a line per curve (``{key: [(step, value)]}``,
+    keys as metrics.jsonl names them), x = step; y log scale when every value is positive and
+    they span more than :data:`LOG_SCALE_RATIO`. Each line's SVG group id is ``curve-KEY``;
+    sparse curves (validation) carry a marker per point."""
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import LogFormatter
+
+    figure = Figure(figsize=(6.4, 3.4), layout="constrained")
+    ax = figure.add_subplot()
+    spare = iter(_CYCLE * 4)
+    values = [v for points in curves.values() for _, v in points]
+    for key, points in curves.items():
+        if not points:
+            continue
+        label, colour = TRAINING_CURVES.get(key, (key, None))
+        steps, ys = zip(*sorted(points))
+        ax.plot(steps, ys, color=colour or next(spare), label=label, gid=f"curve-{key}",
+                linewidth=1.4, linestyle="--" if key.endswith("baseline_loss") else "-",
+                marker="o" if key != "loss" and len(points) <= 60 else None, markersize=3)
+    if values and min(values) > 0 and max(values) > LOG_SCALE_RATIO * min(values):
+        ax.set_yscale("log")
+        ax.yaxis.set_major_formatter(_plain(LogFormatter)())
+        ax.yaxis.set_minor_formatter(_plain(LogFormatter)(labelOnlyBase=False,
+                                                          minor_thresholds=(2, 0.5)))
+    ax.set_xlabel("step")
+    ax.set_ylabel("loss")
+    ax.grid(True, which="both", color="#e4e4e4", linewidth=0.6)
+    if values:
+        ax.legend(fontsize=7, frameon=False)
+    if title:
+        ax.set_title(title, fontsize=10)
+    return figure
+
+
 def _save(figure, fmt: str, **options) -> bytes:
     import matplotlib
 
@@ -126,5 +170,5 @@ def png_bytes(figure, dpi: int = 120) -> bytes:
     return _save(figure, "png", dpi=dpi, metadata={"Software": None})
 
 
-__all__ = ["DEFAULT_METRICS", "MC_RATES", "convergence_figure", "method_colours", "png_bytes",
-           "svg_bytes"]
+__all__ = ["DEFAULT_METRICS", "MC_RATES", "TRAINING_CURVES", "convergence_figure",
+           "method_colours", "png_bytes", "svg_bytes", "training_figure"]

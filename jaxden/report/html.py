@@ -15,7 +15,7 @@ import json
 import math
 from importlib import resources
 
-from jaxden.report.content import MetricContent, SceneContent
+from jaxden.report.content import MetricContent, RunContent, SceneContent
 from jaxden.report.discover import REFERENCE, order_methods
 from jaxden.report.encode import data_uri
 from jaxden.report.errormaps import HIGHER_IS_BETTER, METRIC_NAMES, best_methods
@@ -172,6 +172,23 @@ def metric_section(index: int, content: MetricContent) -> str:
         metrics_table(content.rows, list(content.metrics)), "</section>"])
 
 
+def run_section(index: int, run: RunContent) -> str:
+    """A training run: its curves (train loss and validation metrics against the step) and
+    the last value of each."""
+    parts = [f'<section class="run" id="run-{index}">', f"<h2>{_esc(run.name)} (training)</h2>",
+             f'<p class="where">{_esc(run.folder)} · metrics.jsonl up to step {run.steps}</p>']
+    if run.plot_svg is None:
+        parts.append('<p class="note">nothing logged yet</p>')
+    else:
+        parts.append(f'<img class="plot" alt="training curves of {_esc(run.name)}" '
+                     f'src="{data_uri(run.plot_svg, "image/svg+xml")}">')
+        last = " · ".join(f"{_esc(key)} {_format(value)} (step {run.curves[key][-1][0]})"
+                          for key, value in run.last.items())
+        parts.append(f'<p class="note">last values: {last}</p>')
+    parts.append("</section>")
+    return "\n".join(parts)
+
+
 def page_data(scenes: list[SceneContent]) -> dict:
     """The JSON the script reads: per scene its sizes, choices, layers, rows and arrays."""
     import base64
@@ -194,8 +211,8 @@ def _finite(row: dict) -> dict:
 
 
 def render_page(title: str, source: str, scenes: list[SceneContent],
-                metric_sets: list[MetricContent]) -> str:
-    """The whole page as a string."""
+                metric_sets: list[MetricContent], runs: list[RunContent] = ()) -> str:
+    """The whole page as a string: scenes, metric files, then training runs."""
     from jaxden import __version__
 
     data = json.dumps(page_data(scenes), separators=(",", ":"), allow_nan=False)
@@ -204,6 +221,8 @@ def render_page(title: str, source: str, scenes: list[SceneContent],
                   for i, s in enumerate(scenes))
     nav += "".join(f'<li><a href="#metrics-{i}">{_esc(m.name)}</a> (metrics)</li>'
                    for i, m in enumerate(metric_sets))
+    nav += "".join(f'<li><a href="#run-{i}">{_esc(r.name)}</a> (training)</li>'
+                   for i, r in enumerate(runs))
     today = datetime.date.today().isoformat()
     return "\n".join([
         "<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
@@ -216,9 +235,11 @@ def render_page(title: str, source: str, scenes: list[SceneContent],
         f"<nav><ul>{nav}</ul></nav></header><main>"),
         *(scene_section(i, s) for i, s in enumerate(scenes)),
         *(metric_section(i, m) for i, m in enumerate(metric_sets)),
+        *(run_section(i, r) for i, r in enumerate(runs)),
         "</main>",
         f'<script type="application/json" id="jaxden-data">{data}</script>',
         f"<script>\n{_asset('report.js')}\n</script>", "</body></html>", ""])
 
 
-__all__ = ["metric_section", "metrics_table", "page_data", "render_page", "scene_section"]
+__all__ = ["metric_section", "metrics_table", "page_data", "render_page", "run_section",
+           "scene_section"]

@@ -62,6 +62,10 @@ class TrainConfig:
 
     model: str = "wskp"
     model_config: dict[str, Any] = dataclasses.field(default_factory=dict)
+    # Fine-tuning: the parameters start from trained weights instead of a random draw: a
+    # shipped model's name ("wskp-6"), a .msgpack weights file or a training workdir (its
+    # newest checkpoint), of this model and [model_config] (jaxden.train.finetune). "": none.
+    init: str = ""
     data: DataConfig = DataConfig()
     optim: OptimConfig = OptimConfig()
     seed: int = bounded(0, low=0, high=4294967295)
@@ -72,12 +76,15 @@ class TrainConfig:
     keep_checkpoints: int = bounded(2, low=1, high=1000)
 
     def __post_init__(self):
+        from jaxden.paths import expand_path
+
         check_fields(self)  # the bounded ranges above, for a config built in Python too
+        object.__setattr__(self, "init", expand_path(self.init))
 
 
 def load_train_config(source, overrides=()) -> TrainConfig:
-    """Load a training config and check its ``model`` and ``[model_config]`` now, so that a
-    typo there is reported with the file's name before any work starts."""
+    """Load a training config and check its ``model``, ``[model_config]`` and ``init`` now, so
+    that a typo there is reported with the file's name before any work starts."""
     from jaxden.config import load_config
     from jaxden.train.tasks import get_trainable, model_config
 
@@ -91,4 +98,8 @@ def load_train_config(source, overrides=()) -> TrainConfig:
         model_config(config)
     except ConfigError as error:
         raise ConfigError(f"{where}{error}") from None
+    if config.init:  # the source exists and holds this model (its bytes are hashed at the start)
+        from jaxden.train.finetune import resolve_init
+
+        resolve_init(config, digest=False)
     return config

@@ -55,6 +55,8 @@ from jaxden.train.workdir import (
     MetricsLog,
     check_workdir,
     claim_workdir,
+    has_checkpoint,
+    recorded_init,
     remove_partial_checkpoints,
     resume_expectation,
 )
@@ -289,11 +291,19 @@ def _peer_failure(error: BaseException) -> bool:
 
 
 def train_and_evaluate(
-    config: TrainConfig, workdir: str | os.PathLike, *, progress: bool = True, stop_after: int | None = None
+    config: TrainConfig, workdir: str | os.PathLike, *, progress: bool = True,
+    stop_after: int | None = None, tensorboard: bool = True,
 ) -> dict[str, Any]:
     """Train (or resume) in ``workdir``; returns the final evaluation metrics.
 
     ``stop_after``: stop after this many steps of this call (for tests of resumption).
+    ``tensorboard``: also write the logged scalars as TensorBoard event files in ``workdir``
+    (:mod:`jaxden.train.tensorboard`).
+
+    ``config.init`` (fine-tuning, :mod:`jaxden.train.finetune`): a run that starts at step 0
+    takes its parameters from that source (checked against the model first; the optimiser
+    state starts fresh); a resume continues from the run's own checkpoints and refuses a source
+    that has changed since the run started.
 
     The workdir is locked (a second run on it is an error). Before every checkpoint the
     parameters and optimiser state are checked for NaN / inf (a diverged state is never
@@ -305,7 +315,14 @@ def train_and_evaluate(
     checkpoint.
     """
     workdir = Path(workdir)
-    resolved = check_workdir(config, workdir)
+    resuming, init_source = False, None
+    if config.init:
+        from jaxden.train.finetune import resolve_init
+
+        resuming = has_checkpoint(workdir)
+        init_source = resolve_init(config, recorded=recorded_init(workdir) if resuming else None)
+    resolved = check_workdir(config, workdir,
+                             None if init_source is None else init_source.record())
     several = jax.process_count() > 1
     primary = jax.process_index() == 0
     if several:  # shared data (a SURE cache) is built by process 0 alone, then only read
@@ -325,14 +342,21 @@ def train_and_evaluate(
 
     key = jax.random.PRNGKey(config.seed)
     first = task.prepare(next(iter(batches_from(train_loader, 0, mesh))))
-    params = _initial_params(task, key, first)
+    if init_source is not None and not resuming:  # fine-tuning: only a run at step 0 reads it
+        from jaxden.train.finetune import load_init_params
+
+        target = jax.eval_shape(task.init, key, first)
+        params = jax.tree_util.tree_map(jnp.asarray, load_init_params(init_source, target))
+    else:
+        params = _initial_params(task, key, first)
     state = TrainState(params, optimizer.init(params), jnp.asarray(0, jnp.int32))
 
     with contextlib.ExitStack() as stack:
         if primary:
             stack.enter_context(claim_workdir(workdir, config, resolved))
         return _train(config, workdir, task, loss_fn, optimizer, train_loader, val_loader, mesh,
-                      state, progress=progress and primary, stop_after=stop_after)
+                      state, progress=progress and primary, stop_after=stop_after,
+                      tensorboard=tensorboard)
 
 
 def _initial_params(task: Task, key, first) -> Any:
@@ -365,7 +389,7 @@ def _latest_step(checkpointer) -> int | None:
 
 
 def _train(config, workdir, task, loss_fn, optimizer, train_loader, val_loader, mesh, state, *,
-           progress: bool, stop_after: int | None) -> dict[str, Any]:
+           progress: bool, stop_after: int | None, tensorboard: bool = True) -> dict[str, Any]:
     """The loop of :func:`train_and_evaluate` once the workdir is locked."""
     from jaxden.checkpoint import Checkpointer
     from jaxden.config import config_to_dict
@@ -381,33 +405,39 @@ def _train(config, workdir, task, loss_fn, optimizer, train_loader, val_loader, 
     elif workdir.is_dir():  # other processes only read, and only what process 0 saved
         with contextlib.suppress(CheckpointError):
             checkpointer = Checkpointer(workdir, create=False)
-    start = 0
-    latest = _latest_step(checkpointer)
-    if latest is not None:
-        if checkpointer is None:
-            raise CheckpointError(
-                f"process {jax.process_index()} cannot see the checkpoints of {workdir} that "
-                f"process 0 found: every process needs the workdir on one shared filesystem")
-        saved = checkpointer.read_meta(latest).get("model_config")
-        expect = resume_expectation(task.meta, config, saved)
-        state, _ = checkpointer.restore(state, step=latest, expect=expect)
-        start = int(state.step)
-    state = replicate(state, mesh)
-
-    train_step = jax.jit(make_train_step(task, optimizer, loss_fn), donate_argnums=0)
-    eval_step = jax.jit(make_eval_step(task, loss_fn))
-    log = MetricsLog(workdir / "metrics.jsonl", start) if primary else None
-    schedule = make_schedule(config.optim)
-    end = config.optim.steps if stop_after is None else min(config.optim.steps, start + stop_after)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=config.optim.steps, initial=start, desc=f"train {config.model}", unit="step")
+    # Everything from here runs under the try below, whose finally stops orbax's background
+    # threads on every way out (an unreadable checkpoint included).
+    start, latest, last_saved, done, end = 0, None, None, 0, config.optim.steps
+    bar = log = None
     last_eval: dict[str, float] = {}
-    last_saved = latest
-    done = start
     try:
+        latest = _latest_step(checkpointer)
+        if latest is not None:
+            if checkpointer is None:
+                raise CheckpointError(
+                    f"process {jax.process_index()} cannot see the checkpoints of {workdir} "
+                    f"that process 0 found: every process needs the workdir on one shared "
+                    f"filesystem")
+            saved = checkpointer.read_meta(latest).get("model_config")
+            expect = resume_expectation(task.meta, config, saved)
+            state, _ = checkpointer.restore(state, step=latest, expect=expect)
+            start = int(state.step)
+        state = replicate(state, mesh)
+
+        train_step = jax.jit(make_train_step(task, optimizer, loss_fn), donate_argnums=0)
+        eval_step = jax.jit(make_eval_step(task, loss_fn))
+        if primary:
+            log = MetricsLog(workdir / "metrics.jsonl", start, tensorboard=tensorboard)
+        schedule = make_schedule(config.optim)
+        if stop_after is not None:
+            end = min(config.optim.steps, start + stop_after)
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=config.optim.steps, initial=start, desc=f"train {config.model}",
+                       unit="step")
+        last_saved = latest
+        done = start
         if start == 0:  # where the curve starts: the untrained model on the validation split
             initial = evaluate(eval_step, state.params, val_loader, mesh, config.eval_batches,
                                task.prepare)

@@ -2,7 +2,8 @@
 what resuming from its checkpoints checks.
 
 A workdir holds ``config.toml`` and ``config.json`` (the resolved config, written once when
-the run starts), ``metrics.jsonl`` (:class:`MetricsLog`) and the orbax checkpoints
+the run starts), ``metrics.jsonl`` (:class:`MetricsLog`), TensorBoard event files
+(``events.out.tfevents.*``, the same scalars) and the orbax checkpoints
 (:class:`jaxden.checkpoint.Checkpointer`). A run on a workdir that holds a run with another
 config is refused; one run at a time trains in it (:data:`TRAIN_LOCK`).
 """
@@ -23,12 +24,19 @@ CONFIG_TOML = "config.toml"
 CONFIG_JSON = "config.json"
 
 
-def check_workdir(config, workdir: Path) -> dict[str, Any]:
+def check_workdir(config, workdir: Path, init_record: dict[str, Any] | None = None
+                  ) -> dict[str, Any]:
     """The resolved config (a dict) of a run of ``config`` in ``workdir``; ConfigError when
     ``workdir`` is a file or records a run with another config (today's defaults filled in for
-    fields added since that run started: the same run)."""
+    fields added since that run started: the same run).
+
+    ``init_record``: a fine-tuning run's resolved source
+    (:meth:`jaxden.train.finetune.InitSource.record`), kept in the resolved config under
+    :data:`~jaxden.train.finetune.INIT_RECORD`; a run whose recorded source has another digest
+    (the weights changed since it started) is refused too."""
     from jaxden.config import config_diff, config_to_dict, load_config
     from jaxden.train.config import TrainConfig
+    from jaxden.train.finetune import INIT_RECORD
 
     if workdir.exists() and not workdir.is_dir():
         raise ConfigError(f"--workdir {workdir} is a file, not a folder")
@@ -38,6 +46,7 @@ def check_workdir(config, workdir: Path) -> dict[str, Any]:
         from jaxden.fileio import read_json
 
         previous = read_json(saved_json, "the run's recorded config", error=ConfigError)
+        previous_init = previous.pop(INIT_RECORD, None)
         with contextlib.suppress(ConfigError, TypeError, ValueError):
             # Today's defaults for fields added since the run started (same run).
             previous = config_to_dict(load_config(previous, TrainConfig))
@@ -47,7 +56,41 @@ def check_workdir(config, workdir: Path) -> dict[str, Any]:
                 f"{workdir} holds a run with another config ({'; '.join(differences[:5])}); "
                 f"use a new --workdir"
             )
+        if init_record is not None and isinstance(previous_init, dict):
+            before, now = previous_init.get("sha256"), init_record.get("sha256")
+            if before != now:
+                raise ConfigError(
+                    f"{workdir} holds a run fine-tuned from init = {config.init!r} as it was "
+                    f"when the run started (sha256 {str(before)[:12]}..., step "
+                    f"{previous_init.get('step')}); it has changed since (sha256 "
+                    f"{str(now)[:12]}..., step {init_record.get('step')}, "
+                    f"{init_record.get('path')}); use a new --workdir")
+    if init_record is not None:
+        resolved[INIT_RECORD] = init_record
     return resolved
+
+
+def recorded_init(workdir: Path) -> dict[str, Any] | None:
+    """The resolved ``init`` source recorded by the run in ``workdir`` (None: none)."""
+    from jaxden.fileio import read_json
+    from jaxden.train.finetune import INIT_RECORD
+
+    saved_json = workdir / CONFIG_JSON
+    if not saved_json.is_file():
+        return None
+    record = read_json(saved_json, "the run's recorded config", error=ConfigError).get(INIT_RECORD)
+    return record if isinstance(record, dict) else None
+
+
+def has_checkpoint(workdir: Path) -> bool:
+    """Whether ``workdir`` holds a finished checkpoint that a run resumes from (as orbax sees
+    its checkpoint folder)."""
+    from jaxden.checkpoint import Checkpointer
+
+    if not workdir.is_dir():
+        return False
+    with Checkpointer(workdir, create=False) as checkpointer:
+        return checkpointer.latest_step() is not None
 
 
 @contextlib.contextmanager
@@ -69,23 +112,37 @@ class MetricsLog:
     """Append-only JSONL log. On resume from the checkpoint of ``resume_step`` the entries of
     later steps (and of step 0 when no checkpoint is kept: the run starts over) are dropped,
     and so is a last line cut short by a kill; any other broken line is a one-line error
-    naming the file and the line. Each entry is appended whole or not at all."""
+    naming the file and the line. Each entry is appended whole or not at all.
 
-    def __init__(self, path: Path, resume_step: int):
+    ``tensorboard``: every numeric field of every entry also goes, as a scalar of that name at
+    the entry's step, into a TensorBoard event file beside the log
+    (:class:`jaxden.train.tensorboard.EventWriter`; a new file per start of the run)."""
+
+    def __init__(self, path: Path, resume_step: int, *, tensorboard: bool = False):
         from jaxden.fileio import atomic_write_text, read_jsonl
 
         self.path = path
+        self.events = None
         if path.exists():
             records, cut = read_jsonl(path, "the metrics log", error=JaxdenError,
                                       fields={"step?": int})
             kept = [r for r in records if resume_step > 0 and r.get("step", 0) <= resume_step]
             if cut or len(kept) < len(records):
                 atomic_write_text(path, "".join(json.dumps(r) + "\n" for r in kept))
+        if tensorboard:
+            from jaxden.train.tensorboard import EventWriter
+
+            self.events = EventWriter(path.parent, resume_step=resume_step)
 
     def write(self, record: dict[str, Any]) -> None:
         from jaxden.fileio import append_line
 
         append_line(self.path, json.dumps(record))
+        if self.events is not None:
+            self.events.scalars(int(record.get("step", 0)), {
+                key: value for key, value in record.items()
+                if key != "step" and isinstance(value, (int, float))
+                and not isinstance(value, bool)})
 
 
 def remove_partial_checkpoints(directory: Path) -> None:
