@@ -19,6 +19,7 @@ Released weights (shipped inside the package) are one ``.msgpack`` file of param
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import json
 import logging
@@ -42,8 +43,8 @@ class _QuietOrbaxMetadata(logging.Filter):
 
     def filter(self, record: logging.LogRecord) -> bool:
         message = record.getMessage()
-        if "Metadata file does not exist" in message:
-            return False
+        if "Metadata file does not exist" in message or "Failed to get item metadata" in message:
+            return False  # the second: a damaged checkpoint, which restore reports in one line
         failed = record.exc_info[1] if record.exc_info else None
         return record.levelno < logging.ERROR or (
             _write_failure(message) is None and (failed is None or _write_failure(failed) is None))
@@ -53,6 +54,39 @@ logging.getLogger("absl").addFilter(_QuietOrbaxMetadata())
 logging.getLogger("asyncio").addFilter(_QuietOrbaxMetadata())
 
 CHECKPOINT_SUBDIR = "checkpoints"
+
+
+class _LateCallbackTolerantLoop(asyncio.SelectorEventLoop):
+    """An event loop that drops callbacks scheduled from other threads once it is closed.
+
+    Orbax restores in a fresh event loop that awaits every array read of TensorStore at once.
+    When one read fails (a damaged file), the loop stops and is closed while the other reads
+    are still running in TensorStore's threads; as each finishes, its completion callback
+    calls ``loop.call_soon_threadsafe`` on the closed loop, and TensorStore prints that
+    RuntimeError ("Event loop is closed") with its traceback, after jaxden's one error line.
+    The results have no one left to receive them, so dropping them is what should happen."""
+
+    def call_soon_threadsafe(self, callback, *args, context=None):
+        if self.is_closed():
+            return None
+        return super().call_soon_threadsafe(callback, *args, context=context)
+
+
+class _TolerantLoopPolicy(asyncio.DefaultEventLoopPolicy):
+    def new_event_loop(self):
+        return _LateCallbackTolerantLoop()
+
+
+@contextlib.contextmanager
+def late_callbacks_dropped():
+    """The event loops created inside the block (orbax's, for a restore) drop callbacks that
+    arrive after they are closed (:class:`_LateCallbackTolerantLoop`)."""
+    previous = asyncio.get_event_loop_policy()
+    asyncio.set_event_loop_policy(_TolerantLoopPolicy())
+    try:
+        yield
+    finally:
+        asyncio.set_event_loop_policy(previous)
 #: The fields every meta record (checkpoint or released weights) must have, with their types.
 META_FIELDS = {"kind": str, "model?": str, "model_config?": dict, "step?": int}
 
@@ -74,7 +108,8 @@ class Checkpointer:
     """Save/restore a training state with its meta record; keeps the newest ``max_to_keep``.
 
     Orbax works in background threads: :meth:`close` (or a ``with`` block) stops them, and must
-    run on every way out, errors included (else they report "Event loop is closed" at exit)."""
+    run on every way out, errors included. A restore that fails on a damaged file gives one
+    CheckpointError and nothing else on stderr (:func:`late_callbacks_dropped`)."""
 
     def __init__(self, directory: str | os.PathLike, max_to_keep: int = 3, create: bool = True):
         ocp = _ocp()
@@ -142,8 +177,9 @@ class Checkpointer:
         step = self._resolve_step(step)
         where = f"{self.directory / str(step)}: the checkpoint's meta record"
         try:
-            restored = self._manager.restore(
-                step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))
+            with late_callbacks_dropped():
+                restored = self._manager.restore(
+                    step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))
             meta = restored.meta
         except Exception as error:  # noqa: BLE001 - orbax raises many kinds on bad files
             first = str(error).strip().splitlines()[0] if str(error).strip() else ""
@@ -167,9 +203,7 @@ class Checkpointer:
         device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
         try:
             if target is None:
-                # Closed on every way out: an orbax checkpointer left open when its read fails
-                # prints "Event loop is closed" tracebacks at interpreter exit.
-                with ocp.StandardCheckpointer() as reader:
+                with ocp.StandardCheckpointer() as reader, late_callbacks_dropped():
                     tree = reader.metadata(self.directory / str(step) / "state").item_metadata
                 abstract = jax.tree_util.tree_map(
                     lambda m: jax.ShapeDtypeStruct(m.shape, m.dtype, sharding=device), tree
@@ -179,12 +213,14 @@ class Checkpointer:
                     lambda x: jax.ShapeDtypeStruct(np.shape(x), jax.numpy.asarray(x).dtype,
                                                    sharding=device), target
                 )
-            restored = self._manager.restore(
-                step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract))
-            )
+            with late_callbacks_dropped():  # a damaged file: no tracebacks after the error
+                restored = self._manager.restore(
+                    step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract))
+                )
         except Exception as error:  # orbax raises many types for structure mismatches
             text = str(error).splitlines()[0] if str(error) else type(error).__name__
-            if "TensorStore" in text or "reading array" in text:  # the data files themselves
+            if isinstance(error, json.JSONDecodeError) or any(
+                    word in text for word in _DAMAGED_FILE_WORDS):  # the files themselves
                 raise CheckpointError(
                     f"{self.directory / str(step)}: the saved arrays cannot be read (a corrupt "
                     f"or incomplete checkpoint; delete that step folder to resume from an "
@@ -219,6 +255,10 @@ class Checkpointer:
         self.close()
 
 
+#: Words of orbax's and TensorStore's errors that mean a checkpoint's files are damaged or cut
+#: short (not a state of another structure).
+_DAMAGED_FILE_WORDS = ("TensorStore", "reading array", "Error reading", "OCDBT", "DATA_LOSS",
+                       "OUT_OF_RANGE")
 _WRITE_FAILURES = ("No space left on device", "Disk quota exceeded", "Read-only file system",
                    "Permission denied")
 #: Room a checkpoint needs beyond its arrays' bytes (orbax's metadata, the meta record).

@@ -366,13 +366,14 @@ def test_mutated_dataset_manifests_verify_and_load_or_give_one_line(manifest_cas
 
 # ------------------------------------------------------------ a truncated checkpoint
 def test_a_truncated_checkpoint_state_is_one_line_without_orbax_noise(finished_run, tmp_path):
-    """Resuming from a checkpoint whose array files were cut in half: one error line, and
-    orbax's background threads are stopped (no "Event loop is closed" tracebacks at exit)."""
+    """Resuming from a checkpoint whose array data files were cut in half: one error line
+    that says so, and nothing after it (no "Event loop is closed" tracebacks from TensorStore
+    reads finishing after the failed restore: tests/test_checkpoint.py shows that race)."""
     config, run = finished_run
     workdir = tmp_path / "run"
     shutil.copytree(run, workdir)
     state = workdir / "2" / "state"
-    data = [p for p in state.rglob("*") if p.is_file() and p.stat().st_size > 64]
+    data = [p for p in state.rglob("*") if p.is_file() and p.parent.name == "d"]
     assert data
     for path in data:
         path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
@@ -382,7 +383,7 @@ def test_a_truncated_checkpoint_state_is_one_line_without_orbax_noise(finished_r
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert result.returncode == 2, result.stderr
     assert len(lines) == 1 and lines[0].startswith("jaxden: error: "), result.stderr
-    assert str(workdir / "2") in lines[0]
+    assert str(workdir / "2") in lines[0] and "cannot be read" in lines[0]
     assert "Traceback" not in result.stderr and "Event loop is closed" not in result.stderr
 
 

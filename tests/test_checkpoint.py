@@ -1,4 +1,8 @@
-"""Checkpoints: round trips, and clear errors for checkpoints of another model or config."""
+"""Checkpoints: round trips, clear errors for checkpoints of another model or config, and no
+stray tracebacks from reads that finish after a failed restore."""
+
+import contextlib
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -62,3 +66,47 @@ def test_released_weights_round_trip_and_errors(tmp_path):
     path.write_bytes(path.read_bytes()[:20])
     with pytest.raises(CheckpointError, match="corrupt"):
         load_weights(path, params_of(8))
+
+
+def test_reads_finishing_after_a_failed_restore_print_nothing(capfd, monkeypatch):
+    """What a restore meets on a damaged file: orbax awaits every TensorStore read in a fresh
+    event loop, one read fails, the loop is closed, and another read completes afterwards.
+    Its callback reaches the closed loop: TensorStore prints "Event loop is closed" with a
+    traceback, unless the loop came from ``late_callbacks_dropped`` (as every restore's does)."""
+    import asyncio
+    import threading
+
+    ts = pytest.importorskip("tensorstore")
+    from jaxden.checkpoint import late_callbacks_dropped
+
+    unraisable = []  # where TensorStore reports the callback's error, beside printing it
+    monkeypatch.setattr(sys, "unraisablehook", lambda u: unraisable.append(str(u.exc_value)))
+
+    def race(tolerant: bool) -> str:
+        promise, pending = ts.Promise.new()
+
+        async def failing():
+            await asyncio.sleep(0.01)
+            raise ValueError("a damaged file")
+
+        async def restore():
+            await asyncio.gather(pending, failing())
+
+        with late_callbacks_dropped() if tolerant else contextlib.nullcontext():
+            loop = asyncio.new_event_loop()
+        try:
+            with pytest.raises(ValueError, match="damaged"):
+                loop.run_until_complete(restore())
+        finally:
+            loop.close()
+        finishing = threading.Thread(target=lambda: promise.set_result(1))
+        finishing.start()
+        finishing.join()
+        reported = capfd.readouterr().err + "".join(unraisable)
+        unraisable.clear()
+        return reported
+
+    policy = asyncio.get_event_loop_policy()
+    assert "Event loop is closed" in race(tolerant=False)  # the race itself
+    assert race(tolerant=True) == ""
+    assert asyncio.get_event_loop_policy() is policy  # put back after the block
