@@ -19,13 +19,16 @@ pyoidn on this CPU, tests/test_oidn_jax.py):
 - **padding**: to multiples of 16 at the bottom and right, zeros in the transformed domain;
 - **output**: clamped at 0, the inverse transfer, divided by the scale, cropped;
 - **tiles** (:func:`oidn_tile_plan`): above 2160^2 padded pixels OIDN splits the frame into
-  overlapping tiles of a fixed buffer size; ``tiling="oidn"`` (the default) does the same, so
-  the output matches pyoidn there too; ``tiling="off"`` runs the whole frame at once (the
-  same away from OIDN's tile seams, where OIDN's tiles see zeros beyond their edges).
+  overlapping tiles of a bounded buffer size, run one after another; ``tiling="oidn"`` (the
+  default) does the same; ``tiling="off"`` runs the whole frame at once. The overlap (96 / 112
+  pixels) covers the networks' field, so the two agree: at 4000 x 1300, bit for bit on the
+  base network, and both 3.3e-6 relative RMSE from pyoidn on the large one. The tiles bound
+  the memory (large network, float32, CPU: about 7 GB for its 1312 x 2112 tile there).
 
 ``precision="bfloat16"`` runs the network's convolutions, pools and skips in bfloat16 (inputs,
-transfer functions and outputs stay float32): for accelerators with bfloat16 units; on the CPU
-it runs, slower than float32, about 1e-2 relative RMSE from it.
+transfer functions and outputs stay float32): meant for accelerators with bfloat16 units; on
+the CPU it runs at about float32's speed. Measured 8e-3 (large network) to 1.3e-2 (base)
+relative RMSE from float32.
 """
 
 from __future__ import annotations
