@@ -250,10 +250,18 @@ def append_line(path: str | os.PathLike, line: str) -> None:
     """Append ``line`` and a newline to ``path`` (created if missing) in one piece: a write
     that fails (a full disk) is cut off again, so the file never ends in half a line; raises
     :class:`OutputError` naming the file."""
+    append_bytes(path, (line + "\n").encode("utf-8"))
+
+
+def append_bytes(path: str | os.PathLike, data: bytes, *, create: bool = True) -> None:
+    """Append ``data`` to ``path`` in one piece (created if missing, unless ``create`` is
+    False): a write that fails is cut off again, so the file never ends in a partial record;
+    raises :class:`OutputError` naming the file."""
     path = Path(path)
-    data = memoryview((line + "\n").encode("utf-8"))
+    data = memoryview(data)
+    flags = os.O_WRONLY | os.O_APPEND | (os.O_CREAT if create else 0)
     try:
-        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+        fd = os.open(path, flags, 0o666)
     except OSError as problem:
         raise OutputError(f"cannot write {path}: {problem.strerror or problem}") from None
     try:

@@ -55,6 +55,9 @@ import warnings
 import zlib
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from cycles_render import store_denoising_passes  # the fixtures' script, beside this one
+
 # Blender 5 deprecates `use_nodes` (nodes are always on from 6.0); 4.x still needs it set.
 warnings.filterwarnings("ignore", message=".*use_nodes.*", category=DeprecationWarning)
 
@@ -224,13 +227,7 @@ def build_scene(scene_seed: int, width: int, height: int):
     camera = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
     scene.collection.objects.link(camera)
     scene.camera = camera
-    layer = scene.view_layers[0]
-    layer.cycles.denoising_store_passes = True
-    layer.use_pass_z = True
-    settings = scene.render.image_settings
-    settings.media_type = "MULTI_LAYER_IMAGE"  # Blender 5.0; before: file_format only
-    settings.file_format = "OPEN_EXR_MULTILAYER"
-    settings.color_depth = "32"
+    store_denoising_passes(scene)
     return scene, (centre[0], centre[1], 0.5)
 
 

@@ -18,6 +18,18 @@ import argparse
 import sys
 
 
+def store_denoising_passes(scene) -> None:
+    """Write the view layer's Denoising Data passes (albedo, normal, depth) and Z beside
+    Combined, as one 32-bit multilayer EXR (a part per pass)."""
+    layer = scene.view_layers[0]
+    layer.cycles.denoising_store_passes = True
+    layer.use_pass_z = True
+    settings = scene.render.image_settings
+    settings.media_type = "MULTI_LAYER_IMAGE"  # Blender 5.0; before: file_format only
+    settings.file_format = "OPEN_EXR_MULTILAYER"
+    settings.color_depth = "32"
+
+
 def build_scene(spp: int, seed: int, width: int, height: int):
     import bpy
 
@@ -50,13 +62,7 @@ def build_scene(spp: int, seed: int, width: int, height: int):
     bpy.context.object.data.energy = 500
     bpy.ops.object.camera_add(location=(0, -6, 3), rotation=(1.2, 0, 0))
     scene.camera = bpy.context.object
-    layer = scene.view_layers[0]
-    layer.cycles.denoising_store_passes = True
-    layer.use_pass_z = True
-    settings = scene.render.image_settings
-    settings.media_type = "MULTI_LAYER_IMAGE"  # Blender 5.0; before: file_format only
-    settings.file_format = "OPEN_EXR_MULTILAYER"
-    settings.color_depth = "32"
+    store_denoising_passes(scene)
     return scene
 
 

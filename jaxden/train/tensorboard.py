@@ -22,7 +22,6 @@ reads a file back (checksums verified), for tests and tools.
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
 import socket
@@ -244,23 +243,9 @@ class EventWriter:
         raise OutputError(f"cannot create an event file in {folder}: {stem}.* are all taken")
 
     def _append(self, event: bytes) -> None:
-        data = memoryview(record_bytes(event))
-        try:
-            fd = os.open(self.path, os.O_WRONLY | os.O_APPEND)
-        except OSError as problem:
-            raise OutputError(f"cannot write {self.path}: {problem.strerror or problem}") from None
-        try:
-            size = os.fstat(fd).st_size
-            try:
-                while data:
-                    data = data[os.write(fd, data):]
-            except OSError as problem:
-                with contextlib.suppress(OSError):
-                    os.ftruncate(fd, size)
-                raise OutputError(f"cannot write {self.path}: "
-                                  f"{problem.strerror or problem}") from None
-        finally:
-            os.close(fd)
+        from jaxden.fileio import append_bytes
+
+        append_bytes(self.path, record_bytes(event), create=False)
 
     def scalars(self, step: int, values: dict[str, float], wall_time: float | None = None
                 ) -> None:
