@@ -286,11 +286,16 @@ def _worker_setup() -> None:
 
 
 def _absolute_overrides(train_config, overrides: tuple[str, ...]) -> tuple[str, ...]:
-    """``overrides`` plus ``data.dataset=<absolute>`` when the run's dataset is relative: a
-    worker in another folder (a Ray node) must read the caller's dataset."""
+    """``overrides`` plus ``data.dataset=<absolute>`` when the run's dataset is relative, and
+    ``init=<absolute>`` when its ``init`` is a relative path that exists here (a shipped
+    model's name stays a name): a worker in another folder (a Ray node) must read the
+    caller's files."""
     dataset = train_config.data.dataset
     if dataset and not Path(dataset).is_absolute():
-        return (*overrides, f"data.dataset={toml_value(str(Path(dataset).absolute()))}")
+        overrides = (*overrides, f"data.dataset={toml_value(str(Path(dataset).absolute()))}")
+    init = getattr(train_config, "init", None)
+    if init and not Path(init).is_absolute() and Path(init).exists():
+        overrides = (*overrides, f"init={toml_value(str(Path(init).absolute()))}")
     return overrides
 
 

@@ -242,3 +242,20 @@ def test_shipped_sweep_files_plan_valid_runs(path):
 
                         want = expand_path(value)
                     assert (list(got) if isinstance(got, tuple) else got) == want, (run.name, key)
+
+
+def test_relative_dataset_and_init_paths_reach_the_runs_absolute(tmp_path, monkeypatch):
+    """A run may execute in another folder (a Ray node): relative data.dataset and init paths
+    that exist here are made absolute; a shipped model's name stays a name."""
+    from types import SimpleNamespace
+
+    from jaxden.sweep import _absolute_overrides
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "data").mkdir()
+    (tmp_path / "runs" / "a").mkdir(parents=True)
+    config = SimpleNamespace(data=SimpleNamespace(dataset="data"), init="runs/a")
+    assert _absolute_overrides(config, ("seed=1",)) == (
+        "seed=1", f'data.dataset="{tmp_path / "data"}"', f'init="{tmp_path / "runs" / "a"}"')
+    shipped = SimpleNamespace(data=SimpleNamespace(dataset=str(tmp_path / "data")), init="wskp-6")
+    assert _absolute_overrides(shipped, ()) == ()
