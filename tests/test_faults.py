@@ -137,6 +137,7 @@ def test_training_killed_while_checkpointing_resumes(setup, tmp_path):
     assert logged_steps(workdir) == ([1, 2, 3, 4], [0, 4])
 
 
+@pytest.mark.slow  # ~20 s: a sweep killed mid-run; test_interrupts and test_sweep cover resuming sweeps
 def test_sweep_killed_mid_run_redoes_no_finished_run(setup, tmp_path):
     """SIGKILL in the second run of a sweep (while its checkpoint 4 is written): the rerun
     skips the finished run without touching any of its files, resumes the killed one from its
