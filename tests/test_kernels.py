@@ -302,6 +302,7 @@ def test_the_two_paths_agree_in_value_and_gradient(rng, spread):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5 * np.abs(b).max())
 
 
+@pytest.mark.slow  # ~15 s idle; test_decode_forms_agree_in_value_and_gradient covers the gradients
 def test_decode_jvp_through_the_path_choice(rng):
     # SURE's divergence is a jvp of the denoiser: the choice depends on the primal only, and
     # the tangent of the global-shift path equals the per-window path's.

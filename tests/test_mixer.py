@@ -409,6 +409,7 @@ print("LOADED", len(leaves))
 """
 
 
+@pytest.mark.slow  # ~15 s idle: trains a mixer on 2 devices, loads it on 1
 def test_load_mixer_from_a_run_on_another_device_count(tmp_path):
     """`jaxden train` with two virtual CPU devices (as mixer-oidn.toml recommends) saves arrays
     sharded over both; a one-device process must still load the mixer. conftest gives this

@@ -100,6 +100,7 @@ def test_safe_albedo_is_continuous_and_bounds_the_amplification(floor):
     assert np.abs(np.diff(safe[order])).max() < 2e-4 / floor + 1e-6
 
 
+@pytest.mark.slow  # ~9 s idle
 def test_multiresolution_combination_eq7_with_zero_network():
     """Eq. 7 with all network weights 0: every level is the equal fusion of box filters of its
     (2x2-averaged) irradiance, alpha = sigmoid(0) = 1/2, and levels combine from the coarsest up
