@@ -84,6 +84,19 @@ step pd-oidnjax-k1-test oidnjax_pd test-chain 1 pd-oidnjax-k1-test
 step pd-oidnjax-k4-test oidnjax_pd test-chain 4 pd-oidnjax-test
 step pd-oidnjax-k1-test-high oidnjax_pd test-high-chain 1 pd-oidnjax-k1-test-high
 step pd-oidnjax-k4-test-high oidnjax_pd test-high-chain 4 pd-oidnjax-test-high
+# OIDN's own weights fine-tuned on jaxden renders (experiments/configs/finetune-oidn.toml):
+# pd-rt's training crops with the held-out sets' features, then stock against fine-tuned OIDN
+# on test-chain (held out) into the checkout's experiments/results/oidn (commit them).
+oidn_finetune_eval() {  # oidn_finetune_eval DENOISER NAME
+  $J evaluate denoise --data "$H/data/test-chain" --spp 2 4 8 16 64 --denoiser "$1" \
+    --out "experiments/results/oidn/$2"
+}
+step data-pd-rt-chain $J dataset refeature "$H/data/pd-rt" aux=specular-chain feature_spp=1024 \
+  --out "$H/data/pd-rt-chain"
+step finetune-oidn "${X[@]}" $J train experiments/configs/finetune-oidn.toml \
+  --workdir "$H/runs/finetune-oidn"
+step oidn-finetune-stock oidn_finetune_eval oidn-jax oidn-finetune-stock
+step oidn-finetune-tuned oidn_finetune_eval "$H/runs/finetune-oidn" oidn-finetune-tuned
 # Blender Cycles renders (experiments/renderers/cycles_dataset.py, Blender's bpy in
 # $H/bpy-venv) imported as a dataset, WSKP-6 fine-tuned on them, stock against fine-tuned on
 # the held-out views (into the checkout's experiments/results/renderers: commit them).
