@@ -194,3 +194,18 @@ def test_one_spp_input_is_told_it_needs_two(tmp_path, capsys):
     assert main(["sure", str(tmp_path / "one.exr"), "--denoiser", "oidn",
                  "--out", str(tmp_path / "s.exr")]) == 2
     assert "one sample per pixel cannot estimate" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("convention, key", [("jaxden", "jaxden.spp"),
+                                             ("jaxden", "jaxden.variance_dof"),
+                                             ("pbrt-v4", "samplesPerPixel")])
+def test_a_header_count_that_is_no_number_is_one_error(tmp_path, convention, key):
+    """A sample count or variance dof stored as text is refused naming the file and the
+    attribute, whichever reader (jaxden's header or a renderer convention's) meets it."""
+    path = tmp_path / "f.exr"
+    write_channels(path, {"R": _ramp(1), "G": _ramp(2), "B": _ramp(3)},
+                   attributes={key: "sixty-four"})
+    shown = key.removeprefix("jaxden.")
+    with pytest.raises(ExrError, match=rf"f\.exr: header attribute .*{shown} is not a number: "
+                                       r"'sixty-four'"):
+        read_frame(path, convention=convention)

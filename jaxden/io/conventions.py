@@ -197,13 +197,18 @@ def resolve(name: str, present: Iterable[str], header: Mapping[str, Any], *,
     for key in convention.spp_attributes:
         value = header.get(key.replace("{layer}", layer or ""))
         if value is not None:
-            try:
-                spp = float(value)
-            except (TypeError, ValueError):
-                raise ExrError(f"{prefix}header attribute {key} is not a number: "
-                               f"{value!r}") from None
+            spp = header_number(value, f"{prefix}header attribute {key}")
             break
     return mapping, spp, convention.variance
+
+
+def header_number(value: Any, what: str) -> float:
+    """A header attribute's ``value`` as a float; ExrError "``what`` is not a number" if it
+    is none (a string, a vector, ...)."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise ExrError(f"{what} is not a number: {value!r}") from None
 
 
 def case_hints(missing: Iterable[str], present: Iterable[str]) -> str:

@@ -29,6 +29,7 @@ import numpy as np
 
 from jaxden.errors import ExrError, FrameError
 from jaxden.fileio import atomic_write
+from jaxden.io.conventions import header_number
 from jaxden.limits import check_exr_size
 from jaxden.frame import CHANNELS, IMAGE_FIELDS, Frame, NonFinitePolicy
 
@@ -468,10 +469,7 @@ def read_frame(
     header_spp = header.get("spp")
     sample_count = spp if spp is not None else header_spp
     if sample_count is not None:
-        try:
-            sample_count = float(sample_count)
-        except (TypeError, ValueError):
-            raise ExrError(f"{path}: header attribute spp is not a number: {sample_count!r}") from None
+        sample_count = header_number(sample_count, f"{path}: header attribute spp")
         if not (np.isfinite(sample_count) and sample_count > 0):
             source = "spp=" if spp is not None else "header attribute jaxden.spp"
             raise ExrError(f"{path}: {source} must be a positive sample count, got "
@@ -486,11 +484,7 @@ def read_frame(
                            f"drop --spp, or pass --override-spp if the header is wrong")
     variance_dof = header.get("variance_dof")
     if variance_dof is not None:
-        try:
-            variance_dof = float(variance_dof)
-        except (TypeError, ValueError):
-            raise ExrError(f"{path}: header attribute jaxden.variance_dof is not a number: "
-                           f"{variance_dof!r}") from None
+        variance_dof = header_number(variance_dof, f"{path}: header attribute jaxden.variance_dof")
         if not (np.isfinite(variance_dof) and variance_dof > 0):
             raise ExrError(f"{path}: header attribute jaxden.variance_dof (the variance's "
                            f"degrees of freedom) must be > 0, got {variance_dof:g}")
