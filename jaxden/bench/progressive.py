@@ -36,7 +36,9 @@ compiled and warmed up before timing, timed alternately, median of the repeats:
   above. Its parts, each / one pyoidn call: ``oidnjax_over_oidn`` the forward alone,
   ``oidnjax_sure_over_oidn`` SURE (y and its SURE map from one jvp pass),
   ``oidnjax_mixer_over_oidn`` the mixer as the pipeline calls it, ``oidnjax_tstat_over_oidn``
-  the t-statistic scaling.
+  the t-statistic scaling. ``pd_oidnjax_k4_over_oidn``: the same pipeline with 4 probes (4
+  jvp passes), the form whose PD tables equal the finite-difference ones
+  (experiments/results/pd/pd-oidn-sure-forms.md).
 """
 
 from __future__ import annotations
@@ -116,14 +118,15 @@ def bench_progressive(quick: bool) -> dict:
                                            config.swap_average))
     jax_mixed = np.asarray(x + jax_alpha * (jax_y - x))
 
-    def pd_oidnjax():
-        out = progressive_denoise(device_frame, oidnjax, params, config, key, num_probes=1,
-                                  method="jvp")[0]
+    def pd_oidnjax(probes: int = 1):
+        out = progressive_denoise(device_frame, oidnjax, params, config, key,
+                                  num_probes=probes, method="jvp")[0]
         return jax.block_until_ready(out)
 
     runners = {
         "oidn": lambda: oidn(frame),
         "pd_oidnjax": pd_oidnjax,
+        "pd_oidnjax_k4": lambda: pd_oidnjax(4),
         "oidnjax": lambda: jax.block_until_ready(oidnjax_forward(device_frame)),
         "oidnjax_sure": oidnjax_sure,
         "oidnjax_mixer": lambda: inference_alpha(params, x, jax_y, var, jax_sure, config,
@@ -147,7 +150,8 @@ def bench_progressive(quick: bool) -> dict:
     return {
         **{f"{name}_over_oidn": median[name] / median["oidn"]
            for name in ("pd", "pd_single", "mixer", "tstat", "guard", "closed_form",
-                        "pd_oidnjax", "oidnjax", "oidnjax_sure", "oidnjax_mixer",
+                        "pd_oidnjax", "pd_oidnjax_k4", "oidnjax", "oidnjax_sure",
+                        "oidnjax_mixer",
                         "oidnjax_tstat")},
         "closed_form_stops_over_closed_form": median["closed_form_stops"] / median["closed_form"],
         "guard_strata_over_guard": median["guard_strata"] / median["guard"],

@@ -254,11 +254,13 @@ def cmd_progressive(args: argparse.Namespace) -> int:
     out, alpha_out = exr_outputs(("--out", args.out), ("--alpha", args.alpha),
                                  inputs=(args.input, *(args.buffers or ())),
                                  overwrite_input=args.overwrite_input)
+    from jaxden.denoise.registry import split_spec
+    from jaxden.progressive.pipeline import TWINS
+
+    base, _ = split_spec(args.denoiser)  # wskp-6:emission=separate -> wskp-6's mixer
     if args.mixer is None:
-        from jaxden.denoise.registry import split_spec
         from jaxden.progressive.pipeline import SHIPPED_MIXERS, shipped_mixer_path
 
-        base, _ = split_spec(args.denoiser)  # wskp-6:emission=separate -> wskp-6's mixer
         if not isinstance(base, str) or shipped_mixer_path(base) is None:
             raise CheckpointError(
                 f"jaxden progressive: no mixer ships for denoiser {args.denoiser!r} (shipped: "
@@ -275,6 +277,7 @@ def cmd_progressive(args: argparse.Namespace) -> int:
     if buffers is None:
         buffers_notice(args.input)
     if (config.kind == "network" and config.denoiser != denoiser.name
+            and TWINS.get(denoiser.name) != config.denoiser
             and Path(config.denoiser).name != Path(args.denoiser).name):
         stderr(f"jaxden: note: the mixer was trained on the output of denoiser "
                 f"{config.denoiser!r}; mixing {denoiser.name!r} instead")
@@ -353,7 +356,7 @@ def add_commands(sub) -> None:
                    help="trained mixer: a shipped name (oidn-pd), a checkpoint folder of "
                         "`jaxden train` or a .msgpack file; or closed-form[:sigma=S] (the "
                         "paper's Eq. 9 with local means: no weights, any denoiser); default: "
-                        "the mixer shipped for --denoiser (oidn-pd for oidn)")
+                        "the mixer shipped for --denoiser (oidn-pd for oidn and oidn-jax)")
     p.add_argument("--out", required=True, help="output .exr")
     p.add_argument("--alpha", default=None, help="also write the mixing weights to this .exr")
     p.add_argument("--buffers", nargs="+", default=None, metavar="BUFFER.exr",

@@ -250,8 +250,8 @@ def sure_input_options(parser: argparse.ArgumentParser, *, probes_from_mixer: bo
                              "its sure_probes)" if probes_from_mixer else
                         "SURE probes K (default 4)")
     parser.add_argument("--method", choices=("auto", "jvp", "fd"), default="auto",
-                        help="SURE divergence: jvp (JAX denoisers), fd (finite differences; the "
-                             "only choice for OIDN), auto (default)")
+                        help="SURE divergence: jvp (JAX denoisers, oidn-jax included), fd (finite "
+                             "differences; the only choice for the C++ OIDN), auto (default)")
     parser.add_argument("--eps", type=positive_float, default=None,
                         help="finite-difference step (default: 1e-2 for OIDN, 1e-3 for JAX fd)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the SURE probes")

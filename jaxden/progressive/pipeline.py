@@ -134,7 +134,12 @@ def mix_given_sure(x, y, var, sure, mixer_params, mixer_config: MixerConfig, *,
 
 
 #: Mixers shipped in ``jaxden/weights/`` per denoiser name: ``{denoiser: weights name}``.
-SHIPPED_MIXERS: dict[str, str] = {"oidn": "oidn-pd", "wskp-6": "wskp-6-pd"}
+#: OIDN in JAX (``oidn-jax``) is OIDN to float32 rounding, so OIDN's mixer serves it.
+SHIPPED_MIXERS: dict[str, str] = {"oidn": "oidn-pd", "oidn-jax": "oidn-pd", "wskp-6": "wskp-6-pd"}
+
+#: Denoisers that give, to float32 rounding, the output of the one a shipped mixer was
+#: trained on: ``{denoiser: the mixer's denoiser}`` (the mixer is theirs as much).
+TWINS: dict[str, str] = {"oidn-jax": "oidn"}
 
 
 def shipped_mixer_path(denoiser: str = "oidn"):
@@ -154,8 +159,9 @@ def shipped_progressive_denoiser(denoiser: str = "oidn", *, seed: int = 0,
 
     Returns a function ``frame -> (z_prime, alpha_prime)`` (NumPy float32, (H, W, 3) each):
     :func:`progressive_denoise` with the shipped mixer (``jaxden/weights/oidn-pd.msgpack`` for
-    OIDN; see its model card ``oidn-pd.md``), its t-statistic config, ``num_probes`` SURE
-    probes (None: as many as the mixer was trained with) drawn from ``PRNGKey(seed)``.
+    OIDN and OIDN in JAX; see its model card ``oidn-pd.md``), its t-statistic config,
+    ``num_probes`` SURE probes (None: as many as the mixer was trained with) drawn from
+    ``PRNGKey(seed)``.
     """
     path = shipped_mixer_path(denoiser)
     if path is None:
