@@ -97,11 +97,17 @@ HEADLINE = {
     ("inference time, 1280 x 720: WSKP-6 / KP; WSKP-6 / OIDN", "one frame"): [
         ("bench-denoisers.json", _key("wskp6_over_kp")),
         ("bench-denoisers.json", _key("wskp6_over_oidn"))],
+    ("OIDN in JAX (Intel's weights) / pyoidn, 1280 x 720", "one frame"): [
+        ("bench-denoisers.json", _key("oidnjax_over_oidn"))],
     ("SURE by `jax.jvp` (one probe) / one WSKP-6 forward, 1280 x 720", "one frame"): [
         ("bench-sure.json", _key("jvp_k1_over_forward"))],
     ("PD(WSKP-6) / one WSKP-6 forward; PD(OIDN) / one OIDN call, 1280 x 720", "one frame"): [
         ("bench-progressive.json", _key("pd_wskp6_over_wskp6")),
         ("bench-progressive.json", _key("pd_over_oidn"))],
+    ("PD(OIDN in JAX), SURE by `jax.jvp`: 1 probe; 4 probes / one pyoidn call, 1280 x 720",
+     "the same run"): [
+        ("bench-progressive.json", _key("pd_oidnjax_over_oidn")),
+        ("bench-progressive.json", _key("pd_oidnjax_k4_over_oidn"))],
     ("box-sum kernel decoder / unfold decoder, 6 kernels 3..13: memory, time", "1280 x 720"): [
         ("bench-decoder.json", _key("memory_ratio")),
         ("bench-decoder.json", _key("time_ratio"))],
