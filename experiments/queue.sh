@@ -97,6 +97,11 @@ step finetune-oidn "${X[@]}" $J train experiments/configs/finetune-oidn.toml \
   --workdir "$H/runs/finetune-oidn"
 step oidn-finetune-stock oidn_finetune_eval oidn-jax oidn-finetune-stock
 step oidn-finetune-tuned oidn_finetune_eval "$H/runs/finetune-oidn" oidn-finetune-tuned
+step oidn-finetune-gain .venv/bin/python experiments/finetune_gain.py \
+  --stock experiments/results/oidn/oidn-finetune-stock.json \
+  --tuned experiments/results/oidn/oidn-finetune-tuned.json \
+  --title "OIDN fine-tuned on jaxden renders, held-out test-chain" \
+  --out experiments/results/oidn/oidn-finetune
 # Blender Cycles renders (experiments/renderers/cycles_dataset.py, Blender's bpy in
 # $H/bpy-venv) imported as a dataset, WSKP-6 fine-tuned on them, stock against fine-tuned on
 # the held-out views (into the checkout's experiments/results/renderers: commit them).
@@ -112,6 +117,11 @@ step finetune-wskp6-cycles "${X[@]}" $J train experiments/configs/finetune-wskp6
   --workdir "$H/runs/finetune-wskp6-cycles"
 step cycles-wskp6-stock cycles_eval wskp-6 cycles-wskp6-stock
 step cycles-wskp6-finetuned cycles_eval "$H/runs/finetune-wskp6-cycles" cycles-wskp6-finetuned
+step cycles-wskp6-gain .venv/bin/python experiments/finetune_gain.py \
+  --stock experiments/results/renderers/cycles-wskp6-stock.json \
+  --tuned experiments/results/renderers/cycles-wskp6-finetuned.json \
+  --title "WSKP-6 fine-tuned on Blender Cycles renders, held-out views" \
+  --out experiments/results/renderers/cycles-wskp6-gain
 step pd-base-unet-hdr-alb-nrm-var "${X[@]}" $J sweep experiments/sweeps/pd-bases.toml \
   --workdir "$B" --only unet-hdr-alb-nrm-var
 # The held-out set and the mixers' training set.

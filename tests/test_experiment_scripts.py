@@ -734,3 +734,42 @@ def test_scripts_are_clients_of_the_package():
                     and node.value.value.id == "sys"):
                 found.append(f"{path.name} edits sys.path ({node.attr})")
     assert found == []
+
+
+def _denoise_report(path, psnr_by_cell, manifest="abc"):
+    rows = [{"crop": crop, "spp": spp, "den_psnr": psnr, "den_ssim": 0.5, "den_relmse": 0.1,
+             "den_flip": 0.2} for (crop, spp), psnr in psnr_by_cell.items()]
+    path.write_text(json.dumps({"rows": rows, "provenance": {
+        "dataset": {"manifest_sha256": manifest, "dir": "d", "split": "test"},
+        "denoiser": {"spec": path.stem}}}))
+    return path
+
+
+def test_finetune_gain_tabulates_per_spp_and_refuses_other_data(tmp_path, capsys):
+    """experiments/finetune_gain.py: crop means per spp and over all, the mean PSNR gain and
+    the crops that gain, by hand; reports of another build or other crops are one line, exit 2,
+    no output written."""
+    finetune_gain = load_script("finetune_gain")
+    stock = _denoise_report(tmp_path / "stock.json", {("a", 2): 20.0, ("b", 2): 30.0,
+                                                      ("a", 4): 22.0, ("b", 4): 32.0})
+    tuned = _denoise_report(tmp_path / "tuned.json", {("a", 2): 21.0, ("b", 2): 29.5,
+                                                      ("a", 4): 23.0, ("b", 4): 33.0})
+    out = tmp_path / "gain"
+    assert finetune_gain.main(["--stock", str(stock), "--tuned", str(tuned),
+                               "--out", str(out)]) == 0
+    table = json.loads(out.with_suffix(".json").read_text())["per_spp"]
+    assert table["2"]["stock_psnr"] == 25.0 and table["2"]["tuned_psnr"] == 25.25
+    assert table["2"]["psnr_gain"] == 0.25 and table["2"]["crops_gaining"] == 1
+    assert table["2"]["worst_psnr_gain"] == -0.5 and table["4"]["crops_gaining"] == 2
+    assert table["all"]["crops"] == 4 and table["all"]["psnr_gain"] == 0.625
+    assert "| 2 | 2 | 25.00 | 25.25 |" in out.with_suffix(".md").read_text()
+    other = _denoise_report(tmp_path / "other.json", {("a", 2): 1.0, ("b", 2): 1.0,
+                                                      ("a", 4): 1.0, ("b", 4): 1.0}, "xyz")
+    fewer = _denoise_report(tmp_path / "fewer.json", {("a", 2): 21.0})
+    for bad, message in ((other, "another dataset build"), (fewer, "other crops or spp")):
+        capsys.readouterr()
+        assert finetune_gain.main(["--stock", str(stock), "--tuned", str(bad),
+                                   "--out", str(tmp_path / "bad")]) == 2
+        err = capsys.readouterr().err
+        assert message in err and bad.name in err and len(err.strip().splitlines()) == 1
+        assert not (tmp_path / "bad.md").exists()
