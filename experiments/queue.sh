@@ -102,6 +102,12 @@ step oidn-finetune-gain .venv/bin/python experiments/finetune_gain.py \
   --tuned experiments/results/oidn/oidn-finetune-tuned.json \
   --title "OIDN fine-tuned on jaxden renders, held-out test-chain" \
   --out experiments/results/oidn/oidn-finetune
+# A mixer trained on one-probe jvp SURE of OIDN in JAX (experiments/configs/mixer-oidnjax-k1.toml,
+# the shipped oidn-pd recipe otherwise): its training set first (about 80 min here).
+step data-default-chain $J dataset build experiments/configs/dataset-default.toml \
+  name=default-chain --out "$H/data/default-chain"
+step mixer-oidnjax-k1 "${X[@]}" $J train experiments/configs/mixer-oidnjax-k1.toml \
+  data.dataset="$H/data/default-chain" --workdir "$H/runs/mixer-oidnjax-k1"
 # Blender Cycles renders (experiments/renderers/cycles_dataset.py, Blender's bpy in
 # $H/bpy-venv) imported as a dataset, WSKP-6 fine-tuned on them, stock against fine-tuned on
 # the held-out views (into the checkout's experiments/results/renderers: commit them).
