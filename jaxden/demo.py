@@ -40,7 +40,7 @@ class DemoSettings:
     spp_levels: tuple[int, ...] = (1, 4, 16, 64, 256)
     reference_spp: int = 4096
     seed: int = 7
-    realtime: tuple[str, ...] = ("wskp-6",)  # shipped denoisers run at every level
+    realtime: tuple[str, ...] = ("wskp-6",)  # denoisers run beside OIDN at every level
 
 
 QUICK = DemoSettings(scenes=("cornell-box",), size=(64, 64), spp_levels=(1, 4, 16, 64),
@@ -74,8 +74,15 @@ def _progressive_denoisers(realtime: tuple[str, ...]) -> dict:
     for name in ("oidn", *realtime):
         run = shipped_progressive_denoiser(name)
         if run is not None:
-            found[f"pd_{name.replace('-', '')}"] = run
+            found[f"pd_{method_key(name)}"] = run
     return found
+
+
+def method_key(spec: str) -> str:
+    """The demo's method name for a denoiser spec (file names, table rows): ``wskp-6`` ->
+    ``wskp6``, a checkpoint folder -> its folder name."""
+    name = Path(str(spec).split(":", 1)[0]).name or str(spec)
+    return "".join(c for c in name if c.isalnum() or c == "_")
 
 
 def _write_preview(path: Path, image, stops: float) -> None:
@@ -132,7 +139,7 @@ def run_demo(out: Path, quick: bool = False, settings: DemoSettings | None = Non
         raise JaxdenError(f"--out {out} exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
     oidn = make_denoiser("oidn")
-    realtime = {name.replace("-", ""): load_denoiser(name) for name in settings.realtime}
+    realtime = {method_key(name): load_denoiser(name) for name in settings.realtime}
     progressive = _progressive_denoisers(tuple(settings.realtime))
     rows, flip_maps = [], {}
     started = time.perf_counter()

@@ -109,3 +109,36 @@ def test_quick_demo_command(tmp_path, capsys):
     assert summary["settings"]["spp_levels"] == list(QUICK.spp_levels)
     assert captured.out.strip().splitlines()[-1].startswith(f"report: {out / 'report.html'}")
     assert np.isfinite([r["relmse"] for r in summary["rows"]]).all()
+
+
+def test_demo_denoiser_flag_sets_the_denoisers_beside_oidn(tmp_path, monkeypatch):
+    """`jaxden demo --denoiser A --denoiser B` runs A and B beside OIDN (repeats once), on the
+    quick or the full settings otherwise unchanged; no flag keeps the default (WSKP-6)."""
+    import jaxden.demo
+    from jaxden import cli
+
+    seen = []
+    monkeypatch.setattr(jaxden.demo, "run_demo",
+                        lambda out, settings=None, report=True: seen.append(settings) or {})
+    assert cli.main(["demo", "--quick", "--out", str(tmp_path), "--denoiser", "oidn-jax",
+                     "--denoiser", "wskp-3", "--denoiser", "oidn-jax"]) == 0
+    assert cli.main(["demo", "--out", str(tmp_path)]) == 0
+    assert seen[0] == jaxden.demo.dataclasses.replace(jaxden.demo.QUICK,
+                                                      realtime=("oidn-jax", "wskp-3"))
+    assert seen[1] == jaxden.demo.DemoSettings()
+    assert jaxden.demo.method_key("oidn-jax") == "oidnjax"
+    assert jaxden.demo.method_key("/runs/finetune-oidn:emission=separate") == "finetuneoidn"
+
+
+@pytest.mark.slow
+def test_demo_with_oidn_in_jax(tmp_path):
+    """OIDN in JAX in the demo: its rows, and PD over it with the mixer that ships for it."""
+    from jaxden.demo import DemoSettings, run_demo
+
+    settings = DemoSettings(scenes=("cornell-box",), size=(32, 32), spp_levels=(4,),
+                            reference_spp=64, seed=7, realtime=("oidn-jax",))
+    summary = run_demo(tmp_path, settings=settings, report=False, progress=False)
+    rows = {row["method"]: row for row in summary["rows"]}
+    assert set(rows) == {"mc", "oidn", "oidnjax", "pd_oidn", "pd_oidnjax"}
+    assert abs(rows["oidnjax"]["rmse"] - rows["oidn"]["rmse"]) < 1e-4 * rows["oidn"]["rmse"]
+    assert (tmp_path / "cornell-box" / "spp00004.pd_oidnjax.alpha.exr").is_file()

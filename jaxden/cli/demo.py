@@ -7,9 +7,14 @@ from pathlib import Path
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from jaxden.demo import run_demo
+    import dataclasses
 
-    run_demo(Path(args.out), quick=args.quick, report=not args.no_report)
+    from jaxden.demo import QUICK, DemoSettings, run_demo
+
+    settings = QUICK if args.quick else DemoSettings()
+    if args.denoiser:
+        settings = dataclasses.replace(settings, realtime=tuple(dict.fromkeys(args.denoiser)))
+    run_demo(Path(args.out), settings=settings, report=not args.no_report)
     return 0
 
 
@@ -22,6 +27,10 @@ def add_commands(sub) -> None:
                     "and report.html (open it in a browser; see `jaxden report --help`).")
     p.add_argument("--out", default="demo-out", help="output folder (default: demo-out)")
     p.add_argument("--quick", action="store_true", help="smaller images and fewer spp levels")
+    p.add_argument("--denoiser", action="append", metavar="NAME",
+                   help="a denoiser run beside OIDN at every level, repeatable (default: "
+                        "wskp-6): a shipped name, oidn-jax, a checkpoint folder or a .msgpack "
+                        "file; PD over it too where a mixer ships for it (wskp-6, oidn-jax)")
     p.add_argument("--no-report", action="store_true",
                    help="skip the plots and report.html (EXRs, previews and tables only)")
     p.set_defaults(func=cmd_demo)
