@@ -108,6 +108,12 @@ HEADLINE = {
      "the same run"): [
         ("bench-progressive.json", _key("pd_oidnjax_over_oidn")),
         ("bench-progressive.json", _key("pd_oidnjax_k4_over_oidn"))],
+    ("PSNR (dB), stock OIDN -> OIDN fine-tuned on jaxden renders at 2-8 spp: at 2 spp; at 64 spp",
+     "test-chain: 8 held-out crops"): [
+        ("oidn-finetune.json", _key("per_spp", "2", "stock_psnr")),
+        ("oidn-finetune.json", _key("per_spp", "2", "tuned_psnr")),
+        ("oidn-finetune.json", _key("per_spp", "64", "stock_psnr")),
+        ("oidn-finetune.json", _key("per_spp", "64", "tuned_psnr"))],
     ("box-sum kernel decoder / unfold decoder, 6 kernels 3..13: memory, time", "1280 x 720"): [
         ("bench-decoder.json", _key("memory_ratio")),
         ("bench-decoder.json", _key("time_ratio"))],
