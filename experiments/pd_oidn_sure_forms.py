@@ -22,16 +22,21 @@ import json
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
+#: The last form: one jvp probe into a mixer trained on such SURE (configs/mixer-oidnjax-k1.toml,
+#: with oidn-pd's inference overrides), not oidn-pd.
+K1_MIXER = "jvp, OIDN-JAX, K = 1, mixer trained on it"
 #: (set label, [(SURE form label, report stem)]): the first report of a set is the reference.
 SETS = (
     ("test (8 crops, 2..1024 spp)", (
         ("finite differences, C++ OIDN, K = 4", "pd-oidn-test-shipped"),
         ("jvp, OIDN-JAX, K = 4", "pd-oidnjax-test"),
-        ("jvp, OIDN-JAX, K = 1", "pd-oidnjax-k1-test"))),
+        ("jvp, OIDN-JAX, K = 1", "pd-oidnjax-k1-test"),
+        (K1_MIXER, "pd-oidnjax-k1mixer-test"))),
     ("test-high (8 crops, 32..4096 spp)", (
         ("finite differences, C++ OIDN, K = 4", "pd-oidn-test-high-shipped"),
         ("jvp, OIDN-JAX, K = 4", "pd-oidnjax-test-high"),
-        ("jvp, OIDN-JAX, K = 1", "pd-oidnjax-k1-test-high"))),
+        ("jvp, OIDN-JAX, K = 1", "pd-oidnjax-k1-test-high"),
+        (K1_MIXER, "pd-oidnjax-k1mixer-test-high"))),
 )
 
 

@@ -108,6 +108,16 @@ step data-default-chain $J dataset build experiments/configs/dataset-default.tom
   name=default-chain --out "$H/data/default-chain"
 step mixer-oidnjax-k1 "${X[@]}" $J train experiments/configs/mixer-oidnjax-k1.toml \
   data.dataset="$H/data/default-chain" --workdir "$H/runs/mixer-oidnjax-k1"
+# ... scored as oidn-pd is shipped (swap average, range-aware closed form, per-channel t), one
+# probe, on both held-out sets; then `python experiments/pd_oidn_sure_forms.py` has its rows.
+k1_mixer_pd() {  # k1_mixer_pd SET NAME
+  .venv/bin/python -m jaxden.cli evaluate pd --data "$H/data/$1" --denoiser oidn-jax \
+    --mixer "$H/runs/mixer-oidnjax-k1" --probes 1 --swap-average \
+    --mixer-set closed_form_stops=1 --tstat per_channel=true --keep-current \
+    --out "experiments/results/pd/$2"
+}
+step pd-oidnjax-k1mixer-test k1_mixer_pd test-chain pd-oidnjax-k1mixer-test
+step pd-oidnjax-k1mixer-test-high k1_mixer_pd test-high-chain pd-oidnjax-k1mixer-test-high
 # Blender Cycles renders (experiments/renderers/cycles_dataset.py, Blender's bpy in
 # $H/bpy-venv) imported as a dataset, WSKP-6 fine-tuned on them, stock against fine-tuned on
 # the held-out views (into the checkout's experiments/results/renderers: commit them).
