@@ -235,6 +235,18 @@ def test_the_two_forms_of_sure_have_their_own_default_folders(dataset):
         plain.name + "-cov")
 
 
+def test_spec_options_give_their_own_cache_folder(tmp_path):
+    """A denoiser run with spec options (another output) gets its own derived/ folder; its
+    default config keeps the plain name, and equal options share one."""
+    from jaxden.denoise.registry import load_denoiser
+
+    folder = lambda spec: cache_build.default_cache_dir(tmp_path, load_denoiser(spec)).name  # noqa: E731
+    assert folder("oidn") == "oidn" and folder("oidn:quality=high") == "oidn"
+    fast = folder("oidn:quality=fast")
+    assert fast.startswith("oidn-c") and fast == folder("oidn:quality=fast")
+    assert len({fast, folder("oidn:aux=albedo"), folder("oidn")}) == 3
+
+
 def test_open_training_cache_without_building(dataset, tmp_path, oidn_cache):
     config = MixerConfig(denoiser="oidn", build_cache=False, cache=str(tmp_path / "none"))
     with pytest.raises(DatasetError, match="no SURE cache.*sure-cache"):

@@ -101,9 +101,18 @@ def denoiser_identity(denoiser) -> dict[str, Any]:
 
 
 def denoiser_slug(denoiser) -> str:
-    """Folder name for a denoiser: its name, plus a parameter hash for trained weights."""
+    """Folder name for a denoiser: its name, plus a parameter hash for trained weights, plus a
+    config hash for a denoiser with spec options run with other than its default config
+    (``oidn:quality=fast``, ``oidn-jax:precision=bfloat16``: another output, another cache;
+    the default config keeps the plain name)."""
+    slug = denoiser.name
+    definition = getattr(denoiser, "definition", None)
+    if definition is not None and definition.options and \
+            denoiser.config != definition.config_cls():
+        text = json.dumps(_plain(denoiser.config), sort_keys=True, default=str)
+        slug += "-c" + hashlib.sha256(text.encode()).hexdigest()[:8]
     digest = params_sha256(denoiser.params)
-    return denoiser.name if digest is None else f"{denoiser.name}-{digest[:10]}"
+    return slug if digest is None else f"{slug}-{digest[:10]}"
 
 
 # ------------------------------------------------------------------------------- files
