@@ -254,13 +254,13 @@ def cmd_progressive(args: argparse.Namespace) -> int:
     out, alpha_out = exr_outputs(("--out", args.out), ("--alpha", args.alpha),
                                  inputs=(args.input, *(args.buffers or ())),
                                  overwrite_input=args.overwrite_input)
-    from jaxden.denoise.registry import split_spec
     from jaxden.progressive.pipeline import TWINS
 
-    base, _ = split_spec(args.denoiser)  # wskp-6:emission=separate -> wskp-6's mixer
     if args.mixer is None:
+        from jaxden.denoise.registry import split_spec
         from jaxden.progressive.pipeline import SHIPPED_MIXERS, shipped_mixer_path
 
+        base, _ = split_spec(args.denoiser)  # wskp-6:emission=separate -> wskp-6's mixer
         if not isinstance(base, str) or shipped_mixer_path(base) is None:
             raise CheckpointError(
                 f"jaxden progressive: no mixer ships for denoiser {args.denoiser!r} (shipped: "
