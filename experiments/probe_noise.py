@@ -24,29 +24,15 @@ import numpy as np
 
 
 def measure(data: str, denoiser_spec: str, probes: int, spp, seed: int) -> list[dict]:
-    import jax
-    import jax.numpy as jnp
-
     from jaxden.data.crops import iter_crops
     from jaxden.denoise.registry import load_denoiser
-    from jaxden.sure.stein import draw_probes
 
     denoiser = load_denoiser(denoiser_spec)
     function = denoiser.function()
     rows = []
     for crop, _, inputs in iter_crops(data, "test", tuple(spp) if spp else None):
         for level, frame in inputs:
-            x = jnp.asarray(frame.color, jnp.float32)
-            variance = jnp.asarray(frame.variance, jnp.float32)
-            tangent = jax.jit(lambda b, frame=frame, x=x: jax.jvp(
-                lambda c: function(frame.replace(color=c)), (x,), (b,))[1])
-            gaussian = draw_probes(jax.random.PRNGKey(seed), variance, probes)
-            scale = jnp.sqrt(variance)
-            rademacher = scale * jnp.where(gaussian / jnp.where(scale > 0, scale, 1.0) >= 0,
-                                           1.0, -1.0)
-            estimates = {}
-            for kind, draws in (("gaussian", gaussian), ("rademacher", rademacher)):
-                estimates[kind] = np.stack([np.asarray(b * tangent(b)) for b in draws])
+            estimates = one_probe_estimates(function, frame, probes, seed)
             std = {kind: float(values.std(axis=0, ddof=1).mean())
                    for kind, values in estimates.items()}
             rows.append({"crop": crop.id, "spp": int(level), "gaussian_std": std["gaussian"],
@@ -55,6 +41,25 @@ def measure(data: str, denoiser_spec: str, probes: int, spp, seed: int) -> list[
                          "mean_divergence_term": float(np.mean(
                              [values.mean(axis=0).mean() for values in estimates.values()]))})
     return rows
+
+
+def one_probe_estimates(function, frame, probes: int, seed: int) -> dict[str, np.ndarray]:
+    """``{"gaussian": (K, H, W, 3), "rademacher": ...}``: b * (J b) per probe, for jaxden's
+    Gaussian probes ``draw_probes(PRNGKey(seed), var, K)`` and their signs times sqrt(var)."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxden.sure.stein import draw_probes
+
+    x = jnp.asarray(frame.color, jnp.float32)
+    variance = jnp.asarray(frame.variance, jnp.float32)
+    tangent = jax.jit(lambda b: jax.jvp(lambda c: function(frame.replace(color=c)),
+                                        (x,), (b,))[1])
+    gaussian = draw_probes(jax.random.PRNGKey(seed), variance, probes)
+    scale = jnp.sqrt(variance)
+    rademacher = scale * jnp.where(gaussian / jnp.where(scale > 0, scale, 1.0) >= 0, 1.0, -1.0)
+    return {kind: np.stack([np.asarray(b * tangent(b)) for b in draws])
+            for kind, draws in (("gaussian", gaussian), ("rademacher", rademacher))}
 
 
 def summarize(rows: list[dict]) -> dict:
