@@ -56,7 +56,7 @@ import zlib
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cycles_render import store_denoising_passes  # the fixtures' script, beside this one
+from cycles_render import cycles_scene, store_denoising_passes  # the fixtures' script, beside it
 
 # Blender 5 deprecates `use_nodes` (nodes are always on from 6.0); 4.x still needs it set.
 warnings.filterwarnings("ignore", message=".*use_nodes.*", category=DeprecationWarning)
@@ -181,18 +181,11 @@ def build_scene(scene_seed: int, width: int, height: int):
     import bpy
 
     rng = random.Random(scene_seed)
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
-    scene.render.engine = "CYCLES"
-    scene.cycles.device = "CPU"
-    scene.cycles.use_denoising = False
-    scene.cycles.use_adaptive_sampling = False
+    scene = cycles_scene(width, height)
     scene.cycles.sample_clamp_direct = scene.cycles.sample_clamp_indirect = 0.0
     scene.cycles.pixel_filter_type = "BOX"  # one pixel's samples per pixel, as jaxden's data
     scene.cycles.filter_width = 1.0
     scene.render.use_persistent_data = True
-    scene.render.resolution_x, scene.render.resolution_y = width, height
-    scene.render.resolution_percentage = 100
     world = bpy.data.worlds.new("sky")
     world.use_nodes = True
     background = world.node_tree.nodes["Background"]

@@ -30,19 +30,29 @@ def store_denoising_passes(scene) -> None:
     settings.color_depth = "32"
 
 
-def build_scene(spp: int, seed: int, width: int, height: int):
+def cycles_scene(width: int, height: int):
+    """An empty Blender scene (factory settings) rendered by Cycles on the CPU at ``width`` x
+    ``height``, no denoising, no adaptive sampling: what every render of these scripts starts
+    from. Returns the bpy scene."""
     import bpy
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     scene.render.engine = "CYCLES"
     scene.cycles.device = "CPU"
-    scene.cycles.samples = spp
-    scene.cycles.seed = seed
     scene.cycles.use_denoising = False
     scene.cycles.use_adaptive_sampling = False
     scene.render.resolution_x, scene.render.resolution_y = width, height
     scene.render.resolution_percentage = 100
+    return scene
+
+
+def build_scene(spp: int, seed: int, width: int, height: int):
+    import bpy
+
+    scene = cycles_scene(width, height)
+    scene.cycles.samples = spp
+    scene.cycles.seed = seed
     bpy.ops.mesh.primitive_plane_add(size=10)
     bpy.ops.mesh.primitive_uv_sphere_add(radius=1, location=(-0.6, 0, 1))
     glossy = bpy.data.materials.new("glossy")
