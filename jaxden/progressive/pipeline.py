@@ -133,13 +133,15 @@ def mix_given_sure(x, y, var, sure, mixer_params, mixer_config: MixerConfig, *,
     return mix_unchecked(x, y, alpha_prime), alpha_prime, alpha, mixed
 
 
-#: Mixers shipped in ``jaxden/weights/`` per denoiser name: ``{denoiser: weights name}``.
-#: OIDN in JAX (``oidn-jax``) is OIDN to float32 rounding, so OIDN's mixer serves it.
-SHIPPED_MIXERS: dict[str, str] = {"oidn": "oidn-pd", "oidn-jax": "oidn-pd", "wskp-6": "wskp-6-pd"}
-
 #: Denoisers that give, to float32 rounding, the output of the one a shipped mixer was
-#: trained on: ``{denoiser: the mixer's denoiser}`` (the mixer is theirs as much).
+#: trained on: ``{denoiser: the mixer's denoiser}`` (the mixer is theirs as much). OIDN in
+#: JAX (``oidn-jax``) is OIDN with Intel's weights.
 TWINS: dict[str, str] = {"oidn-jax": "oidn"}
+
+#: Mixers shipped in ``jaxden/weights/`` per denoiser name: ``{denoiser: weights name}``; a
+#: twin (:data:`TWINS`) takes its original's.
+SHIPPED_MIXERS: dict[str, str] = {"oidn": "oidn-pd", "wskp-6": "wskp-6-pd"}
+SHIPPED_MIXERS.update({twin: SHIPPED_MIXERS[original] for twin, original in TWINS.items()})
 
 
 def shipped_mixer_path(denoiser: str = "oidn"):
