@@ -106,6 +106,7 @@ def cmd_sure(args: argparse.Namespace) -> int:
         denoiser, frame, jax.random.PRNGKey(args.seed), num_probes=args.probes, method=method,
         eps=eps, probe_batch=args.probe_batch, nonfinite=args.nonfinite, where=str(args.input),
         tile=args.tile, limit=_memory_limit(args), progress=True, on_plan=tell,
+        probe_dist=args.probe_dist,
     )
     for name in ("denoised", "sure"):
         check_finite_result(getattr(result, name), f"the {name} image",
@@ -113,13 +114,13 @@ def cmd_sure(args: argparse.Namespace) -> int:
     write_sure_exr(out, result, attributes={
         "source": str(args.input), "denoiser": denoiser.name, "probes": args.probes,
         "method": method, "eps": -1.0 if eps is None else float(eps), "seed": args.seed,
-        "covariance": int(frame.covariance is not None),
+        "covariance": int(frame.covariance is not None), "probe_dist": args.probe_dist,
     })
     mse = float(np.mean(np.asarray(result.sure)))
     probes = ("from the colour covariance" if frame.covariance is not None
               else "per channel: the file has no covariance.RG/GB/BR")
     print(f"wrote {out}: R,G,B = denoised by {denoiser.name}, sure.* = per-pixel SURE "
-          f"({args.probes} probes {probes}, {method}); image SURE (MSE estimate) = {mse:.6g}")
+          f"({args.probes} {args.probe_dist} probes {probes}, {method}); image SURE (MSE estimate) = {mse:.6g}")
     return 0
 
 
@@ -235,7 +236,7 @@ def _memory_limit(args: argparse.Namespace) -> int | None:
 
 def _plan_options(args: argparse.Namespace, probes: int, config) -> dict:
     return dict(num_probes=probes, method=args.method, eps=args.eps,
-                probe_batch=args.probe_batch, tstat=None if args.no_tstat else config.tstat,
+                probe_batch=args.probe_batch, probe_dist=args.probe_dist, tstat=None if args.no_tstat else config.tstat,
                 nonfinite=args.nonfinite, swap_average=args.swap_average, tile=args.tile,
                 limit=_memory_limit(args))
 
@@ -300,13 +301,14 @@ def cmd_progressive(args: argparse.Namespace) -> int:
     z = outputs["z"]
     swap_average = config.swap_average if args.swap_average is None else args.swap_average
     attributes = {"source": str(args.input), "denoiser": denoiser.name, "mixer": str(args.mixer),
-                  "probes": probes, "seed": args.seed, "tstat": int(not args.no_tstat),
+                  "probes": probes, "probe_dist": args.probe_dist or config.sure_probe_dist,
+                  "seed": args.seed, "tstat": int(not args.no_tstat),
                   "swap_average": int(swap_average)}
     message = f"wrote {out} (progressive denoising: {denoiser.name} + mixer {args.mixer}"
     if buffers is None:
         message += ")"
     else:  # SURE from the sub-buffers: no probes, no seed
-        del attributes["probes"], attributes["seed"]
+        del attributes["probes"], attributes["probe_dist"], attributes["seed"]
         attributes |= {"method": "buffers", "buffers": len(buffers)}
         message += f", SURE from {len(buffers)} sub-buffers)"
     check_finite_result(z, "the progressive-denoising result",

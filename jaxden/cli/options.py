@@ -238,6 +238,11 @@ def stderr(message: str) -> None:
     print(message, file=sys.stderr)
 
 
+#: ``jaxden.sure.PROBE_DISTS``, named here so that parsing a command does not import JAX
+#: (tests/test_sure_probe_dist.py checks the two agree).
+PROBE_DISTS_CLI = ("normal", "rademacher")
+
+
 def sure_input_options(parser: argparse.ArgumentParser, *, probes_from_mixer: bool = False) -> None:
     """The input and SURE options of ``jaxden sure`` and ``jaxden progressive``; with
     ``probes_from_mixer`` ``--probes`` defaults to None (the mixer's training probes)."""
@@ -254,6 +259,13 @@ def sure_input_options(parser: argparse.ArgumentParser, *, probes_from_mixer: bo
                              "differences; the only choice for the C++ OIDN), auto (default)")
     parser.add_argument("--eps", type=positive_float, default=None,
                         help="finite-difference step (default: 1e-2 for OIDN, 1e-3 for JAX fd)")
+    parser.add_argument("--probe-dist", choices=PROBE_DISTS_CLI,
+                        default=None if probes_from_mixer else "normal",
+                        help="SURE probe distribution: normal, or rademacher (random signs: no "
+                             "diagonal term in the probe noise, much less noisy per pixel at "
+                             "high spp); default: "
+                             + ("the mixer's sure_probe_dist" if probes_from_mixer
+                                else "normal"))
     parser.add_argument("--seed", type=int, default=0, help="seed of the SURE probes")
     parser.add_argument("--probe-batch", type=positive_int, default=None,
                         help="probes per jvp pass (1 bounds the memory for big images)")

@@ -253,7 +253,8 @@ def markdown_progressive(summary: dict[str, Any], denoiser: str = "OIDN") -> str
 class PDOptions:
     """What a PD result depends on besides the data. ``denoiser``: a spec (empty: the mixer's
     own base denoiser); ``mixer``: a spec for :func:`jaxden.progressive.load_mixer`;
-    ``probes``: SURE probes per image (None: the mixer's training probes); ``spp``: only these
+    ``probes``: SURE probes per image (None: the mixer's training probes); ``probe_dist``:
+    their distribution, ``normal`` or ``rademacher`` (None: the mixer's); ``spp``: only these
     input spp levels (None: all). Inference overrides of the mixer's config:
     ``swap_average``, ``tstat`` (KEY=VALUE words of its TStatConfig), ``logit_bound`` (0.0:
     no bound) and ``mixer_set`` (KEY=VALUE words of its MixerConfig, applied last)."""
@@ -263,6 +264,7 @@ class PDOptions:
     split: str = "test"
     seed: int = 0
     probes: int | None = None
+    probe_dist: str | None = None
     spp: tuple[int, ...] | None = None
     swap_average: bool | None = None
     tstat: tuple[str, ...] = ()
@@ -286,6 +288,8 @@ def resolve_mixer(options: PDOptions):
             config, tstat=load_config(config.tstat, TStatConfig, overrides=list(options.tstat)))
     if options.logit_bound is not None:
         config = dataclasses.replace(config, logit_bound=options.logit_bound or None)
+    if options.probe_dist is not None:
+        config = dataclasses.replace(config, sure_probe_dist=options.probe_dist)
     if options.mixer_set:
         config = load_config(config, MixerConfig, overrides=list(options.mixer_set))
     return params, config
@@ -310,7 +314,8 @@ def _provenance(options: PDOptions) -> dict:
             "closed_form_stops": config.closed_form_stops,
             "tstat": config_to_dict(config.tstat), "mixer_config": config_to_dict(config),
             "spp": None if options.spp is None else list(options.spp),
-            "probes": options.probes or config.sure_probes}
+            "probes": options.probes or config.sure_probes,
+            "probe_dist": config.sure_probe_dist}
 
 
 #: What a PD result must share with a new run to stand for it (``--keep-current``).

@@ -29,14 +29,15 @@ MEDIAN_CROP_TOLERANCE, MIN_SPP = 0.05, 64
 
 def sure_accuracy(dataset_dir, denoiser, *, split: str = "test", seed: int = 0,
                   num_probes: int = 4, method: str = "auto", spp: tuple[int, ...] | None = None,
-                  progress: bool = False) -> list[dict[str, Any]]:
+                  progress: bool = False, probe_dist: str = "normal") -> list[dict[str, Any]]:
     """One row per (crop, spp): ``sure`` (image mean of the per-pixel SURE of the denoiser's
     output), ``mse_nc`` (its noise-corrected true MSE against the reference), ``mse_raw``
     (uncorrected), ``reference_var`` (mean variance of the reference's pixel mean), and the
     same for the input: ``input_var`` (the mean variance of its pixel mean, the unbiased
     estimate of its MSE) and ``input_mse_nc`` (its noise-corrected true MSE). On frames with
     a colour covariance ``sure`` draws its probes from it and ``sure_diag`` is the paper's
-    per-channel form on the same normals (:mod:`jaxden.sure.stein`)."""
+    per-channel form on the same normals (:mod:`jaxden.sure.stein`). ``probe_dist``:
+    ``normal`` or ``rademacher`` probes."""
     import jax
 
     from jaxden import metrics
@@ -52,13 +53,14 @@ def sure_accuracy(dataset_dir, denoiser, *, split: str = "test", seed: int = 0,
         for level, frame in inputs:
             key = jax.random.fold_in(base, index)
             result, _ = denoise_with_sure(model, frame, key, num_probes=num_probes,
-                                          method=method)
+                                          method=method, probe_dist=probe_dist)
             index += 1
             y = np.asarray(result.denoised, np.float32)
             extra = {}
             if frame.covariance is not None:
                 diag, _ = denoise_with_sure(model, frame.replace(covariance=None), key,
-                                            num_probes=num_probes, method=method)
+                                            num_probes=num_probes, method=method,
+                                            probe_dist=probe_dist)
                 extra["sure_diag"] = float(np.mean(np.asarray(diag.sure)))
             rows.append({
                 "crop": crop.id, "scene": crop.scene, "spp": level, **extra,
@@ -163,12 +165,14 @@ def markdown_checks(checks: dict) -> str:
 @dataclasses.dataclass(frozen=True)
 class SureOptions:
     """``denoisers``: specs (``oidn``, a shipped name, a checkpoint folder), each measured on
-    the same probes; ``probes``: per image (None: 4); ``spp``: only these levels."""
+    the same probes; ``probes``: per image (None: 4); ``probe_dist``: their distribution
+    (None: normal); ``spp``: only these levels."""
 
     denoisers: tuple[str, ...] = ("oidn",)
     split: str = "test"
     seed: int = 0
     probes: int | None = None
+    probe_dist: str | None = None
     spp: tuple[int, ...] | None = None
 
 
@@ -177,7 +181,8 @@ def _run(data, options: SureOptions, *, progress: bool = False) -> dict[str, lis
 
     return {portable(spec): sure_accuracy(data, spec, split=options.split, seed=options.seed,
                                           num_probes=options.probes or 4, spp=options.spp,
-                                          progress=progress)
+                                          progress=progress,
+                                          probe_dist=options.probe_dist or "normal")
             for spec in options.denoisers}
 
 

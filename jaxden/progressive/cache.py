@@ -157,12 +157,15 @@ def item_seed(seed: int, item_id: str) -> int:
     return derive_seed(int(seed), "sure", item_id)
 
 
-def default_cache_dir(dataset_dir, denoiser, covariance: bool = False) -> Path:
+def default_cache_dir(dataset_dir, denoiser, covariance: bool = False,
+                      probe_dist: str = "normal") -> Path:
     """``DATASET/derived/<name>`` (black boxes) or ``DATASET/derived/<name>-<params hash>``,
-    with ``-cov`` for SURE from the colour covariance (both forms of one denoiser side by
-    side, as a study of the two needs)."""
+    with ``-cov`` for SURE from the colour covariance and ``-rademacher`` for Rademacher
+    probes (the forms of one denoiser side by side, as a study of them needs)."""
     slug = denoiser_slug(resolve_denoiser(denoiser))
-    return Path(dataset_dir) / DERIVED_DIR / (f"{slug}-cov" if covariance else slug)
+    slug += "-cov" if covariance else ""
+    slug += "" if probe_dist == "normal" else f"-{probe_dist}"
+    return Path(dataset_dir) / DERIVED_DIR / slug
 
 
 def cache_dataset_identity(manifest) -> dict[str, Any]:

@@ -33,6 +33,7 @@ from jaxden.progressive.cache import (
     write_sure_exr,
 )
 from jaxden.sure.denoiser import default_eps, denoise_with_sure, resolve_denoiser, resolve_method
+from jaxden.sure.stein import check_probe_dist
 
 
 def _lock(directory: Path):
@@ -81,6 +82,7 @@ def build_sure_cache(
     half: bool = False,
     progress: bool = True,
     covariance: bool = False,
+    probe_dist: str = "normal",
 ) -> SureCache:
     """Compute (or finish) the SURE cache of ``denoiser_spec`` over a built dataset.
 
@@ -101,6 +103,7 @@ def build_sure_cache(
       progress: show a tqdm bar.
       covariance: draw the probes from the colour covariance of items that have one
         (``MixerConfig.sure_covariance``); off: the per-channel form, as before it existed.
+      probe_dist: ``normal`` or ``rademacher`` probes (:func:`jaxden.sure.stein.unit_probes`).
 
     Returns the opened :class:`SureCache`. Raises DatasetError when the dataset is incomplete,
     the folder holds a cache of another dataset / denoiser / setting (naming the
@@ -123,6 +126,7 @@ def build_sure_cache(
         raise ConfigError(f"num_probes must be an integer >= 1, got {num_probes!r}")
     if fd_scheme not in ("forward", "central"):
         raise ConfigError(f"fd_scheme must be 'forward' or 'central', got {fd_scheme!r}")
+    check_probe_dist(probe_dist, "SURE cache")
     denoiser = resolve_denoiser(denoiser_spec)
     method = resolve_method(method, denoiser)
     if eps is None:
@@ -139,6 +143,8 @@ def build_sure_cache(
     }
     if covariance:  # absent when off: caches built before the option keep their key
         settings["covariance"] = True
+    if probe_dist != "normal":  # likewise
+        settings["probe_dist"] = probe_dist
     identity = {
         "dataset": cache_dataset_identity(manifest),
         "denoiser": denoiser_identity(denoiser),
@@ -146,7 +152,7 @@ def build_sure_cache(
     }
     cache_key = identity_key(identity)
     directory = (Path(out_dir) if out_dir is not None
-                 else default_cache_dir(dataset_dir, denoiser, covariance))
+                 else default_cache_dir(dataset_dir, denoiser, covariance, probe_dist))
     if directory.exists() and not directory.is_dir():
         raise DatasetError(f"{directory} exists and is not a folder")
     directory.mkdir(parents=True, exist_ok=True)
@@ -233,7 +239,7 @@ def build_sure_cache(
                 result, _ = denoise_with_sure(
                     denoiser, frame, jax.random.PRNGKey(seed_i), num_probes=num_probes,
                     method=method, eps=eps, fd_scheme=fd_scheme, probe_batch=probe_batch,
-                    where=str(dataset_dir / item.path),
+                    where=str(dataset_dir / item.path), probe_dist=probe_dist,
                 )
                 path = directory / item.path
                 path.parent.mkdir(parents=True, exist_ok=True)
@@ -291,9 +297,11 @@ def open_training_cache(dataset_dir, config) -> SureCache:
     first when ``config.build_cache`` (a complete cache costs one checksum pass to confirm)."""
     denoiser = resolve_denoiser(config.denoiser)
     directory = (Path(config.cache) if config.cache
-                 else default_cache_dir(dataset_dir, denoiser, config.sure_covariance))
+                 else default_cache_dir(dataset_dir, denoiser, config.sure_covariance,
+                                        config.sure_probe_dist))
     options = dict(num_probes=config.sure_probes, method=config.sure_method, eps=config.sure_eps,
-                   seed=config.sure_seed, covariance=config.sure_covariance)
+                   seed=config.sure_seed, covariance=config.sure_covariance,
+                   probe_dist=config.sure_probe_dist)
     if config.build_cache:
         return build_sure_cache(dataset_dir, denoiser, directory, **options)
     cache = SureCache(dataset_dir, directory)
@@ -303,11 +311,12 @@ def open_training_cache(dataset_dir, config) -> SureCache:
         eps = default_eps(method, denoiser.differentiable)
     wanted = {"denoiser": denoiser_identity(denoiser), "num_probes": config.sure_probes,
               "method": method, "eps": None if method == "jvp" else eps, "seed": config.sure_seed,
-              "covariance": config.sure_covariance}
+              "covariance": config.sure_covariance, "probe_dist": config.sure_probe_dist}
     settings = cache.identity.get("settings", {})
     stored = {"denoiser": cache.identity.get("denoiser"),
               **{k: settings.get(k) for k in ("num_probes", "method", "eps", "seed")},
-              "covariance": settings.get("covariance", False)}
+              "covariance": settings.get("covariance", False),
+              "probe_dist": settings.get("probe_dist", "normal")}
     if stored != wanted:
         from jaxden.config import config_diff
 

@@ -185,6 +185,8 @@ class MixerConfig:
         (``Frame.covariance``; :mod:`jaxden.sure.stein`), in training and at inference. Off by
         default: a mixer learns the SURE it was trained with, and mixers trained before
         frames had a covariance saw the per-channel form, which inference then keeps.
+      sure_probe_dist: ``normal`` or ``rademacher`` probes (:mod:`jaxden.sure.stein`), in
+        training and, unless told otherwise, at inference.
       build_cache: build (or finish) the cache when training starts if it is missing or
         incomplete; else a missing cache is an error.
     """
@@ -214,6 +216,7 @@ class MixerConfig:
     sure_eps: float | None = bounded(None, low=0, low_open=True, high=1)
     sure_seed: int = bounded(0, low=0, high=4294967295)
     sure_covariance: bool = False
+    sure_probe_dist: Literal["normal", "rademacher"] = "normal"
     build_cache: bool = True
 
     def __post_init__(self):

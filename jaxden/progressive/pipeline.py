@@ -35,6 +35,7 @@ def progressive_denoise(
     probe_batch: int | None = None,
     nonfinite: str = "error",
     swap_average: bool | None = None,
+    probe_dist: str | None = None,
 ):
     """The whole progressive-denoising pipeline on one frame (paper Fig. 6).
 
@@ -54,6 +55,8 @@ def progressive_denoise(
       num_probes, method (``auto``/``jvp``/``fd``), eps (None: measured default),
         probe_batch: SURE options (:func:`jaxden.sure.sure`); ``num_probes`` None: the
         mixer's ``sure_probes``, the number it was trained with (its SURE input's noise).
+      probe_dist: ``normal`` or ``rademacher`` SURE probes; None: the mixer's
+        ``sure_probe_dist``.
       tstat: :class:`TStatConfig`; default the mixer config's; None skips the scaling
         (the paper's "w/o t-test" ablation).
       nonfinite: ``"error"`` or ``"zero"`` (the authors' repair of NaN / negative variance).
@@ -84,6 +87,7 @@ def progressive_denoise(
     result, frame = denoise_with_sure(
         denoiser, frame, key, num_probes=num_probes, method=method, eps=eps,
         probe_batch=probe_batch, nonfinite=nonfinite, where="progressive_denoise",
+        probe_dist=probe_dist or mixer_config.sure_probe_dist,
     )
     y = jnp.asarray(result.denoised, jnp.float32)
     sure_map = jnp.asarray(result.sure, jnp.float32)

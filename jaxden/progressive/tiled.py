@@ -145,13 +145,14 @@ class Plan:
 # ------------------------------------------------------------------------------------ stages
 def _tile_all(denoiser_params, mixer_params, frame, key, origin, eps, sigma, *, apply,
               mixer_config, tstat, swap_average, spp, variance_dof, num_probes, method,
-              probe_batch, frame_shape, keep):
+              probe_batch, frame_shape, keep, probe_dist):
     """Denoiser, SURE (the tile's window of the frame's probes), mixer, t-statistic: one tile."""
     from jaxden.progressive.pipeline import mix_given_sure
     from jaxden.sure.stein import sure
 
     result = sure(apply, frame, key, num_probes, method, eps, params=denoiser_params,
-                  probe_batch=probe_batch, probe_window=(frame_shape, origin))
+                  probe_batch=probe_batch, probe_window=(frame_shape, origin),
+                  probe_dist=probe_dist)
     z, alpha_prime, alpha, _ = mix_given_sure(
         frame.color, result.denoised, frame.variance, result.sure, mixer_params, mixer_config,
         tstat=tstat, swap_average=swap_average, spp=spp, sigma=sigma, variance_dof=variance_dof)
@@ -195,7 +196,8 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
                               keep: tuple[str, ...] = ("z", "alpha_prime", "alpha"),
                               tile: int | None = None, halo: int | None = None,
                               limit: int | None = None, progress: bool = False,
-                              plan_only: bool = False, on_plan=None, buffers=None):
+                              plan_only: bool = False, on_plan=None, buffers=None,
+                              probe_dist: str | None = None):
     """:func:`jaxden.progressive.progressive_denoise` over tiles: the same outputs (to float
     rounding) in memory set by the tile (module docstring).
 
@@ -209,7 +211,8 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
     of K >= 2 independent sub-buffers whose mean is the frame's colour: SURE is then their
     sub-buffer SURE (:func:`jaxden.sure.sure_buffers`; ``divergence`` its covariance term)
     instead of probe SURE, with the denoiser on the whole frame and the mixer stage over tiles;
-    ``num_probes``, ``method``, ``eps``, ``probe_batch`` and ``key`` then go unused.
+    ``num_probes``, ``method``, ``eps``, ``probe_batch``, ``probe_dist`` and ``key`` then go
+    unused. ``probe_dist`` None: the mixer's ``sure_probe_dist``.
 
     Returns ``(outputs, plan)``: float32 NumPy arrays (H, W, 3) by name, and the :class:`Plan`.
     Raises MemoryPlanError when the frame's arrays, or its smallest tile, do not fit.
@@ -222,6 +225,7 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
         resolve_method,
         sure_blackbox_streamed,
     )
+    from jaxden.sure.stein import check_probe_dist
 
     denoiser = resolve_denoiser(denoiser)
     unknown = sorted(set(keep) - set(OUTPUTS))
@@ -248,6 +252,8 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
         frame = frame.replace(covariance=None)  # the per-channel SURE the mixer learned
     if swap_average is None:
         swap_average = mixer_config.swap_average
+    probe_dist = check_probe_dist(probe_dist or mixer_config.sure_probe_dist,
+                                  "progressive_denoise")
     method = resolve_method(method, denoiser)
     if eps is None:
         eps = default_eps(method, denoiser.differentiable) or 1e-4
@@ -278,7 +284,7 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
             swap_average=bool(swap_average), spp=spp, variance_dof=variance_dof,
             num_probes=int(num_probes), method=method,
             probe_batch=probe_batch or int(num_probes), frame_shape=(height, width, 3),
-            keep=tuple(keep))
+            keep=tuple(keep), probe_dist=probe_dist)
 
         def tile_args(tile_: Tile, arrays):
             sub = window(frame, tile_)
@@ -322,7 +328,7 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
         with blackbox_context:
             if buffers is None:
                 result = sure_blackbox_streamed(denoiser.function(), frame, key,
-                                                int(num_probes), eps)
+                                                int(num_probes), eps, probe_dist)
             else:
                 result = sure_buffers(denoiser, frame, buffers)
         arrays |= {"y": result.denoised, "sure": result.sure}
@@ -341,13 +347,15 @@ def progressive_frame(frame: Frame, denoiser, mixer_params, mixer_config: MixerC
                       swap_average: bool | None = None, nonfinite: str = "error",
                       keep: tuple[str, ...] = ("z", "alpha_prime", "alpha"),
                       tile: int | None = None, limit: int | None = None,
-                      progress: bool = False, on_plan=None, buffers=None):
+                      progress: bool = False, on_plan=None, buffers=None,
+                      probe_dist: str | None = None):
     """Progressive denoising of one frame as the command line runs it: validated once, then
     over tiles when every stage allows (:func:`progressive_denoise_tiled`, planned from the
     memory limit), else whole (:func:`jaxden.progressive.progressive_denoise`: batched frames,
     the guard's noise strata, JAX denoisers without a receptive field, ``tile=0``).
 
     ``tstat``: ``"config"`` (the mixer's), a :class:`TStatConfig` or None (no scaling).
+    ``probe_dist``: SURE's probes, ``normal`` or ``rademacher`` (None: the mixer's).
     ``buffers``: (K, H, W, 3) sub-buffer colours of the (one) frame: SURE from them
     (:func:`progressive_denoise_tiled`; whole-frame denoiser, the mixer stage over tiles, or
     as one tile where something must run whole).
@@ -386,11 +394,11 @@ def progressive_frame(frame: Frame, denoiser, mixer_params, mixer_config: MixerC
             frame, denoiser, mixer_params, mixer_config, key, num_probes=num_probes,
             tstat=tstat, method=method, eps=eps, probe_batch=probe_batch,
             swap_average=swap_average, keep=keep, tile=tile, limit=limit, progress=progress,
-            on_plan=on_plan)
+            on_plan=on_plan, probe_dist=probe_dist)
     z, alpha_prime, extras = progressive_denoise(
         frame, denoiser, mixer_params, mixer_config, key, num_probes=num_probes, tstat=tstat,
         method=method, eps=eps, probe_batch=probe_batch, nonfinite=nonfinite,
-        swap_average=swap_average)
+        swap_average=swap_average, probe_dist=probe_dist)
     everything = {"z": z, "alpha_prime": alpha_prime, "alpha": extras["alpha"],
                   "denoised": extras["denoised"], "sure": extras["sure"],
                   "divergence": extras["divergence"]}

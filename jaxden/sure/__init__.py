@@ -16,6 +16,7 @@ from jaxden.sure.denoiser import (
     denoise_with_sure,
 )
 from jaxden.sure.stein import (
+    PROBE_DISTS,
     SureResult,
     draw_probes,
     sure,
@@ -24,6 +25,7 @@ from jaxden.sure.stein import (
 )
 
 __all__ = [
+    "PROBE_DISTS",
     "SureResult",
     "combine_buffers",
     "denoise_with_sure",

@@ -62,13 +62,13 @@ def resolve_method(method: str, denoiser) -> str:
     return method
 
 
-@functools.partial(jax.jit, static_argnames=("num_probes",))
-def _draw_probes(key, variance, num_probes: int, covariance=None):
+@functools.partial(jax.jit, static_argnames=("num_probes", "dist"))
+def _draw_probes(key, variance, num_probes: int, covariance=None, dist="normal"):
     """:func:`jaxden.sure.draw_probes` compiled once per shape (called eagerly it retraces
     its ``lax.map`` on every call, ~0.7 s each on the project machine); the same values."""
     from jaxden.sure.stein import draw_probes
 
-    return draw_probes(key, variance, num_probes, covariance)
+    return draw_probes(key, variance, num_probes, covariance, dist)
 
 
 @functools.lru_cache(maxsize=64)
@@ -90,6 +90,7 @@ def denoise_with_sure(
     probe_batch: int | None = None,
     nonfinite: str = "error",
     where: str = "sure",
+    probe_dist: str = "normal",
 ):
     """Denoise ``frame`` and estimate the per-pixel SURE of the result.
 
@@ -97,6 +98,7 @@ def denoise_with_sure(
     ``fd`` for black boxes (:func:`jaxden.sure.sure_blackbox` with the probes of
     :func:`jaxden.sure.draw_probes`, so both paths use the same probes for the same key).
     ``eps`` None: :func:`default_eps`. ``probe_batch``: probes per jvp pass (memory; JAX only).
+    ``probe_dist``: ``normal`` or ``rademacher`` (:func:`jaxden.sure.stein.unit_probes`).
 
     Returns ``(SureResult, frame)``: fields (..., H, W, 3) (JAX arrays for JAX denoisers, NumPy
     for black boxes) and the validated frame: as given when it holds JAX arrays that pass
@@ -105,8 +107,9 @@ def denoise_with_sure(
     Raises FrameError when the frame has no variance (naming SURE and the variance), bad
     values, or lacks a feature the denoiser needs.
     """
-    from jaxden.sure.stein import require_variance, sure, sure_blackbox
+    from jaxden.sure.stein import check_probe_dist, require_variance, sure, sure_blackbox
 
+    check_probe_dist(probe_dist, where)
     denoiser = resolve_denoiser(denoiser)
     require_variance(frame, where, held_in="EXR channels variance.R/G/B")
     if nonfinite not in ("error", "zero"):
@@ -121,24 +124,26 @@ def denoise_with_sure(
         result = sure(
             _apply_fn(denoiser.definition, denoiser.config), frame, key, num_probes, method, eps,
             params=denoiser.params, fd_scheme=fd_scheme, probe_batch=probe_batch,
+            probe_dist=probe_dist,
         )
     elif fd_scheme == "forward":
-        result = sure_blackbox_streamed(denoiser.function(), frame, key, num_probes, eps)
+        result = sure_blackbox_streamed(denoiser.function(), frame, key, num_probes, eps,
+                                        probe_dist)
     else:
-        probes = np.asarray(_draw_probes(key, frame.variance, num_probes, frame.covariance),
-                            np.float64)
+        probes = np.asarray(_draw_probes(key, frame.variance, num_probes, frame.covariance,
+                                         probe_dist), np.float64)
         result = sure_blackbox(
             denoiser.function(), frame, probes=probes, eps=eps, fd_scheme=fd_scheme
         )
     return result, frame
 
 
-@jax.jit
-def _draw_probe(key, variance, covariance=None):
+@functools.partial(jax.jit, static_argnames=("dist",))
+def _draw_probe(key, variance, covariance=None, dist="normal"):
     """Probe k of :func:`_draw_probes` alone (``key`` = ``split(key, K)[k]``): the same values."""
-    from jaxden.sure.stein import _probe_normal, colour_factor, colour_probes
+    from jaxden.sure.stein import _probe_normal, colour_factor, colour_probes, unit_probes
 
-    normals = _probe_normal(key, variance.shape, variance.dtype)
+    normals = unit_probes(_probe_normal(key, variance.shape, variance.dtype), dist)
     if covariance is None:
         return jnp.sqrt(variance) * normals
     return colour_probes(normals, colour_factor(variance, jnp.asarray(covariance,
@@ -149,7 +154,8 @@ def _draw_probe(key, variance, covariance=None):
 _BAND_ROWS = 256
 
 
-def sure_blackbox_streamed(denoise_np, frame: Frame, key, num_probes: int, eps: float):
+def sure_blackbox_streamed(denoise_np, frame: Frame, key, num_probes: int, eps: float,
+                           probe_dist: str = "normal"):
     """Forward-difference SURE of a black box, one probe at a time: the values of
     :func:`jaxden.sure.sure_blackbox` with the probes of :func:`_draw_probes` (the same
     float64 arithmetic, per pixel), in a fraction of its memory. That form holds K probes and
@@ -176,7 +182,7 @@ def sure_blackbox_streamed(denoise_np, frame: Frame, key, num_probes: int, eps: 
     total = np.zeros(x32.shape, np.float64)
     plus = np.empty_like(x32)
     for probe_key in jax.random.split(key, num_probes):
-        b32 = np.asarray(_draw_probe(probe_key, var32, covariance), np.float32)
+        b32 = np.asarray(_draw_probe(probe_key, var32, covariance, probe_dist), np.float32)
         for band in bands:
             plus[band] = (x32[band].astype(np.float64) + eps * b32[band].astype(np.float64))
         out32 = call(plus)

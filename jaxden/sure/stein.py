@@ -35,6 +35,20 @@ pixels whose output depends on many neighbours (a blurring denoiser) get noisy p
 estimates; sums over regions average the noise away. This is on top of the intrinsic noise of
 SURE over ``x`` (the paper's Fig. 3: per-pixel SURE is too noisy to use alone).
 
+Rademacher probes (``probe_dist="rademacher"``; Hutchinson 1990): ``b = sqrt(var) r`` with
+``r_i = +-1`` equally likely. ``E[r r^T] = I`` as for normals, so the estimator stays
+unbiased, but ``r_i^2 = 1`` removes the diagonal term of the probe variance::
+
+    Var_b = var_i sum_{j != i} var_j J_ij^2 / K
+
+(the ``2 var_i^2 J_ii^2 / K`` of normal probes is gone), never more than the normal probes'
+and far less where the output follows its own pixel (``J_ii`` large), as a denoiser does at
+high spp: one Rademacher probe through OIDN is less noisy per pixel than four normal ones
+from 256 spp on (``experiments/results/sure/sure-probe-noise.md``). The signs are those of
+the normal draws (``r = +1`` where ``n >= 0``), so tiles, chunks and black boxes see the
+same probes for the same key. With a colour covariance the probes are ``L r`` (unbiased,
+``E[L r r^T L^T] = Sigma``), and the diagonal term shrinks without vanishing.
+
 Correlated colour channels (``Frame.covariance``)
 ------------------------------------------------
 R, G and B of one Monte Carlo sample come from one path, so the noise of a pixel mean is
@@ -113,6 +127,8 @@ from jaxden.frame import Frame, NonFinitePolicy
 
 Method = Literal["jvp", "fd"]
 FdScheme = Literal["forward", "central"]
+ProbeDist = Literal["normal", "rademacher"]
+PROBE_DISTS = ("normal", "rademacher")
 
 _UNSET = object()
 
@@ -224,10 +240,26 @@ def _probe_normal(key, shape, dtype):
     return jax.random.normal(key, (math.prod(shape),), dtype).reshape(shape)
 
 
-def _normals(keys, shape, dtype):
+def check_probe_dist(dist, where: str = "sure") -> str:
+    """``dist`` if it names a probe distribution (:data:`PROBE_DISTS`), else ConfigError."""
+    if dist not in PROBE_DISTS:
+        raise ConfigError(f"{where}: the probe distribution must be one of "
+                          f"{', '.join(PROBE_DISTS)}, got {dist!r}")
+    return dist
+
+
+def unit_probes(normals, dist: ProbeDist, xp=jnp):
+    """Standard normal draws as probes of ``dist`` (zero mean, identity covariance): the
+    normals themselves, or their signs (+1 where ``n >= 0``, -1 elsewhere: never 0)."""
+    if dist == "normal":
+        return normals
+    return xp.where(normals >= 0, 1.0, -1.0).astype(normals.dtype)
+
+
+def _normals(keys, shape, dtype, dist: ProbeDist = "normal"):
     # lax.map, not vmap: a sequential draw per key equals the unbatched draw for every key
     # implementation (vmap of rbg keys does not), so probe k is the same at any probe_batch.
-    return jax.lax.map(lambda k: _probe_normal(k, shape, dtype), keys)
+    return jax.lax.map(lambda k: unit_probes(_probe_normal(k, shape, dtype), dist), keys)
 
 
 def window_normal(key, frame_shape, origin, shape):
@@ -263,9 +295,11 @@ def window_normal(key, frame_shape, origin, shape):
     return np.float32(np.sqrt(2.0)) * jax.lax.erf_inv(uniform)
 
 
-def window_normals(keys, frame_shape, origin, shape):
-    """:func:`window_normal` for each of ``keys`` (K, ...): (K, rows, cols, C)."""
-    return jax.lax.map(lambda k: window_normal(k, frame_shape, origin, shape), keys)
+def window_normals(keys, frame_shape, origin, shape, dist: ProbeDist = "normal"):
+    """:func:`window_normal` for each of ``keys`` (K, ...), as probes of ``dist``
+    (:func:`unit_probes`): (K, rows, cols, C)."""
+    return jax.lax.map(
+        lambda k: unit_probes(window_normal(k, frame_shape, origin, shape), dist), keys)
 
 
 def colour_factor(variance, covariance, xp=jnp):
@@ -298,19 +332,21 @@ def colour_probes(normals, factor, xp=jnp):
     return xp.stack([l00 * n0, l10 * n0 + l11 * n1, l20 * n0 + l21 * n1 + l22 * n2], axis=-1)
 
 
-def draw_probes(key, variance, num_probes: int, covariance=None) -> jax.Array:
+def draw_probes(key, variance, num_probes: int, covariance=None,
+                dist: ProbeDist = "normal") -> jax.Array:
     """The probes ``sure(..., key, num_probes)`` uses: shape (num_probes, *variance.shape).
 
     ``b_k = sqrt(var) * n_k`` with ``n_k = normal(split(key, num_probes)[k])``, so the draw of
     probe k does not depend on the chunking (``probe_batch``), for any key implementation
     (threefry, rbg). With ``covariance`` (``Frame.covariance``) ``b_k = L n_k``, L the
     per-pixel Cholesky factor of the colour covariance (:func:`colour_factor`): the same
-    ``n_k``, so zero covariance gives the same probes. Exposed so that tests and experiments
-    can reproduce the exact probes (common random numbers).
+    ``n_k``, so zero covariance gives the same probes. ``dist="rademacher"``: ``n_k``
+    replaced by its signs (:func:`unit_probes`). Exposed so that tests and experiments can
+    reproduce the exact probes (common random numbers).
     """
     variance = jnp.asarray(variance)
     keys = jax.random.split(key, num_probes)
-    normals = _normals(keys, variance.shape, variance.dtype)
+    normals = _normals(keys, variance.shape, variance.dtype, check_probe_dist(dist))
     if covariance is None:
         return jnp.sqrt(variance) * normals
     return colour_probes(normals, colour_factor(variance, jnp.asarray(covariance, variance.dtype)))
@@ -322,10 +358,11 @@ def draw_probes(key, variance, num_probes: int, covariance=None) -> jax.Array:
 @functools.partial(
     jax.jit,
     static_argnames=("denoise_fn", "has_params", "num_probes", "method", "fd_scheme",
-                     "probe_batch", "probe_frame"),
+                     "probe_batch", "probe_frame", "probe_dist"),
 )
 def _sure_core(denoise_fn, params, frame, key, eps, *, has_params, num_probes, method,
-               fd_scheme, probe_batch, probe_frame=None, probe_origin=None):
+               fd_scheme, probe_batch, probe_frame=None, probe_origin=None,
+               probe_dist="normal"):
     """The traced computation; ``eps`` is a traced scalar (changing it does not recompile)."""
     x = frame.color
     var = frame.variance
@@ -353,9 +390,9 @@ def _sure_core(denoise_fn, params, frame, key, eps, *, has_params, num_probes, m
 
     def probes_of(chunk_keys):
         if probe_frame is None:
-            return scale_normals(_normals(chunk_keys, x.shape, x.dtype))
+            return scale_normals(_normals(chunk_keys, x.shape, x.dtype, probe_dist))
         return scale_normals(window_normals(chunk_keys, probe_frame, probe_origin,
-                                            x.shape[-3:-1]).astype(x.dtype))
+                                            x.shape[-3:-1], probe_dist).astype(x.dtype))
 
     if method == "jvp":
 
@@ -410,6 +447,7 @@ def sure(
     probe_batch: int | None = None,
     nonfinite: NonFinitePolicy = "error",
     probe_window: tuple | None = None,
+    probe_dist: ProbeDist = "normal",
 ) -> SureResult:
     """Per-pixel Monte Carlo SURE of a JAX denoiser (see the module docstring for the math).
 
@@ -438,6 +476,8 @@ def sure(
         (H, W, C) frame (one image), and its probes are that window of the whole frame's
         (:func:`window_normal`; ``row``/``col`` may be traced), so SURE over tiles equals
         SURE of the whole frame.
+      probe_dist: ``"normal"`` or ``"rademacher"`` (the signs of the same draws: no diagonal
+        term in the probe variance; see the module docstring).
 
     Returns:
       :class:`SureResult` with fields of shape (..., H, W, 3) in the colour's dtype.
@@ -450,6 +490,7 @@ def sure(
     checks only: values cannot be inspected there.
     """
     batch = _check_options(num_probes, method, eps, fd_scheme, probe_batch)
+    check_probe_dist(probe_dist)
     frame = _checked_frame(frame, "sure", nonfinite)
     has_params = params is not _UNSET
     frame = jax.tree_util.tree_map(jnp.asarray, frame)
@@ -466,6 +507,7 @@ def sure(
         probe_batch=batch,
         probe_frame=None if probe_window is None else tuple(int(n) for n in probe_window[0]),
         probe_origin=None if probe_window is None else jnp.asarray(probe_window[1], jnp.int32),
+        probe_dist=probe_dist,
     )
 
 
@@ -482,6 +524,7 @@ def sure_blackbox(
     fd_scheme: FdScheme = "forward",
     probes: np.ndarray | None = None,
     nonfinite: NonFinitePolicy = "error",
+    probe_dist: ProbeDist = "normal",
 ) -> SureResult:
     """Finite-difference SURE of a black-box (NumPy in, NumPy out) denoiser, e.g. OIDN.
 
@@ -491,7 +534,8 @@ def sure_blackbox(
     colours are rounded to float32 for the call.
 
     Args:
-      rng: seed or ``np.random.Generator`` for the probes b_k = sqrt(var) * N(0, 1).
+      rng: seed or ``np.random.Generator`` for the probes b_k = sqrt(var) * N(0, 1) (or the
+        signs of those normals, ``probe_dist="rademacher"``).
       probes: optional (K, ..., H, W, 3) probes to use instead of drawing them (for common
         random numbers with :func:`draw_probes` / :func:`sure`); overrides ``num_probes``.
       Other arguments as in :func:`sure`.
@@ -503,6 +547,7 @@ def sure_blackbox(
         probes = np.asarray(probes, dtype=np.float64)
         num_probes = int(probes.shape[0]) if probes.ndim >= 1 else 0
     _check_options(num_probes, "fd", eps, fd_scheme, None)
+    check_probe_dist(probe_dist, "sure_blackbox")
     frame = _checked_frame(frame.numpy() if isinstance(frame, Frame) else frame, "sure_blackbox",
                            nonfinite)
     x32 = np.asarray(frame.color, dtype=np.float32)
@@ -510,7 +555,8 @@ def sure_blackbox(
     var = np.asarray(frame.variance, dtype=np.float64)
     if probes is None:
         generator = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
-        normals = generator.standard_normal((num_probes,) + x.shape)
+        normals = unit_probes(generator.standard_normal((num_probes,) + x.shape), probe_dist,
+                              xp=np)
         if frame.covariance is None:
             probes = np.sqrt(var) * normals
         else:

@@ -19,18 +19,20 @@ FIELDS = ("sure", "residual_sq", "divergence_term", "denoised")
 
 
 def _tile_sure(params, frame, key, origin, eps, *, apply, num_probes, method, probe_batch,
-               frame_shape):
+               frame_shape, probe_dist):
     from jaxden.sure.stein import sure
 
     result = sure(apply, frame, key, num_probes, method, eps, params=params,
-                  probe_batch=probe_batch, probe_window=(frame_shape, origin))
+                  probe_batch=probe_batch, probe_window=(frame_shape, origin),
+                  probe_dist=probe_dist)
     return result._asdict()
 
 
 def sure_frame(denoiser, frame: Frame, key, *, num_probes: int = 4, method: str = "auto",
                eps: float | None = None, probe_batch: int | None = None,
                nonfinite: str = "error", where: str = "sure", tile: int | None = None,
-               limit: int | None = None, progress: bool = False, on_plan=None):
+               limit: int | None = None, progress: bool = False, on_plan=None,
+               probe_dist: str = "normal"):
     """:func:`jaxden.sure.denoise_with_sure` of one frame, over tiles when the denoiser is a
     JAX denoiser with a receptive field (``tile``: the side, None: the largest that fits
     ``limit``, 0: whole). Returns ``(SureResult of NumPy float32, tile)`` (tile 0: whole)."""
@@ -41,15 +43,17 @@ def sure_frame(denoiser, frame: Frame, key, *, num_probes: int = 4, method: str 
         resolve_denoiser,
         resolve_method,
     )
-    from jaxden.sure.stein import SureResult, require_variance
+    from jaxden.sure.stein import SureResult, check_probe_dist, require_variance
 
+    check_probe_dist(probe_dist, where)
     denoiser = resolve_denoiser(denoiser)
     spec = denoiser.tile_spec() if denoiser.differentiable else None
     if tile == 0 or spec is None or np.ndim(frame.color) != 3:
         with blackbox_memory(denoiser, frame, limit)[0]:
             result, _ = denoise_with_sure(denoiser, frame, key, num_probes=num_probes,
                                           method=method, eps=eps, probe_batch=probe_batch,
-                                          nonfinite=nonfinite, where=where)
+                                          nonfinite=nonfinite, where=where,
+                                          probe_dist=probe_dist)
         return SureResult(*(np.asarray(a, np.float32) for a in result)), 0
     require_variance(frame, where, held_in="EXR channels variance.R/G/B")
     used = {"color", "variance", "covariance", *denoiser.fields_read()}
@@ -63,7 +67,7 @@ def sure_frame(denoiser, frame: Frame, key, *, num_probes: int = 4, method: str 
     run = functools.partial(_tile_sure, apply=bound_apply(apply, denoiser.config),
                             num_probes=int(num_probes), method=method,
                             probe_batch=probe_batch or int(num_probes),
-                            frame_shape=(height, width, 3))
+                            frame_shape=(height, width, 3), probe_dist=probe_dist)
 
     def args_for(t):
         origin = np.asarray([t.src[0][0], t.src[1][0]], np.int32)

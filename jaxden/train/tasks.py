@@ -214,7 +214,7 @@ def mixer_task(train_config):
 
 #: The MixerConfig fields that decide its SURE cache (with the dataset).
 _CACHE_FIELDS = ("denoiser", "cache", "sure_probes", "sure_method", "sure_eps", "sure_seed",
-                 "sure_covariance", "build_cache")
+                 "sure_covariance", "sure_probe_dist", "build_cache")
 
 
 def mixer_shared_data(train_config, config: MixerConfig) -> SharedData | None:
