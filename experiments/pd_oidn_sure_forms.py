@@ -1,6 +1,7 @@
 """Progressive denoising of OIDN with its two forms of SURE side by side: finite differences of
 the C++ OIDN (4 probes, 5 pyoidn calls) and the exact divergence by ``jax.jvp`` of OIDN-JAX
-(K = 1 and 4 probes), the shipped ``oidn-pd`` mixer over each, on the same held-out sets.
+(K = 1 and 4 normal probes, K = 1 Rademacher probe), the shipped ``oidn-pd`` mixer over each,
+and one Rademacher probe into a mixer trained on such SURE, on the same held-out sets.
 
     python experiments/pd_oidn_sure_forms.py [--results experiments/results/pd]
         [--out experiments/results/pd/pd-oidn-sure-forms]
@@ -22,20 +23,23 @@ import json
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
-#: The last form: one jvp probe into a mixer trained on such SURE (configs/mixer-oidnjax-k1.toml,
-#: with oidn-pd's inference overrides), not oidn-pd.
-K1_MIXER = "jvp, OIDN-JAX, K = 1, mixer trained on it"
+#: The last form: one Rademacher jvp probe into a mixer trained on such SURE
+#: (configs/mixer-oidnjax-k1.toml, with oidn-pd's inference overrides), not oidn-pd.
+K1_MIXER = "jvp, OIDN-JAX, K = 1 Rademacher, mixer trained on it"
+K1_RADEMACHER = "jvp, OIDN-JAX, K = 1 Rademacher"
 #: (set label, [(SURE form label, report stem)]): the first report of a set is the reference.
 SETS = (
     ("test (8 crops, 2..1024 spp)", (
         ("finite differences, C++ OIDN, K = 4", "pd-oidn-test-shipped"),
         ("jvp, OIDN-JAX, K = 4", "pd-oidnjax-test"),
         ("jvp, OIDN-JAX, K = 1", "pd-oidnjax-k1-test"),
+        (K1_RADEMACHER, "pd-oidnjax-k1rad-test"),
         (K1_MIXER, "pd-oidnjax-k1mixer-test"))),
     ("test-high (8 crops, 32..4096 spp)", (
         ("finite differences, C++ OIDN, K = 4", "pd-oidn-test-high-shipped"),
         ("jvp, OIDN-JAX, K = 4", "pd-oidnjax-test-high"),
         ("jvp, OIDN-JAX, K = 1", "pd-oidnjax-k1-test-high"),
+        (K1_RADEMACHER, "pd-oidnjax-k1rad-test-high"),
         (K1_MIXER, "pd-oidnjax-k1mixer-test-high"))),
 )
 

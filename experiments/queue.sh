@@ -76,14 +76,18 @@ base_steps wskp6  # Table 2's WSKP-6 row, the one the tables still lack
 # PD of OIDN with SURE by jvp (OIDN-JAX, K = 1 and 4 probes) beside the finite-difference PD
 # tables of the C++ OIDN (pd-oidn-test-shipped, pd-oidn-test-high-shipped): into the
 # checkout's experiments/results/pd (commit them), then `python experiments/pd_oidn_sure_forms.py`.
-oidnjax_pd() {  # oidnjax_pd SET PROBES NAME
+oidnjax_pd() {  # oidnjax_pd SET PROBES NAME [--probe-dist rademacher]
   .venv/bin/python -m jaxden.cli evaluate pd --data "$H/data/$1" --denoiser oidn-jax \
-    --mixer oidn-pd --probes "$2" --keep-current --out "experiments/results/pd/$3"
+    --mixer oidn-pd --probes "$2" --keep-current --out "experiments/results/pd/$3" "${@:4}"
 }
 step pd-oidnjax-k1-test oidnjax_pd test-chain 1 pd-oidnjax-k1-test
 step pd-oidnjax-k4-test oidnjax_pd test-chain 4 pd-oidnjax-test
 step pd-oidnjax-k1-test-high oidnjax_pd test-high-chain 1 pd-oidnjax-k1-test-high
 step pd-oidnjax-k4-test-high oidnjax_pd test-high-chain 4 pd-oidnjax-test-high
+# ... and one Rademacher probe (the signs of the same draws: no diagonal probe noise)
+step pd-oidnjax-k1rad-test-high oidnjax_pd test-high-chain 1 pd-oidnjax-k1rad-test-high \
+  --probe-dist rademacher
+step pd-oidnjax-k1rad-test oidnjax_pd test-chain 1 pd-oidnjax-k1rad-test --probe-dist rademacher
 # OIDN's own weights fine-tuned on jaxden renders (experiments/configs/finetune-oidn.toml):
 # pd-rt's training crops with the held-out sets' features, then stock against fine-tuned OIDN
 # on test-chain (held out) into the checkout's experiments/results/oidn (commit them).
@@ -102,7 +106,7 @@ step oidn-finetune-gain .venv/bin/python experiments/finetune_gain.py \
   --tuned experiments/results/oidn/oidn-finetune-tuned.json \
   --title "OIDN fine-tuned on jaxden renders, held-out test-chain" \
   --out experiments/results/oidn/oidn-finetune
-# A mixer trained on one-probe jvp SURE of OIDN in JAX (experiments/configs/mixer-oidnjax-k1.toml,
+# A mixer trained on one-probe (Rademacher) jvp SURE of OIDN in JAX (configs/mixer-oidnjax-k1.toml,
 # the shipped oidn-pd recipe otherwise): its training set first (about 80 min here).
 step data-default-chain $J dataset build experiments/configs/dataset-default.toml \
   name=default-chain --out "$H/data/default-chain"
