@@ -86,36 +86,42 @@ def test_use_all_cores_sets_xla_flags_unless_the_user_chose():
         use_all_cores({CPU_DEVICES_ENV: "many"})
 
 
-# `jaxden bench NAME` with the benchmark replaced by a report of what JAX sees.
+# `jaxden train CONFIG` / `jaxden bench NAME` with the command replaced by a report of what
+# JAX sees.
 CHILD_DEVICES = """
 import sys
 import jaxden.cli.bench as bench
+import jaxden.cli.train as train
 
 def report(args):
     import jax
     print("DEVICES", len(jax.devices()))
     return 0
 
-bench.cmd_bench = report
+bench.cmd_bench = train.cmd_train = report
 from jaxden.cli import main
-sys.exit(main(["bench", "render"]))
+sys.exit(main(sys.argv[1:]))
 """
 
 
-def test_cli_exposes_one_device_per_core(tmp_path):
-    """`jaxden bench|train|sweep` start JAX with one CPU device per core (here: what the
-    command sees), and JAXDEN_CPU_DEVICES=1 keeps JAX's single device."""
+def test_cli_exposes_one_device_per_core_to_training_only(tmp_path):
+    """`jaxden train|sweep` start JAX with one CPU device per core (here: what the command
+    sees), JAXDEN_CPU_DEVICES=1 keeps JAX's single device, and `jaxden bench` times with
+    the single device `denoise` and `progressive` run on."""
     from jaxden.distributed import cpu_count
 
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", CPU_DEVICES_ENV)}
     env["JAX_PLATFORMS"] = "cpu"
     seen = []
-    for extra in ({}, {CPU_DEVICES_ENV: "1"}):
-        out = subprocess.run([sys.executable, "-c", CHILD_DEVICES], env={**env, **extra},
-                             capture_output=True, text=True, timeout=120, check=False)
+    train = ["train", "x.toml", "--workdir", str(tmp_path / "run")]
+    for words, extra in ((train, {}), (train, {CPU_DEVICES_ENV: "1"}),
+                         (["bench", "render"], {})):
+        out = subprocess.run([sys.executable, "-c", CHILD_DEVICES, *words],
+                             env={**env, **extra}, capture_output=True, text=True,
+                             timeout=120, check=False)
         assert out.returncode == 0, out.stderr[-2000:]
         seen.append(int(out.stdout.split("DEVICES")[1].split()[0]))
-    assert seen == [cpu_count(), 1]
+    assert seen == [cpu_count(), 1, 1]
 
 
 # ------------------------------------------------------------------------- multi-process

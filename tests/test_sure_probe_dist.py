@@ -122,12 +122,13 @@ def small_kp():
 def test_tiles_and_the_pipeline_see_the_whole_frame_s_rademacher_probes(small_kp):
     """SURE over 24-pixel tiles equals the whole frame's with Rademacher probes, the probes
     differ from the normal ones, and a mixer trained on them hands them to inference."""
+    import dataclasses
+
     from jaxden.progressive.mixer import closed_form_mixer
     from jaxden.progressive.pipeline import progressive_denoise
+    from jaxden.render.synthetic import synthetic_render
     from jaxden.sure.denoiser import denoise_with_sure
     from jaxden.sure.tiled import sure_frame
-
-    from jaxden.render.synthetic import synthetic_render
 
     frame = synthetic_render("tiles", 16, seed=5, size=(60, 56)).replace(covariance=None,
                                                                          spp=16.0)
@@ -143,8 +144,6 @@ def test_tiles_and_the_pipeline_see_the_whole_frame_s_rademacher_probes(small_kp
     assert not np.allclose(normal.divergence_term, whole.divergence_term, atol=1e-3 * scale)
 
     params, config = closed_form_mixer("closed-form:sigma=2")
-    import dataclasses
-
     config = dataclasses.replace(config, sure_probe_dist="rademacher")
     _, _, extras = progressive_denoise(frame, small_kp, params, config, key, num_probes=2)
     direct, _ = denoise_with_sure(small_kp, frame, key, num_probes=2, probe_dist="rademacher")

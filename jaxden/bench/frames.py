@@ -17,8 +17,8 @@ ru_stime``. The child is forked by a bare interpreter (:data:`STARTER`), not by 
 counts the forking process's memory in the child's ``ru_maxrss``. Host memory only: on a GPU
 the device memory (which JAX preallocates) is not in it.
 The children get the bench's environment with two changes: no
-``--xla_force_host_platform_device_count`` in ``XLA_FLAGS`` (``jaxden bench`` adds one for
-its own data-parallel benches; ``jaxden denoise`` and ``jaxden progressive`` run with JAX's
+``--xla_force_host_platform_device_count`` in ``XLA_FLAGS`` (a user's, or one left by
+``jaxden train``'s environment; ``jaxden denoise`` and ``jaxden progressive`` run with JAX's
 default devices) and a fresh compilation cache (``$JAXDEN_CACHE_DIR`` in the temporary folder).
 Each command runs :data:`RUNS` times in a row (:data:`QUICK_RUNS` with ``--quick``): the first
 run compiles (a first-time user), later runs load the compiled programs from that cache (every
