@@ -141,7 +141,7 @@ def test_progressive_bench(tiny, capsys):
     # PD around a JAX base does at least the base's own forward
     assert result["pd_wskp6_s"] > result["wskp6_s"]
     assert result["pd_oidnjax_s"] > result["oidnjax_s"]
-    assert result["pd_oidnjax_sure"] == "jvp, 1 probe"
+    assert result["pd_oidnjax_sure"] == "jvp, 1 rademacher probe"
 
 
 def test_render_bench(tiny, capsys):

@@ -87,34 +87,42 @@ def test_progressive_cli_defaults_to_the_shipped_mixer(tmp_path, capsys):
     assert not (tmp_path / "kp.exr").exists()
 
 
-def test_oidn_in_jax_takes_oidns_mixer(tmp_path, capsys):
+def test_oidn_in_jax_takes_oidns_mixer_with_one_rademacher_probe(tmp_path, capsys):
     """`--denoiser oidn-jax` defaults to oidn-pd (OIDN's own output to float32 rounding, so no
-    note that the mixer was trained on another denoiser) with the mixer's 4 probes, by jvp:
-    what progressive_denoise gives; --probes 1 (the cheaper form) is what K = 1 gives."""
+    note that the mixer was trained on another denoiser) fed one Rademacher jvp probe
+    (TWIN_SURE): what progressive_denoise gives with those settings; --probes 4
+    --probe-dist normal is what the mixer's own K = 4 gives."""
+    import dataclasses
+
     from jaxden.io.exr import read_header
 
     frame = synthetic_render("shipped", 16, seed=3, size=(24, 20)).numpy()
-    source, out, one = tmp_path / "in.exr", tmp_path / "out.exr", tmp_path / "one.exr"
+    source, out, four = tmp_path / "in.exr", tmp_path / "out.exr", tmp_path / "four.exr"
     write_frame(source, frame)
     capsys.readouterr()
     assert cli.main(["progressive", str(source), "--denoiser", "oidn-jax", "--out", str(out),
                      "--seed", "4"]) == 0
     assert "trained on the output of" not in capsys.readouterr().err
-    assert int(read_header(out)["probes"]) == 4
+    header = read_header(out)
+    assert int(header["probes"]) == 1 and header["probe_dist"] == "rademacher"
     params, config = P.load_mixer("oidn-pd")
+    assert config.sure_probes == 4 and config.sure_probe_dist == "normal"
+    assert P.load_shipped_mixer("oidn-jax")[1] == dataclasses.replace(
+        config, sure_probes=1, sure_method="jvp", sure_probe_dist="rademacher")
     key = jax.random.PRNGKey(4)
-    z, _, _ = P.progressive_denoise(frame, "oidn-jax", params, config, key)
+    z, _, _ = P.progressive_denoise(frame, "oidn-jax", params, config, key, num_probes=1,
+                                    probe_dist="rademacher")
     # The CLI's compiled program differs from progressive_denoise's: OIDN's U-Net and its jvp
     # round differently, measured up to 1e-4 relative in z on this frame.
     close = dict(rtol=1e-3, atol=1e-4)
     np.testing.assert_allclose(read_image(out), np.asarray(z), **close)
     z2, _ = P.shipped_progressive_denoiser("oidn-jax", seed=4)(frame)
     np.testing.assert_allclose(z2, np.asarray(z), **close)
-    assert cli.main(["progressive", str(source), "--denoiser", "oidn-jax", "--probes", "1",
-                     "--out", str(one), "--seed", "4"]) == 0
-    z1, _, _ = P.progressive_denoise(frame, "oidn-jax", params, config, key, num_probes=1)
-    np.testing.assert_allclose(read_image(one), np.asarray(z1), **close)
-    assert not np.allclose(z1, np.asarray(z), **close)  # K shows at this tolerance
+    assert cli.main(["progressive", str(source), "--denoiser", "oidn-jax", "--probes", "4",
+                     "--probe-dist", "normal", "--out", str(four), "--seed", "4"]) == 0
+    z4, _, _ = P.progressive_denoise(frame, "oidn-jax", params, config, key)
+    np.testing.assert_allclose(read_image(four), np.asarray(z4), **close)
+    assert not np.allclose(z4, np.asarray(z), **close)  # the SURE form shows at this tolerance
 
 
 @pytest.mark.slow  # ~7 s; tests/test_demo_outputs.py runs the same demo entry point by default

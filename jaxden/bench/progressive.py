@@ -30,15 +30,16 @@ compiled and warmed up before timing, timed alternately, median of the repeats:
 - ``pd_wskp6_closed_form_k1_over_wskp6``: the same with the closed-form mixer (range-aware,
   ``closed-form:stops=1``) and one probe: the cheapest PD(WSKP-6) jaxden offers;
 - ``pd_oidnjax_over_oidn``: the whole pipeline around OIDN in JAX (``oidn-jax``: Intel's
-  weights, the same network as the OIDN call, jitted) with SURE by ``jax.jvp`` and one probe,
-  the shipped mixer ``oidn-pd`` as shipped (as in ``pd_over_oidn``) and the t-statistic / one
-  pyoidn call: PD(OIDN) with a differentiable OIDN, beside the finite-difference PD(OIDN)
+  weights, the same network as the OIDN call, jitted) with SURE by ``jax.jvp`` and one
+  Rademacher probe (``progressive --denoiser oidn-jax``'s default,
+  :data:`jaxden.progressive.pipeline.TWIN_SURE`), the shipped mixer ``oidn-pd`` as shipped (as
+  in ``pd_over_oidn``) and the t-statistic / one pyoidn call: PD(OIDN) with a differentiable OIDN, beside the finite-difference PD(OIDN)
   above. Its parts, each / one pyoidn call: ``oidnjax_over_oidn`` the forward alone,
   ``oidnjax_sure_over_oidn`` SURE (y and its SURE map from one jvp pass),
   ``oidnjax_mixer_over_oidn`` the mixer as the pipeline calls it, ``oidnjax_tstat_over_oidn``
-  the t-statistic scaling. ``pd_oidnjax_k4_over_oidn``: the same pipeline with 4 probes (4
-  jvp passes), the form whose PD tables equal the finite-difference ones
-  (experiments/results/pd/pd-oidn-sure-forms.md).
+  the t-statistic scaling. ``pd_oidnjax_k4_over_oidn``: the same pipeline with 4 normal
+  probes (4 jvp passes), the mixer's own K (experiments/results/pd/pd-oidn-sure-forms.md has
+  the PD tables of every form).
 """
 
 from __future__ import annotations
@@ -64,7 +65,7 @@ def bench_progressive(quick: bool) -> dict:
         load_mixer,
         mixer_alpha,
     )
-    from jaxden.progressive.pipeline import progressive_denoise, shipped_mixer_path
+    from jaxden.progressive.pipeline import TWIN_SURE, progressive_denoise, shipped_mixer_path
     from jaxden.progressive.tstat import error_guard, t_statistic_scaling
     from jaxden.sure.denoiser import denoise_with_sure
 
@@ -108,19 +109,23 @@ def bench_progressive(quick: bool) -> dict:
     # The frame as the pipeline hands it to SURE (per-channel probes unless the mixer's differ).
     sure_frame = device_frame if config.sure_covariance else device_frame.replace(covariance=None)
 
+    twin = TWIN_SURE["oidn-jax"]
+    one_probe = dict(num_probes=twin["sure_probes"], method=twin["sure_method"],
+                     probe_dist=twin["sure_probe_dist"])
+
     def oidnjax_sure():
-        result, _ = denoise_with_sure(oidnjax, sure_frame, key, num_probes=1, method="jvp")
+        result, _ = denoise_with_sure(oidnjax, sure_frame, key, **one_probe)
         return result.sure
 
-    jax_result = denoise_with_sure(oidnjax, sure_frame, key, num_probes=1, method="jvp")[0]
+    jax_result = denoise_with_sure(oidnjax, sure_frame, key, **one_probe)[0]
     jax_y, jax_sure = np.asarray(jax_result.denoised), np.asarray(jax_result.sure)
     jax_alpha = np.asarray(inference_alpha(params, x, jax_y, var, jax_sure, config,
                                            config.swap_average))
     jax_mixed = np.asarray(x + jax_alpha * (jax_y - x))
 
     def pd_oidnjax(probes: int = 1):
-        out = progressive_denoise(device_frame, oidnjax, params, config, key,
-                                  num_probes=probes, method="jvp")[0]
+        options = one_probe if probes == 1 else dict(num_probes=probes, method="jvp")
+        out = progressive_denoise(device_frame, oidnjax, params, config, key, **options)[0]
         return jax.block_until_ready(out)
 
     runners = {
@@ -164,7 +169,7 @@ def bench_progressive(quick: bool) -> dict:
         "pd_wskp6_mixer": wskp6_mixer_name,
         "pd_wskp6_sure": f"jvp, {wskp6_config.sure_probes} probes",
         "pd_oidnjax_denoiser": f"oidn-jax ({oidnjax.config.quality} quality, albedo + normal)",
-        "pd_oidnjax_sure": "jvp, 1 probe",
+        "pd_oidnjax_sure": f"jvp, {twin['sure_probes']} {twin['sure_probe_dist']} probe",
         "pd_oidnjax_mixer": f"oidn-pd (swap_average {config.swap_average})",
         "width": size[0],
         "height": size[1],

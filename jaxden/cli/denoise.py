@@ -259,17 +259,20 @@ def cmd_progressive(args: argparse.Namespace) -> int:
 
     if args.mixer is None:
         from jaxden.denoise.registry import split_spec
-        from jaxden.progressive.pipeline import SHIPPED_MIXERS, shipped_mixer_path
+        from jaxden.progressive.pipeline import SHIPPED_MIXERS, load_shipped_mixer
 
         base, _ = split_spec(args.denoiser)  # wskp-6:emission=separate -> wskp-6's mixer
-        if not isinstance(base, str) or shipped_mixer_path(base) is None:
+        shipped = load_shipped_mixer(base) if isinstance(base, str) else None
+        if shipped is None:
             raise CheckpointError(
                 f"jaxden progressive: no mixer ships for denoiser {args.denoiser!r} (shipped: "
                 f"{', '.join(f'{m} for {d}' for d, m in SHIPPED_MIXERS.items())}); pass "
                 f"--mixer CKPT, or --mixer closed-form (no training, any denoiser)"
             )
         args.mixer = SHIPPED_MIXERS[base]
-    params, config = load_mixer(args.mixer)
+        params, config = shipped  # a twin's with its SURE settings (TWIN_SURE)
+    else:
+        params, config = load_mixer(args.mixer)
     denoiser = load_denoiser(args.denoiser)
     frame = read_input_frame(args, "jaxden progressive", denoiser,
                              covariance=config.sure_covariance and not args.buffers)

@@ -64,6 +64,8 @@ from jaxden.progressive.mixer import (
 )
 from jaxden.progressive.pipeline import (
     SHIPPED_MIXERS,
+    TWIN_SURE,
+    load_shipped_mixer,
     progressive_denoise,
     shipped_mixer_path,
     shipped_progressive_denoiser,
@@ -97,6 +99,7 @@ __all__ = [
     "MIXER_MODEL",
     "MixerConfig",
     "SHIPPED_MIXERS",
+    "TWIN_SURE",
     "SURE_BASED_FEATURES",
     "TStatConfig",
     "alpha_direct",
@@ -108,6 +111,7 @@ __all__ = [
     "error_guard",
     "f_act",
     "load_mixer",
+    "load_shipped_mixer",
     "mix",
     "mixer_alpha",
     "mixer_apply",

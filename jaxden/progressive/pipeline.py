@@ -147,6 +147,15 @@ TWINS: dict[str, str] = {"oidn-jax": "oidn"}
 SHIPPED_MIXERS: dict[str, str] = {"oidn": "oidn-pd", "wskp-6": "wskp-6-pd"}
 SHIPPED_MIXERS.update({twin: SHIPPED_MIXERS[original] for twin, original in TWINS.items()})
 
+#: The SURE a twin feeds its original's shipped mixer, in place of the mixer's training
+#: settings: OIDN in JAX takes one Rademacher probe by ``jax.jvp``, which scores as
+#: ``oidn-pd``'s own four finite-difference probes of the C++ OIDN on both held-out sets (PD /
+#: OIDN RMSE 0.948 and 0.866 against 0.948 and 0.866; RMSE at 4096 spp 0.00524 against
+#: 0.00525; ``experiments/results/pd/pd-oidn-sure-forms.md``) for one jvp pass instead of
+#: four more OIDN calls (``bench-progressive.json``).
+TWIN_SURE: dict[str, dict] = {"oidn-jax": {"sure_probes": 1, "sure_method": "jvp",
+                                           "sure_probe_dist": "rademacher"}}
+
 
 def shipped_mixer_path(denoiser: str = "oidn"):
     """Path of the shipped mixer's .msgpack for ``denoiser``, or None if none ships."""
@@ -159,22 +168,34 @@ def shipped_mixer_path(denoiser: str = "oidn"):
     return path if path.is_file() and path.with_suffix(".json").is_file() else None
 
 
+def load_shipped_mixer(denoiser: str = "oidn"):
+    """``(params, config)`` of the mixer shipped for ``denoiser`` (:data:`SHIPPED_MIXERS`), a
+    twin's with its SURE settings (:data:`TWIN_SURE`); None when none ships."""
+    import dataclasses
+
+    path = shipped_mixer_path(denoiser)
+    if path is None:
+        return None
+    params, config = load_mixer(str(path))
+    return params, dataclasses.replace(config, **TWIN_SURE.get(denoiser, {}))
+
+
 def shipped_progressive_denoiser(denoiser: str = "oidn", *, seed: int = 0,
                                  num_probes: int | None = None):
     """PD(denoiser) with the mixer shipped in the package, or None when none ships.
 
     Returns a function ``frame -> (z_prime, alpha_prime)`` (NumPy float32, (H, W, 3) each):
     :func:`progressive_denoise` with the shipped mixer (``jaxden/weights/oidn-pd.msgpack`` for
-    OIDN and OIDN in JAX; see its model card ``oidn-pd.md``), its t-statistic config,
-    ``num_probes`` SURE probes (None: as many as the mixer was trained with) drawn from
-    ``PRNGKey(seed)``.
+    OIDN and OIDN in JAX; see its model card ``oidn-pd.md``; :func:`load_shipped_mixer`), its
+    t-statistic config, ``num_probes`` SURE probes (None: the mixer's, or the twin's
+    :data:`TWIN_SURE`) drawn from ``PRNGKey(seed)``.
     """
-    path = shipped_mixer_path(denoiser)
-    if path is None:
+    shipped = load_shipped_mixer(denoiser)
+    if shipped is None:
         return None
     from jaxden.denoise.registry import load_denoiser
 
-    params, config = load_mixer(str(path))
+    params, config = shipped
     model = load_denoiser(denoiser)
     key = jax.random.PRNGKey(seed)
 
