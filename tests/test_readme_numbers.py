@@ -82,6 +82,9 @@ HEADLINE = {
         _pd(OIDN_TEST, "pd_over_denoiser", "rmse", "relmse", "flip"),
     ("PD(OIDN) / MC, RMSE at 4096 spp: crop mean; worst crop", "test-high"):
         _pd(OIDN_HIGH, "pd_over_mc_at_max_spp", "rmse") + [(OIDN_HIGH, _worst_crop_over_mc)],
+    ("PD(OIDN in JAX) / OIDN, `oidn-pd` fed one Rademacher jvp probe: RMSE, relMSE, FLIP",
+     "test-high"):
+        _pd("pd-oidnjax-k1rad-test-high.json", "pd_over_denoiser", "rmse", "relmse", "flip"),
     ("8 x 8-tile oracle / OIDN (a bound, not a method): RMSE, relMSE", "test-high"):
         _pd(OIDN_HIGH, "oracle_over_denoiser", "rmse", "relmse"),
     ("PD(WSKP-6) / WSKP-6 with the shipped `wskp-6-pd`: RMSE, relMSE, FLIP",
@@ -104,8 +107,8 @@ HEADLINE = {
     ("PD(WSKP-6) / one WSKP-6 forward; PD(OIDN) / one OIDN call, 1280 x 720", "one frame"): [
         ("bench-progressive.json", _key("pd_wskp6_over_wskp6")),
         ("bench-progressive.json", _key("pd_over_oidn"))],
-    ("PD(OIDN in JAX), SURE by `jax.jvp`: 1 probe; 4 probes / one pyoidn call, 1280 x 720",
-     "the same run"): [
+    ("PD(OIDN in JAX), SURE by `jax.jvp`: 1 Rademacher probe (its default); 4 normal probes / "
+     "one pyoidn call, 1280 x 720", "the same run"): [
         ("bench-progressive.json", _key("pd_oidnjax_over_oidn")),
         ("bench-progressive.json", _key("pd_oidnjax_k4_over_oidn"))],
     ("PSNR (dB), stock OIDN -> OIDN fine-tuned on jaxden renders at 2-8 spp: at 2 spp; at 64 spp",
