@@ -159,14 +159,17 @@ def _denoiser_text(mc: dict, base: dict, versions: dict) -> str:
         source = "the weights shipped as" if base["shipped"] is not None else "the checkpoint"
         which = (f"{base['label']}, {source} `{base['spec']}`"
                  + (f" ({'; '.join(details)})" if details else ""))
+    dist = mc.get("sure_probe_dist", "normal")
+    kind = "" if dist == "normal" else f"{dist} "
     if method == "jvp":
         sure = (f"SURE of its output by jax.jvp (forward-mode derivative), "
-                f"{_plural(mc['sure_probes'], 'probe')}")
+                f"{_plural(mc['sure_probes'], kind + 'probe')}")
     else:
         default = ("1e-2 (default for black boxes)" if base["black_box"] else
                    "1e-3 (default for JAX denoisers)")
-        sure = (f"SURE of its output by forward differences, {mc['sure_probes']} probes, eps "
-                f"{mc['sure_eps'] if mc['sure_eps'] is not None else default}")
+        eps = mc['sure_eps'] if mc['sure_eps'] is not None else default
+        sure = (f"SURE of its output by forward differences, {mc['sure_probes']} {kind}probes, "
+                f"eps {eps}")
     return (f"- Denoiser: {which}; {sure}, probe seed {mc['sure_seed']} "
             f"(`jaxden dataset sure-cache`).")
 

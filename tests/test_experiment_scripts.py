@@ -171,6 +171,22 @@ def test_shipped_card_states_the_installed_pyoidn():
     assert f"OIDN via pyoidn {meta['pyoidn_version']}" in (WEIGHTS_DIR / "oidn-pd.md").read_text()
 
 
+def test_ship_mixer_card_names_the_probe_distribution():
+    """A mixer trained on Rademacher probes says so on its card; a normal-probe card reads as
+    before the option existed."""
+    ship_mixer = load_script("ship_mixer")
+    base = {"spec": "oidn-jax", "black_box": False, "shipped": None, "model": None,
+            "label": "OIDN in JAX", "description": ""}
+    mc = {"sure_method": "jvp", "sure_probes": 1, "sure_eps": None, "sure_seed": 0}
+    assert "jax.jvp (forward-mode derivative), 1 probe, probe seed 0" in \
+        ship_mixer._denoiser_text(mc, base, {})
+    text = ship_mixer._denoiser_text(mc | {"sure_probe_dist": "rademacher"}, base, {})
+    assert "jax.jvp (forward-mode derivative), 1 rademacher probe, probe seed 0" in text
+    fd = ship_mixer._denoiser_text(mc | {"sure_method": "fd", "sure_probes": 4,
+                                         "sure_probe_dist": "rademacher"}, base, {})
+    assert "forward differences, 4 rademacher probes, eps 1e-3" in fd
+
+
 def test_mixer_alpha_first_layer_weights_and_table():
     """Per-feature first-layer weights of a network mixer; the closed form has none and is left
     out; the table names the denoiser and lists worst pixels when there are any."""
