@@ -87,6 +87,23 @@ def test_progressive_cli_defaults_to_the_shipped_mixer(tmp_path, capsys):
     assert not (tmp_path / "kp.exr").exists()
 
 
+def test_a_twin_loads_its_originals_mixer_with_its_own_sure():
+    """oidn-jax ships no mixer of its own: it loads oidn-pd's weights, with one Rademacher jvp
+    probe (TWIN_SURE) in place of the four finite-difference probes oidn-pd was trained on;
+    oidn itself gets oidn-pd exactly as shipped."""
+    import dataclasses
+
+    params, config = P.load_mixer("oidn-pd")
+    assert config.sure_probes == 4 and config.sure_probe_dist == "normal"
+    twin_params, twin = P.load_shipped_mixer("oidn-jax")
+    assert twin == dataclasses.replace(config, sure_probes=1, sure_method="jvp",
+                                       sure_probe_dist="rademacher")
+    assert jax.tree_util.tree_all(jax.tree_util.tree_map(np.array_equal, twin_params, params))
+    assert P.load_shipped_mixer("oidn")[1] == config
+    assert P.load_shipped_mixer("unet") is None
+
+
+@pytest.mark.slow  # ~20-30 s (OIDN in JAX compiled twice); the twin's settings are tested above
 def test_oidn_in_jax_takes_oidns_mixer_with_one_rademacher_probe(tmp_path, capsys):
     """`--denoiser oidn-jax` defaults to oidn-pd (OIDN's own output to float32 rounding, so no
     note that the mixer was trained on another denoiser) fed one Rademacher jvp probe
