@@ -114,12 +114,16 @@ def test_unet_any_size_nonnegative_and_differentiable(size):
     np.testing.assert_allclose(both[1], np.asarray(fn(flipped)), rtol=1e-5, atol=1e-6)
 
 
-def test_unet_feature_sets_and_missing_feature():
+def test_unet_feature_set_without_hdr_is_refused():
+    with pytest.raises(FrameError, match="must include 'hdr'"):
+        make_denoiser("unet", UNetConfig(features=("var", "sure")), key=jax.random.PRNGKey(0))
+
+
+@pytest.mark.slow  # two U-Net inits, 8-21 s; missing features are refused by every denoiser's
+def test_unet_feature_sets_and_missing_feature():  # check_frame (tested for kp, oidn, ...)
     frame, _ = smooth_scene(16, 16)
     den = make_denoiser("unet", UNetConfig(features=("hdr", "var")), key=jax.random.PRNGKey(0))
     assert jax.eval_shape(den, frame).shape == (16, 16, 3)  # traced, not compiled: fast
     den = make_denoiser("unet", UNetConfig(features=("hdr", "alb", "nrm")), key=jax.random.PRNGKey(0))
     with pytest.raises(FrameError, match="needs the frame feature.*albedo.*normal"):
         den(Frame(color=frame.color, variance=frame.variance))
-    with pytest.raises(FrameError, match="must include 'hdr'"):
-        make_denoiser("unet", UNetConfig(features=("var", "sure")), key=jax.random.PRNGKey(0))
