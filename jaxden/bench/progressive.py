@@ -33,7 +33,8 @@ compiled and warmed up before timing, timed alternately, median of the repeats:
   weights, the same network as the OIDN call, jitted) with SURE by ``jax.jvp`` and one
   Rademacher probe (``progressive --denoiser oidn-jax``'s default,
   :data:`jaxden.progressive.pipeline.TWIN_SURE`), the shipped mixer ``oidn-pd`` as shipped (as
-  in ``pd_over_oidn``) and the t-statistic / one pyoidn call: PD(OIDN) with a differentiable OIDN, beside the finite-difference PD(OIDN)
+  in ``pd_over_oidn``) and the t-statistic / one pyoidn call: PD(OIDN) with a differentiable
+  OIDN, beside the finite-difference PD(OIDN)
   above. Its parts, each / one pyoidn call: ``oidnjax_over_oidn`` the forward alone,
   ``oidnjax_sure_over_oidn`` SURE (y and its SURE map from one jvp pass),
   ``oidnjax_mixer_over_oidn`` the mixer as the pipeline calls it, ``oidnjax_tstat_over_oidn``

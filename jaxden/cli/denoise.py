@@ -120,7 +120,8 @@ def cmd_sure(args: argparse.Namespace) -> int:
     probes = ("from the colour covariance" if frame.covariance is not None
               else "per channel: the file has no covariance.RG/GB/BR")
     print(f"wrote {out}: R,G,B = denoised by {denoiser.name}, sure.* = per-pixel SURE "
-          f"({args.probes} {args.probe_dist} probes {probes}, {method}); image SURE (MSE estimate) = {mse:.6g}")
+          f"({args.probes} {args.probe_dist} probes {probes}, {method}); image SURE (MSE "
+          f"estimate) = {mse:.6g}")
     return 0
 
 
@@ -236,7 +237,8 @@ def _memory_limit(args: argparse.Namespace) -> int | None:
 
 def _plan_options(args: argparse.Namespace, probes: int, config) -> dict:
     return dict(num_probes=probes, method=args.method, eps=args.eps,
-                probe_batch=args.probe_batch, probe_dist=args.probe_dist, tstat=None if args.no_tstat else config.tstat,
+                probe_batch=args.probe_batch, probe_dist=args.probe_dist,
+                tstat=None if args.no_tstat else config.tstat,
                 nonfinite=args.nonfinite, swap_average=args.swap_average, tile=args.tile,
                 limit=_memory_limit(args))
 

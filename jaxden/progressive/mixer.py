@@ -32,6 +32,7 @@ from jaxden.progressive.inputs import (
     mixer_inputs_unchecked,
 )
 from jaxden.progressive.tstat import TStatConfig
+from jaxden.sure.stein import ProbeDist
 
 # ------------------------------------------------------------------------ closed-form mixer
 
@@ -216,7 +217,7 @@ class MixerConfig:
     sure_eps: float | None = bounded(None, low=0, low_open=True, high=1)
     sure_seed: int = bounded(0, low=0, high=4294967295)
     sure_covariance: bool = False
-    sure_probe_dist: Literal["normal", "rademacher"] = "normal"
+    sure_probe_dist: ProbeDist = "normal"
     build_cache: bool = True
 
     def __post_init__(self):
