@@ -132,6 +132,20 @@ def _exit_with_parent(parent: int) -> None:
         os._exit(1)
 
     threading.Thread(target=watch, name="jaxden-parent-watch", daemon=True).start()
+    _import_plugins()
+
+
+def _import_plugins() -> None:
+    """In a spawned worker: the plugins the parent imported (it wrote them into
+    ``JAXDEN_PLUGINS``), before any task unpickles a reference to their code. A failure is
+    printed as the parent would print it; the task then fails on the missing name."""
+    from jaxden.errors import JaxdenError
+    from jaxden.plugins import load_ambient
+
+    try:
+        load_ambient()
+    except JaxdenError as error:
+        print(f"jaxden: error: in a worker process: {error}", file=sys.stderr)
 
 
 class LocalExecutor(_Base):
@@ -250,6 +264,9 @@ class RayExecutor(_Base):
         ray = self._ray
         starts = self._tracker()
         cwd = os.getcwd()
+        from jaxden.plugins import worker_payload
+
+        plugins = worker_payload()  # a node without the plugin's file still runs its code
         self._maps = getattr(self, "_maps", 0) + 1
         iterator = (((self._maps, index), item) for index, item in enumerate(items))
         pending: dict[Any, tuple[int, int]] = {}
@@ -263,7 +280,8 @@ class RayExecutor(_Base):
                     except StopIteration:
                         exhausted = True
                         break
-                    pending[self._remote.remote(fn, item, index, starts, cwd)] = index
+                    pending[self._remote.remote(fn, item, index, starts, cwd,
+                                                plugins)] = index
                 if not pending:
                     return
                 # A short timeout keeps Ctrl-C responsive and lets a stall be noticed.
@@ -324,13 +342,18 @@ class _StartLog:
 
 
 def _ray_call(fn: Callable[[Any], Any], item: Any, index: tuple[int, int], starts: Any,
-              cwd: str) -> Any:
+              cwd: str, plugins: list | None = None) -> Any:
     """One task on a Ray worker: say it started, work in the caller's folder (relative paths
-    inside configs, e.g. a scene file, then mean what they meant to the caller), run."""
+    inside configs, e.g. a scene file, then mean what they meant to the caller), import the
+    caller's plugins (:func:`jaxden.plugins.load_payload`), run."""
     if starts is not None:
         starts.start.remote(index)
     if cwd and os.path.isdir(cwd) and os.getcwd() != cwd:
         os.chdir(cwd)
+    if plugins:
+        from jaxden.plugins import load_payload
+
+        load_payload(plugins)
     return fn(item)
 
 

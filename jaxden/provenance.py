@@ -4,7 +4,8 @@ versions, the data build and file hashes, and the atomic writer of a result's .j
 Every writer of results (``jaxden evaluate``, ``jaxden sweep``'s summaries, the scripts under
 experiments/ and the shipped weights' records) takes these from here, so each number can be
 traced to the command, code and data that made it. A leaf module: it imports nothing of
-jaxden's but :mod:`jaxden.paths` and :mod:`jaxden.fileio`, so every floor may use it.
+jaxden's but :mod:`jaxden.paths`, :mod:`jaxden.fileio` and :mod:`jaxden.plugins` (itself a
+leaf), so every floor may use it.
 """
 
 from __future__ import annotations
@@ -89,8 +90,19 @@ def run_identity(argv: list[str] | None = None, program: str | None = None) -> d
 
     argv = sys.argv[1:] if argv is None else argv
     program = program or f"python experiments/{Path(sys.argv[0]).name}"
-    return {"command": portable(f"{program} {shlex.join(argv)}".rstrip()),
-            "commit": git_commit()}
+    identity = {"command": portable(f"{program} {shlex.join(argv)}".rstrip()),
+                "commit": git_commit()}
+    return {**identity, **plugin_record()}
+
+
+def plugin_record() -> dict:
+    """``{"plugins": [{module, sha256, file}, ...]}`` of the plugins this process imported
+    (:mod:`jaxden.plugins`: a result computed with a user's code records which code), or
+    ``{}`` when there are none."""
+    from jaxden import plugins
+
+    loaded = plugins.provenance()
+    return {"plugins": loaded} if loaded else {}
 
 
 def dataset_identity(directory, manifest_file, config: dict, split: str | None) -> dict:

@@ -37,7 +37,25 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for group in (demo, render, dataset, denoise, train, evaluate, bench, report):
         group.add_commands(sub)
+    _add_plugin_option(parser)
     return parser
+
+
+PLUGIN_HELP = ("import MODULE (a module name, or a .py file) before names resolve: its "
+               "denoisers, models, mixers, losses and evaluators join jaxden's (repeatable; "
+               "also JAXDEN_PLUGINS=a,b; docs/your-denoiser.md)")
+
+
+def _add_plugin_option(parser: argparse.ArgumentParser) -> None:
+    """``--plugin`` on every command and sub-command, for --help (main() takes the words out
+    of the command line before parsing: plugins must be imported before the parser lists
+    registered names)."""
+    parser.add_argument("--plugin", action="append", metavar="MODULE", default=[],
+                        help=PLUGIN_HELP)
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for child in dict.fromkeys(action.choices.values()):
+                _add_plugin_option(child)
 
 
 def _is_allocation_failure(error: BaseException) -> bool:
@@ -48,9 +66,18 @@ def _is_allocation_failure(error: BaseException) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from jaxden import plugins
+
+    words = list(sys.argv[1:] if argv is None else argv)
+    try:
+        specs, rest = plugins.take_plugin_options(words)
+        plugins.load_all(specs, origin="--plugin")
+    except JaxdenError as error:
+        print(f"jaxden: error: {error}", file=sys.stderr)
+        return 2
     parser = build_parser()
-    args, extra = parser.parse_known_args(argv)
-    args.command_line = list(sys.argv[1:] if argv is None else argv)  # results record it
+    args, extra = parser.parse_known_args(rest)
+    args.command_line = words  # results record it
     # argparse gives a trailing ``overrides`` positional nothing once an option comes between
     # it and the config (``CONFIG --out DIR key=value``); take key=value words left over.
     if extra and hasattr(args, "overrides") and all("=" in w and not w.startswith("-")

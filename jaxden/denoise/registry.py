@@ -36,6 +36,7 @@ import jax
 from jaxden.denoise.emission import EMISSION_MODES, separated_apply
 from jaxden.errors import CheckpointError, ConfigError
 from jaxden.frame import Frame
+from jaxden.registry import Registry
 
 #: Options of a denoiser spec ``SPEC:KEY=VALUE,...`` -> their values (the first: the default).
 DENOISER_OPTIONS: dict[str, tuple[str, ...]] = {"emission": EMISSION_MODES}
@@ -70,20 +71,55 @@ class DenoiserDef:
     configure: Callable[[Any, dict[str, str]], Any] | None = None
 
 
-REGISTRY: dict[str, DenoiserDef] = {}
+#: Every denoiser by name: jaxden's own and those of plugins (:mod:`jaxden.plugins`).
+REGISTRY: Registry = Registry("denoiser")
+_REGISTER_PLUMBING = True  # registrations through this module belong to their caller
 
 
-def register(definition: DenoiserDef) -> DenoiserDef:
-    REGISTRY[definition.name] = definition
-    return definition
+def register(definition: DenoiserDef, *, owner: str | None = None) -> DenoiserDef:
+    """Add ``definition`` to the registry under its name; ``owner``: the registering module
+    (default: the caller's). A name that jaxden or another module already holds is refused
+    (:class:`jaxden.registry.PluginClashError`)."""
+    from jaxden.registry import caller_module
+
+    if not isinstance(definition, DenoiserDef):
+        raise ConfigError(f"register() takes a DenoiserDef (or use Denoiser.from_function), "
+                          f"got {type(definition).__name__}")
+    owner = owner or caller_module()
+    if (WEIGHTS_DIR / f"{definition.name}.msgpack").is_file():
+        from jaxden.registry import PluginClashError
+
+        raise PluginClashError(f"denoiser name {definition.name!r} from module '{owner}' "
+                               f"clashes with jaxden's shipped weights {definition.name!r}; "
+                               f"register it under another name")
+    return REGISTRY.add(definition.name, definition, owner)
 
 
 def get_definition(name: str) -> DenoiserDef:
+    """The registered denoiser ``name`` (plugins named by ``JAXDEN_PLUGINS`` or entry points
+    are imported first); ConfigError listing the names if there is none."""
+    if name not in REGISTRY:
+        from jaxden.plugins import load_ambient
+
+        load_ambient()
     if name not in REGISTRY:
         raise ConfigError(
             f"unknown denoiser {name!r}; registered denoisers: {', '.join(sorted(REGISTRY))}"
+            + ("" if REGISTRY.from_plugins() else
+               " (a denoiser of your own: name its module with --plugin or JAXDEN_PLUGINS, "
+               "docs/your-denoiser.md)")
         )
     return REGISTRY[name]
+
+
+@dataclasses.dataclass(frozen=True)
+class FunctionConfig:
+    """The config of a denoiser made from a function (:meth:`Denoiser.from_function`): none."""
+
+
+def _function_name(fn) -> str:
+    name = getattr(fn, "__name__", "") or type(fn).__name__
+    return "function" if name == "<lambda>" else name.replace("_", "-")
 
 
 @dataclasses.dataclass
@@ -93,6 +129,75 @@ class Denoiser:
     definition: DenoiserDef
     config: Any
     params: Any = None
+
+    @classmethod
+    def from_function(
+        cls,
+        fn: Callable[..., Any],
+        *,
+        name: str | None = None,
+        needs: tuple[str, ...] = (),
+        optional: tuple[str, ...] = (),
+        params: Any = None,
+        differentiable: bool = True,
+        radius: int | None = None,
+        multiple: int = 1,
+        description: str = "",
+        register: bool = False,
+    ) -> Denoiser:
+        """A denoiser from a plain function, usable wherever a registered one is (SURE,
+        progressive denoising, tiling, evaluators, the CLI once registered).
+
+        ``fn(frame) -> (..., H, W, 3)`` linear radiance, or ``fn(params, frame)`` when
+        ``params`` is given (a pytree of its weights, which SURE caches hash). ``needs``:
+        the Frame fields it requires besides colour (checked before it runs, e.g.
+        ``("albedo", "normal")``); ``optional``: fields it uses when present;
+        ``differentiable``: a pure JAX function (SURE by ``jax.jvp``), else NumPy in,
+        NumPy out (SURE by finite differences); ``radius``: its receptive field in pixels
+        (each side), so large frames can run over tiles (``multiple``: the alignment of
+        tile origins, e.g. its pooling grid); None: whole frames only. ``name`` (default:
+        the function's name, ``_`` as ``-``); ``register``: also add it to the registry
+        under that name (:func:`register`; a name clash is refused), so that commands and
+        configs find it by name.
+        """
+        from jaxden.frame import IMAGE_FIELDS
+
+        if not callable(fn):
+            raise ConfigError(f"from_function takes a function, got {type(fn).__name__}")
+        for field in (*needs, *optional):
+            if field not in IMAGE_FIELDS:
+                raise ConfigError(f"from_function: {field!r} is not a Frame field; fields: "
+                                  f"{', '.join(IMAGE_FIELDS)}")
+        with_params = params is not None
+        name = name or _function_name(fn)
+        tiling = None
+        if radius is not None:
+            from jaxden.tiling import TileSpec
+
+            if not (isinstance(radius, int) and radius >= 0 and isinstance(multiple, int)
+                    and multiple >= 1):
+                raise ConfigError(f"from_function: radius must be an int >= 0 and multiple "
+                                  f"an int >= 1, got {radius!r}, {multiple!r}")
+            spec = TileSpec(radius=radius, multiple=multiple)
+            tiling = lambda config: spec
+        definition = DenoiserDef(
+            name=name,
+            description=description or (fn.__doc__ or "").strip().split("\n")[0]
+            or f"the function {getattr(fn, '__qualname__', name)}",
+            config_cls=FunctionConfig,
+            required=lambda config: tuple(needs),
+            apply=_bound_apply(fn, with_params),
+            init=(lambda key, config: params) if with_params else None,
+            differentiable=differentiable,
+            pretrained=with_params,
+            tiling=tiling,
+            optional=(lambda config: tuple(optional)) if optional else None,
+        )
+        if register:
+            from jaxden.registry import caller_module
+
+            globals()["register"](definition, owner=caller_module())
+        return cls(definition, FunctionConfig(), params)
 
     @property
     def name(self) -> str:
@@ -139,6 +244,36 @@ class Denoiser:
 
         return Denoiser(self.definition, dataclasses.replace(self.config, deploy=True),
                         reparameterize(self.params))
+
+
+def _bound_apply(fn, with_params: bool):
+    """``apply(params, config, frame)`` of a function denoiser; the function's own module
+    and name, so that code hashes and messages point at the user's code."""
+    if with_params:
+        def apply(params, config, frame):
+            return fn(params, frame)
+    else:
+        def apply(params, config, frame):
+            return fn(frame)
+    apply.__module__ = getattr(fn, "__module__", apply.__module__)
+    apply.__qualname__ = apply.__name__ = getattr(fn, "__qualname__", "function")
+    apply.__wrapped__ = fn
+    return apply
+
+
+def as_denoiser(denoiser, where: str = "denoiser") -> Denoiser:
+    """A :class:`Denoiser` from what a user passes: a Denoiser, a spec for
+    :func:`load_denoiser` (a name, a checkpoint path, with options), or a plain function
+    ``frame -> image`` (:meth:`Denoiser.from_function`, differentiable, no declared
+    fields)."""
+    if isinstance(denoiser, Denoiser):
+        return denoiser
+    if isinstance(denoiser, (str, os.PathLike)):
+        return load_denoiser(denoiser)
+    if callable(denoiser):
+        return Denoiser.from_function(denoiser)
+    raise ConfigError(f"{where} must be a name, a checkpoint path, a Denoiser or a function "
+                      f"frame -> image, got {type(denoiser).__name__}")
 
 
 def make_denoiser(
@@ -276,6 +411,10 @@ def _load_base(spec: str | os.PathLike, options: dict[str, str] | None = None) -
         path = shipped
     if not path.exists():
         if str(spec) not in REGISTRY:
+            from jaxden.plugins import load_ambient
+
+            load_ambient()
+        if str(spec) not in REGISTRY:
             raise CheckpointError(_unknown_spec_message(str(spec)))
         definition = get_definition(str(spec))
         if definition.init is not None and not definition.pretrained:
@@ -341,5 +480,7 @@ def _unknown_spec_message(spec: str) -> str:
     close = close or next(iter(difflib.get_close_matches(spec, candidates, n=1)), None)
     hint = f" (did you mean {close!r}?)" if close else ""
     return (f"unknown denoiser {spec!r}{hint}; by name: {', '.join(shipped + built_in)}; "
-            f"architectures (a checkpoint of one, from jaxden train): {', '.join(architectures)}")
+            f"architectures (a checkpoint of one, from jaxden train): {', '.join(architectures)}"
+            + ("" if hint else "; a denoiser of your own: name its module with --plugin or "
+               "JAXDEN_PLUGINS (docs/your-denoiser.md)"))
 

@@ -92,11 +92,16 @@ def _plain(value: Any) -> Any:
 
 
 def denoiser_identity(denoiser) -> dict[str, Any]:
-    """What makes two denoisers the same for the cache: name, config and parameters."""
+    """What makes two denoisers the same for the cache: name, config, parameters and code
+    (:func:`jaxden.denoise.identity.code_sha256`: a changed denoiser never reuses what the
+    old code computed)."""
+    from jaxden.denoise.identity import code_sha256
+
     return {
         "name": denoiser.name,
         "config": _plain(denoiser.config),
         "params_sha256": params_sha256(denoiser.params),
+        "code_sha256": code_sha256(denoiser),
     }
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from pathlib import Path
 from typing import Any, Literal
 
 from jaxden.config import bounded, check_fields
@@ -74,6 +75,9 @@ class TrainConfig:
     eval_batches: int = bounded(8, low=1, high=10**6)
     checkpoint_every: int = bounded(200, low=1, high=10**9)
     keep_checkpoints: int = bounded(2, low=1, high=1000)
+    # Modules to import before any name resolves (jaxden.plugins): the model, loss or
+    # evaluator of a user's own module; recorded in the run's provenance.
+    plugins: tuple[str, ...] = ()
 
     def __post_init__(self):
         from jaxden.paths import expand_path
@@ -88,6 +92,7 @@ def load_train_config(source, overrides=()) -> TrainConfig:
     from jaxden.config import load_config
     from jaxden.train.tasks import get_trainable, model_config
 
+    _load_plugins_of(source)
     config = load_config(source, TrainConfig, overrides)
     where = f"{source}: " if isinstance(source, (str, os.PathLike)) else ""
     try:
@@ -103,3 +108,22 @@ def load_train_config(source, overrides=()) -> TrainConfig:
 
         resolve_init(config, digest=False)
     return config
+
+
+def _load_plugins_of(source) -> None:
+    """Import the plugins a train config names (``plugins = [...]``) before it is validated:
+    its model, loss or evaluator names may be theirs."""
+    import tomllib
+
+    from jaxden.plugins import load_config_plugins
+
+    if isinstance(source, (str, os.PathLike)):
+        try:
+            data = tomllib.loads(Path(source).read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+            return  # load_config reports the file's problem
+        load_config_plugins(data, str(source))
+    elif isinstance(source, dict):
+        load_config_plugins(source, "")
+    elif dataclasses.is_dataclass(source):
+        load_config_plugins({"plugins": list(getattr(source, "plugins", ()) or ())}, "")

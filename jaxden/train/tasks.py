@@ -30,6 +30,7 @@ from jaxden.progressive.mixer import (
     mixer_init,
     mixer_meta,
 )
+from jaxden.registry import Registry
 from jaxden.train.task import Task
 
 
@@ -62,24 +63,58 @@ class Trainable:
     shared_data: Callable[[Any, Any], SharedData | None] | None = None
 
 
+#: Trainable models that are not denoisers: the mixer, and those plugins register
+#: (:func:`register_trainable`). Every registered JAX denoiser is trainable too.
+TRAINABLES: Registry = Registry("trainable model")
+_REGISTER_PLUMBING = True  # registrations through this module belong to their caller
+
+
+def register_trainable(trainable: Trainable, *, owner: str | None = None) -> Trainable:
+    """Add a trainable model that is not a registered denoiser (a denoiser is trainable as
+    soon as it is registered with an ``init``); a name that a built-in or another module
+    holds, as a trainable model or a denoiser, is refused in one line."""
+    from jaxden.denoise.registry import REGISTRY
+    from jaxden.registry import caller_module, check_free
+
+    if not isinstance(trainable, Trainable):
+        raise ConfigError(f"register_trainable() takes a Trainable, got "
+                          f"{type(trainable).__name__}")
+    owner = owner or caller_module()
+    check_free(trainable.name, "trainable model", owner, REGISTRY)
+    return TRAINABLES.add(trainable.name, trainable, owner)
+
+
 def trainables() -> dict[str, Trainable]:
     """The name -> :class:`Trainable` table: every registered denoiser (black boxes too: their
-    task refuses to train them, naming why) and the mixer."""
+    task refuses to train them, naming why), the mixer and the plugins' trainable models."""
     from jaxden.denoise.registry import REGISTRY
+    from jaxden.registry import PluginClashError
 
     table = {name: Trainable(name, "denoiser", definition.config_cls, definition.init,
                              definition.apply, denoiser_task)
              for name, definition in REGISTRY.items()}
-    table[MIXER.name] = MIXER
+    for name, trainable in TRAINABLES.items():
+        if name in table and REGISTRY.owner(name) != TRAINABLES.owner(name):
+            raise PluginClashError(REGISTRY.clash_message(name, REGISTRY.owner(name),
+                                                          TRAINABLES.owner(name)))
+        table[name] = trainable
     return table
 
 
 def get_trainable(name: str) -> Trainable:
-    """The table's entry for ``name``; ConfigError listing the names if there is none."""
+    """The table's entry for ``name`` (plugins named by ``JAXDEN_PLUGINS`` or entry points
+    are imported first); ConfigError listing the names if there is none."""
     table = trainables()
     if name not in table:
+        from jaxden.plugins import load_ambient
+
+        load_ambient()
+        table = trainables()
+    if name not in table:
         raise ConfigError(f"unknown model {name!r}; the trainable models: "
-                          f"{', '.join(sorted(table))}")
+                          f"{', '.join(sorted(table))} (a model of your own: name its module "
+                          f"with --plugin, JAXDEN_PLUGINS or plugins = [...], "
+                          f"docs/your-denoiser.md)")
     return table[name]
 
 
@@ -235,5 +270,6 @@ def mixer_shared_data(train_config, config: MixerConfig) -> SharedData | None:
     return SharedData(key, prepare)
 
 
-MIXER = Trainable(MIXER_MODEL, MIXER_KIND, MixerConfig, mixer_init, mixer_apply, mixer_task,
-                  mixer_shared_data)
+MIXER = register_trainable(
+    Trainable(MIXER_MODEL, MIXER_KIND, MixerConfig, mixer_init, mixer_apply, mixer_task,
+              mixer_shared_data), owner=__name__)
