@@ -7,19 +7,22 @@ log-uniform over two decades and partly follows the image (as Monte Carlo varian
 no two neighbouring pixels share a value. A test on arrays that repeat one value cannot see
 a mistake in where the variance goes; these can.
 
-The statistic is that of tests/test_sure_properties.py: per noise draw, D = sum SURE - sum
-(F(x) - mu)^2, E[D] = 0 for a correct estimator; |mean D| / stderr <= 4.5 over 512 draws
-(a correct estimator fails with probability ~7e-6).
+The statistic is that of tests/test_sure_properties.py, drawn by jaxden.testing (``sure_draws``,
+``z_score``): per noise draw, D = mean SURE - mean (F(x) - mu)^2, E[D] = 0 for a correct
+estimator; |mean D| / stderr <= 4.5 over 512 draws (a correct estimator fails with probability
+~7e-6).
 
-Power. The broken estimators below shift E[D] by a known amount B (stated per test); the
-z-test rejects when B / stderr > 4.5. Each must-fail test asserts z > 8 on its fixed seed
-over 4096 draws (measured z is printed in the assertion message), so the margin is not luck:
+Power. The broken estimators below shift E[D] by a known amount B (stated per test, as a sum
+over the pixels: D's shift is B over their count); the z-test rejects when B / stderr > 4.5.
+Each must-fail test asserts z > 8 on its fixed seed over 4096 draws (measured z is printed in
+the assertion message), so the margin is not luck:
 - a 10 % divergence bias: B = 0.2 sum var_i J_ii;
 - the variance map shifted by one pixel: B = 2 sum (var_{i-1} - var_i) J_ii, nonzero because
   J_ii follows the (heterogeneous) variance;
 - probes drawn with the image-mean variance: B = 2 sum (mean(var) - var_i) J_ii, likewise.
-The denoiser for them is a per-pixel gain y_i = g_i x_i, g_i = (1 + var_i / max var) / 2 (J = diag g):
-the gain follows the variance, as a denoiser smooths more where the noise is larger.
+The denoiser for them is a per-pixel gain y_i = g_i x_i, g_i = (1 + var_i / max var) / 2
+(J = diag g): the gain follows the variance, as a denoiser smooths more where the noise is
+larger.
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from jaxden.frame import Frame
-from jaxden.sure.stein import sure
+from jaxden.testing import sure_draws, z_score
 
 SHAPE = (8, 8, 3)
 DRAWS = 512
@@ -63,30 +66,21 @@ def gain(g, frame):
     return g * frame.color
 
 
-@functools.partial(jax.jit, static_argnames=("denoise_fn", "mode", "draws"))
-def statistics(denoise_fn, params, clean, var, key, mode: str = "correct", draws: int = DRAWS):
-    """Per draw: (sum SURE, sum true squared error) for the correct estimator or a broken one
-    (``mode``: "bias10", "shifted", "mean_probes")."""
-    noise_key, probe_key = jax.random.split(key)
-    noise = jax.random.normal(noise_key, (draws * clean.size,), clean.dtype).reshape(
-        (draws,) + clean.shape)
-
-    def one(n, k):
-        x = clean + jnp.sqrt(var) * n
-        told = {"correct": var, "bias10": var, "shifted": jnp.roll(var, 1, axis=1),
-                "mean_probes": jnp.full_like(var, jnp.mean(var))}[mode]
-        r = sure(denoise_fn, Frame(color=x, variance=told), k, 4, "jvp", params=params)
-        value = r.residual_sq - var + 2.0 * r.divergence_term  # the -var term: the true map
-        if mode == "bias10":
-            value = value + 0.2 * r.divergence_term
-        return jnp.sum(value), jnp.sum(jnp.square(r.denoised - clean))
-
-    return jax.vmap(one)(noise, jax.random.split(probe_key, draws))
-
-
-def z_score(sure_sum, true_sq) -> float:
-    d = np.asarray(sure_sum, np.float64) - np.asarray(true_sq, np.float64)
-    return float(d.mean() / (d.std(ddof=1) / np.sqrt(d.size)))
+def statistics(denoise_fn, params, clean, var, seed: int, mode: str = "correct",
+               draws: int = DRAWS):
+    """Per draw: (mean SURE, mean true squared error) for the correct estimator or a broken one
+    (``mode``: "bias10", "shifted", "mean_probes"). The noise has the variance ``var``; SURE is
+    told ``var`` or, broken, a shifted or flattened map (its probes and divergence follow what
+    it is told) and its -var term always uses the true map."""
+    told = {"correct": var, "bias10": var, "shifted": np.roll(var, 1, axis=1),
+            "mean_probes": np.full_like(var, np.mean(var))}[mode]
+    d = sure_draws(denoise_fn, Frame(color=np.asarray(clean), variance=np.asarray(told)),
+                   draws=draws, batch=DRAWS, probes=4, method="jvp", seed=key(seed),
+                   params=params, noise_variance=np.asarray(var))
+    value = d.residual - float(np.mean(var, dtype=np.float64)) + 2.0 * d.divergence
+    if mode == "bias10":
+        value = value + 0.2 * d.divergence
+    return value, d.truth
 
 
 def key(seed):
@@ -98,7 +92,7 @@ def key(seed):
 def test_correct_sure_is_unbiased_on_heterogeneous_draws(seed, decades, follow):
     clean, var = heterogeneous(seed, decades, follow)
     g = jnp.asarray(var / var.max())
-    z = z_score(*statistics(gain, g, jnp.asarray(clean), jnp.asarray(var), key(seed)))
+    z = z_score(*statistics(gain, g, clean, var, seed))
     assert abs(z) <= Z_LIMIT, z
 
 
@@ -107,8 +101,7 @@ def _z_correct_at_power_draws() -> float:
     """The correct estimator's z on the must-fail tests' draws (the same key: computed once)."""
     clean, var = heterogeneous(11, decades=2.0, follow=0.5)
     g = 0.5 + 0.5 * var / var.max()
-    return z_score(*statistics(gain, jnp.asarray(g), jnp.asarray(clean), jnp.asarray(var),
-                               key(5), draws=POWER_DRAWS))
+    return z_score(*statistics(gain, jnp.asarray(g), clean, var, 5, draws=POWER_DRAWS))
 
 
 @pytest.mark.parametrize("mode, shift", [
@@ -125,8 +118,8 @@ def test_broken_estimators_are_rejected(mode, shift):
                 "shifted": 2 * np.sum((np.roll(var, 1, axis=1) - var) * g),
                 "mean_probes": 2 * np.sum((var.mean() - var) * g)}[mode]
     z_ok = _z_correct_at_power_draws()
-    z_bad = z_score(*statistics(gain, jnp.asarray(g), jnp.asarray(clean), jnp.asarray(var),
-                                key(5), mode=mode, draws=POWER_DRAWS))
+    z_bad = z_score(*statistics(gain, jnp.asarray(g), clean, var, 5, mode=mode,
+                                draws=POWER_DRAWS))
     assert abs(z_ok) <= Z_LIMIT, z_ok
     assert np.sign(z_bad) == np.sign(expected) and abs(z_bad) > 8.0, (z_bad, expected, shift)
 
@@ -137,8 +130,7 @@ def test_homogeneous_variance_cannot_see_a_shifted_variance_map():
     clean, _ = heterogeneous(11)
     var = np.full(SHAPE, 0.05, np.float32)
     g = jnp.asarray(np.random.default_rng(0).uniform(0.2, 1.0, SHAPE).astype(np.float32))
-    z = z_score(*statistics(gain, g, jnp.asarray(clean), jnp.asarray(var), key(5),
-                            mode="shifted"))
+    z = z_score(*statistics(gain, g, clean, var, 5, mode="shifted"))
     assert abs(z) <= Z_LIMIT, z
 
 
@@ -163,35 +155,17 @@ def test_sure_is_unbiased_through_a_random_jax_denoiser(name):
     divergence term dropped are rejected (the test's power on it); the untrained small U-Net
     barely responds to its colour input (divergence near 0), so there that mutation is below
     detection and only unbiasedness is asserted."""
-    from jaxden.denoise.registry import get_definition
+    from jaxden.denoise.registry import Denoiser, get_definition
 
     definition = get_definition(name)
     config = (definition.config_cls(num_layers=2, width=6, kernel_sizes=(3, 5))
               if name == "wskp" else definition.config_cls(
                   features=("hdr", "alb", "nrm"), encoder_widths=(4,) * 5, decoder_widths=(4,) * 5))
-    params = definition.init(jax.random.PRNGKey(3), config)
+    model = Denoiser(definition, config, definition.init(jax.random.PRNGKey(3), config))
     clean, var, albedo, normal, depth = _frame_features(4)
-    draws = 256
-
-    def apply(p, frame):
-        return definition.apply(p, config, frame)
-
-    @jax.jit
-    def run(k):
-        noise_key, probe_key = jax.random.split(k)
-        noise = jax.random.normal(noise_key, (draws,) + clean.shape, jnp.float32)
-
-        def one(n, pk):
-            frame = Frame(color=clean + jnp.sqrt(var) * n, variance=var, albedo=albedo,
-                          normal=normal, depth=depth)
-            r = sure(apply, frame, pk, 2, "jvp", params=p_)
-            true_sq = jnp.sum(jnp.square(r.denoised - clean))
-            return jnp.sum(r.sure), true_sq, jnp.sum(r.residual_sq - var)
-
-        return jax.lax.map(lambda a: one(*a), (noise, jax.random.split(probe_key, draws)))
-
-    p_ = params
-    sure_sum, true_sq, broken = run(key(21))
-    assert abs(z_score(sure_sum, true_sq)) <= Z_LIMIT
+    frame = Frame(color=clean, variance=var, albedo=albedo, normal=normal, depth=depth)
+    draws = sure_draws(model, frame, draws=256, probes=2, method="jvp", seed=key(21))
+    broken = draws.residual - float(np.mean(var, dtype=np.float64))
+    assert abs(z_score(draws.sure, draws.truth)) <= Z_LIMIT
     if name == "wskp":
-        assert abs(z_score(broken, true_sq)) > 6.0
+        assert abs(z_score(broken, draws.truth)) > 6.0

@@ -5,7 +5,8 @@ tolerance, and (where one is easy) a broken variant that the same statistic must
 
 Statistic (as in test_sure_power.py): per noise draw, D = sum SURE - sum (F(x) - mu)^2 over the
 image (the true squared error, mu the known clean image); E[D] = 0 for an unbiased estimator.
-z = mean D / stderr over the draws; a correct estimator passes |z| <= 4.5 (normal
+z = mean D / stderr over the draws (jaxden.testing.z_score; biases relative to a reference
+quantity by jaxden.testing.relative_mean); a correct estimator passes |z| <= 4.5 (normal
 approximation: false rejection ~7e-6); a broken one must give |z| > 8 in the predicted
 direction. The "resolution" quoted per test is 4.5 stderr: the smallest bias the z-test
 rejects, as a fraction of the quantity named.
@@ -27,13 +28,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from test_sure_buffers import buffer_frames, firefly_samples, firefly_var
-from test_sure_power import Z_LIMIT, _frame_features, heterogeneous, z_score
+from test_sure_power import Z_LIMIT, _frame_features, heterogeneous
 
 from jaxden.denoise.registry import Denoiser, DenoiserDef
 from jaxden.frame import Frame
 from jaxden.sure.buffers import combine_buffers, sure_buffers, sure_buffers_jax
 from jaxden.sure.denoiser import FD_EPS_BLACKBOX, default_eps, denoise_with_sure
 from jaxden.sure.stein import sure
+from jaxden.testing import relative_mean, z_score
 
 POWER_Z = 8.0
 
@@ -62,14 +64,6 @@ def render_scale(seed: int):
 def sums(a):
     """Per-draw image sums in float64: (draws, H, W, 3) -> (draws,)."""
     return np.asarray(a, np.float64).sum(axis=(-3, -2, -1))
-
-
-def relative_bound(values, reference) -> tuple[float, float]:
-    """(mean, stderr) of ``values`` relative to mean(reference)."""
-    values = np.asarray(values, np.float64)
-    scale = float(np.mean(reference))
-    return (float(values.mean() / scale),
-            float(values.std(ddof=1) / np.sqrt(values.size) / abs(scale)))
 
 
 # --------------------------------------------------- denoisers: NumPy and JAX, one formula
@@ -160,11 +154,11 @@ def _check_fd(draws: int, fd_bound: float):
     div_fd, div_jvp = sums(r.divergence_term), sums(exact.divergence_term)
     # (a) end to end: FD SURE at the default eps is unbiased for the true MSE.
     z = z_score(sums(r.sure), true_sq)
-    resolution = Z_LIMIT * relative_bound(sums(r.sure) - true_sq, 2 * div_jvp)[1]
+    resolution = Z_LIMIT * relative_mean(sums(r.sure) - true_sq, 2 * div_jvp)[1]
     # (b) FD's own bias at eps = 1e-2, against the exact jvp with the same probes.
-    rel, se = relative_bound(div_fd - div_jvp, div_jvp)
+    rel, se = relative_mean(div_fd - div_jvp, div_jvp)
     # (c) the broken variant: eps far too large (truncation bias of the difference quotient).
-    rel_big, se_big = relative_bound(sums(fd[big].divergence_term) - div_jvp, div_jvp)
+    rel_big, se_big = relative_mean(sums(fd[big].divergence_term) - div_jvp, div_jvp)
     # (d) per pixel: relative L2 error of the divergence term against jvp, at 1e-2 and 1e-4;
     # the median over draws (rare draws where x lands on a strongly curved part of the
     # denoiser have a per-pixel truncation error of ~2 %: they dominate a pooled L2).
@@ -275,7 +269,7 @@ def _check_sample_variance(draws: int, n: int = 4):
     stderr = d.std(ddof=1) / np.sqrt(draws)
     report = {"z_ok": z_ok, "z_var_dependent": z_bad, "shift": d.mean(), "expected": expected,
               "shift_z": (d.mean() - expected) / stderr,
-              "resolution": Z_LIMIT * relative_bound(sure_sum - true_sq, true_sq)[1]}
+              "resolution": Z_LIMIT * relative_mean(sure_sum - true_sq, true_sq)[1]}
     assert abs(z_ok) <= Z_LIMIT, report
     assert np.sign(z_bad) == np.sign(expected) and abs(z_bad) > POWER_Z, report
     assert abs(d.mean() - expected) <= Z_LIMIT * stderr, report
@@ -345,7 +339,7 @@ def _check_heavy_tails(draws: int, n: int, k: int, bound: float | None):
     report = {}
     for name, r in [("stein", stein), ("stein_true_var", stein_exact), ("buffers", plain),
                     ("extrapolated", extrapolated)]:
-        bias, se = relative_bound(sums(r.sure) - true_sq, true_sq)
+        bias, se = relative_mean(sums(r.sure) - true_sq, true_sq)
         report[name] = {"z": z_score(sums(r.sure), true_sq), "bias": bias, "se": se}
     ext = report["extrapolated"]
     if bound is None:
@@ -421,7 +415,7 @@ def _check_blur(draws: int):
     true_sq = sums(np.square(good.denoised.astype(np.float64) - clean))
     ratio = float(sums(bad.divergence_term).mean() / sums(good.divergence_term).mean())
     report = {"z": z_score(sums(good.sure), true_sq),
-              "resolution": Z_LIMIT * relative_bound(sums(good.sure) - true_sq, true_sq)[1],
+              "resolution": Z_LIMIT * relative_mean(sums(good.sure) - true_sq, true_sq)[1],
               "z_correlated": z_score(sums(bad.sure), true_sq), "covariance_ratio": ratio}
     assert abs(report["z"]) <= Z_LIMIT, report
     assert report["z_correlated"] < -POWER_Z, report
@@ -475,7 +469,7 @@ def _check_wskp(draws: int):
     bad = run(frame, jnp.asarray(correlated(xk), jnp.float32))
     true_sq = sums(np.square(np.asarray(good.denoised, np.float64) - clean))
     report = {"z": z_score(sums(good.sure), true_sq),
-              "resolution": Z_LIMIT * relative_bound(sums(good.sure) - true_sq, true_sq)[1],
+              "resolution": Z_LIMIT * relative_mean(sums(good.sure) - true_sq, true_sq)[1],
               "z_correlated": z_score(sums(bad.sure), true_sq),
               "divergence_over_var": float(sums(good.divergence_term).mean()
                                            / sums(frame.variance).mean())}

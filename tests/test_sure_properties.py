@@ -7,14 +7,15 @@ does the same thing and a failure reproduces. The Monte Carlo loops use ``rbg`` 
 (``key(seed, impl="rbg")``): vmapped threefry draws compile ~3x slower on XLA:CPU, and
 ``sure`` takes any key type.
 
-The target. Per noise draw i, D_i = sum_pixels SURE(x_i) - sum_pixels (F(x_i) - mu)^2. SURE is
-unbiased for E_x ||F(x) - mu||^2 (over the noise AND the probes), so E[D] = 0. Comparing the
-mean of D with 0, rather than mean SURE with a separately estimated mean squared error, uses
-common random numbers: D has much lower variance than either term. z-test: |mean D| <= 4.5
-stderr (stderr = sample std / sqrt(N)), N = DRAWS = 512 draws per example; a correct
-estimator fails one example with probability 7e-6 (normal approximation; D is a sum of 192
-weakly dependent terms). The same test must reject a broken estimator: dropping the
-divergence term (bias -2 sum var J_ii) gives |z| > 10.
+The target. Per noise draw i, D_i = mean_pixels SURE(x_i) - mean_pixels (F(x_i) - mu)^2 (the
+draws and the statistic are jaxden.testing's: ``sure_draws``, ``z_score``). SURE is unbiased
+for E_x ||F(x) - mu||^2 (over the noise AND the probes), so E[D] = 0. Comparing the mean of
+D with 0, rather than mean SURE with a separately estimated mean squared error, uses common
+random numbers: D has much lower variance than either term. z-test: |mean D| <= 4.5 stderr
+(stderr = sample std / sqrt(N)), N = DRAWS = 512 draws per example; a correct estimator
+fails one example with probability 7e-6 (normal approximation; D is a mean of 192 weakly
+dependent terms). The same test must reject a broken estimator: dropping the divergence
+term (bias -2 mean var J_ii) gives |z| > 10.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from hypothesis.extra import numpy as hnp
 
 from jaxden.frame import Frame
 from jaxden.sure.stein import draw_probes, sure, sure_blackbox
+from jaxden.testing import sure_draws, z_score
 
 SHAPE = (8, 8, 3)
 DRAWS = 512
@@ -89,35 +91,18 @@ def net_params(seed: int, dtype=np.float32, hidden: int = 8):
 # ------------------------------------------------------------------ Monte Carlo machinery
 
 
-@functools.partial(jax.jit, static_argnames=("denoise_fn", "method", "num_probes"))
-def draw_statistics(denoise_fn, params, clean, var, key, eps, *, method="jvp", num_probes=4):
-    """Per draw (DRAWS of them): sum SURE, sum true squared error, sum divergence term,
-    sum (residual^2 - var) (SURE without its divergence term: the broken estimator)."""
-    noise_key, probe_key = jax.random.split(key)
-    # Flat draw, reshaped: XLA:CPU compiles multi-dimensional threefry draws much slower.
-    noise = jax.random.normal(noise_key, (DRAWS * clean.size,), clean.dtype).reshape(
-        (DRAWS,) + clean.shape)
-
-    def one(n, k):
-        frame = Frame(color=clean + jnp.sqrt(var) * n, variance=var)
-        r = sure(denoise_fn, frame, k, num_probes, method, eps, params=params)
-        true_sq = jnp.sum(jnp.square(r.denoised - clean))
-        return (jnp.sum(r.sure), true_sq, jnp.sum(r.divergence_term),
-                jnp.sum(r.residual_sq - var))
-
-    return jax.vmap(one)(noise, jax.random.split(probe_key, DRAWS))
+def draw_statistics(denoise_fn, params, clean, var, seed: int, eps, *, method="jvp",
+                    num_probes=4):
+    """jaxden.testing.sure_draws over DRAWS noisy frames around ``clean`` (one batch: one
+    compiled function per denoiser, whatever the example's arrays)."""
+    return sure_draws(denoise_fn, Frame(color=np.asarray(clean), variance=np.asarray(var)),
+                      draws=DRAWS, batch=DRAWS, probes=num_probes, method=method, eps=eps,
+                      seed=mc_key(seed), params=params)
 
 
 def mc_key(seed: int):
     """Key for the Monte Carlo loops (see the module docstring for why rbg)."""
     return jax.random.key(seed, impl="rbg")
-
-
-def z_score(values) -> float:
-    """mean / standard error, in float64."""
-    values = np.asarray(values, np.float64)
-    stderr = values.std(ddof=1) / np.sqrt(values.size)
-    return float(values.mean() / stderr) if stderr > 0 else (0.0 if values.mean() == 0 else np.inf)
 
 
 images = hnp.arrays(np.float32, SHAPE, elements=st.floats(0.0, 2.0, width=32))
@@ -131,13 +116,10 @@ seeds = st.integers(0, 2**31 - 1)
 
 def _assert_unbiased(denoise_fn, params, clean, var, seed, method="jvp", eps=1e-4,
                      num_probes=4):
-    # method/num_probes always passed by keyword: jit caches on the arguments as passed.
-    sure_sum, true_sq, _, _ = draw_statistics(denoise_fn, params, jnp.asarray(clean),
-                                              jnp.asarray(var), mc_key(seed), eps,
-                                              method=method, num_probes=num_probes)
-    difference = np.asarray(sure_sum, np.float64) - np.asarray(true_sq, np.float64)
-    z = z_score(difference)
-    assert abs(z) <= Z_LIMIT, (z, difference.mean(), np.mean(true_sq))
+    draws = draw_statistics(denoise_fn, params, clean, var, seed, eps, method=method,
+                            num_probes=num_probes)
+    z = z_score(draws.sure, draws.truth)
+    assert abs(z) <= Z_LIMIT, (z, np.mean(draws.sure - draws.truth), np.mean(draws.truth))
 
 
 @SETTINGS
@@ -176,13 +158,10 @@ def test_z_test_rejects_sure_without_divergence_term():
     clean = jnp.asarray(rng.uniform(0, 2, SHAPE).astype(np.float32))
     var = jnp.asarray(rng.uniform(1e-3, 0.1, SHAPE).astype(np.float32))
     for kernel in (IDENTITY, BOX):
-        sure_sum, true_sq, _, broken = draw_statistics(linear_filter, kernel, clean, var,
-                                                       mc_key(7), 1e-4, method="jvp",
-                                                       num_probes=4)
-        good = np.asarray(sure_sum, np.float64) - np.asarray(true_sq, np.float64)
-        bad = np.asarray(broken, np.float64) - np.asarray(true_sq, np.float64)
-        assert abs(z_score(good)) <= Z_LIMIT
-        assert z_score(bad) < -10.0, z_score(bad)
+        draws = draw_statistics(linear_filter, kernel, clean, var, 7, 1e-4)
+        broken = draws.residual - float(np.mean(np.asarray(var, np.float64)))
+        assert abs(z_score(draws.sure, draws.truth)) <= Z_LIMIT
+        assert z_score(broken, draws.truth) < -10.0, z_score(broken, draws.truth)
 
 
 # ------------------------------------------------------------------ divergence
@@ -206,7 +185,7 @@ def test_divergence_expectation_is_the_analytic_trace(clean, var, kernel, seed):
     estimates = np.asarray(single_probe_divergences(jnp.asarray(kernel), frame,
                                                     mc_key(seed), 2048), np.float64)
     trace = float(np.sum(var.astype(np.float64) * np.diag(kernel[1, 1]).astype(np.float64)))
-    assert abs(z_score(estimates - trace)) <= Z_LIMIT
+    assert abs(z_score(estimates, trace)) <= Z_LIMIT
 
 
 @SETTINGS
