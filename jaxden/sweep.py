@@ -19,6 +19,12 @@ A sweep file (TOML, e.g. ``experiments/sweeps/pd-ablations.toml``)::
     sequences = ["$JAXDEN_HOME/data/rt-seq"]  # denoiser runs: per frame and with temporal
                                            #   accumulation (jaxden.evaluate.denoise)
 
+The keys of ``[evaluate]`` are those of the evaluators that run in sweeps (one that a plugin
+registers too: :func:`jaxden.evaluate.registry.evaluate_table_class`): each one's name lists
+its datasets, beside the settings it reads (above: ``pd`` reads ``spp``, ``split``,
+``probes``, ``seed`` and ``denoiser``, ``denoise`` reads ``split`` and ``denoise_spp``), and
+each one gives the summary's columns for its datasets (its ``sweep_columns``).
+
 Paths may use ``~`` and ``$JAXDEN_HOME`` (default ``~/jaxden-work``), here and in overrides
 such as ``data.dataset=$JAXDEN_HOME/data/rt``.
 
@@ -58,8 +64,8 @@ from typing import Any, Literal
 from jaxden.config import config_to_dict, load_config, toml_value
 from jaxden.errors import ConfigError
 
-__all__ = ["EvaluateConfig", "Run", "SweepConfig", "check_sweep", "load_sweep", "plan_runs",
-           "run_sweep", "summarize"]
+__all__ = ["Run", "SweepConfig", "check_sweep", "load_sweep", "plan_runs", "run_sweep",
+           "summarize"]
 
 RESULT_NAME = "result.json"
 #: A sweep of more runs is refused unless ``allow_large`` (a typo in [axes] can mean thousands).
@@ -71,37 +77,20 @@ NAME_AXIS = "name"
 
 
 @dataclasses.dataclass(frozen=True)
-class EvaluateConfig:
-    """What to measure after each run's training (mixer runs: the PD report per dataset)."""
-
-    pd: tuple[str, ...] = ()  # dataset folders for jaxden.evaluate's "pd" evaluator
-    spp: tuple[int, ...] | None = None
-    split: str = "test"
-    probes: int = 4
-    seed: int = 0
-    denoiser: str = ""  # default: the mixer's own denoiser
-    # Denoiser runs (WSKP, KP, U-Net, ...): jaxden.evaluate.denoise on these datasets at these
-    # spp (Tables 1/6 of the WSKP paper), and on sequence sets (frame by frame and after
-    # temporal accumulation).
-    denoise: tuple[str, ...] = ()
-    denoise_spp: tuple[int, ...] = (1,)
-    sequences: tuple[str, ...] = ()
-
-    def __post_init__(self):
-        from jaxden.paths import expand_path
-
-        for name in ("pd", "denoise", "sequences"):
-            object.__setattr__(self, name, tuple(expand_path(p) for p in getattr(self, name)))
-
-
-@dataclasses.dataclass(frozen=True)
 class SweepConfig:
-    """A sweep file without its ``[axes]`` table (kept apart: its values are any TOML value)."""
+    """A sweep file without its ``[axes]`` table (kept apart: its values are any TOML value).
+
+    ``evaluate``: what to measure after each run's training, the ``[evaluate]`` table as
+    :func:`load_sweep` checks it: an instance of the dataclass that the registered evaluators
+    declare (:func:`jaxden.evaluate.registry.evaluate_table_class`)."""
 
     base: str
     mode: Literal["grid", "zip"] = "grid"
     overrides: tuple[str, ...] = ()
-    evaluate: EvaluateConfig = EvaluateConfig()
+    evaluate: Any = dataclasses.field(default_factory=dict)
+    # Modules to import before any name resolves (jaxden.plugins): a plugin's models, losses
+    # and evaluators, in this process and every worker.
+    plugins: tuple[str, ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,6 +112,9 @@ def load_sweep(path: str | Path, overrides: tuple[str, ...] | list[str] = ()):
         data = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as error:
         raise ConfigError(f"{path}: not valid TOML: {error}") from None
+    from jaxden.plugins import load_config_plugins
+
+    load_config_plugins(data, str(path))
     axes = data.pop("axes", None)
     if not isinstance(axes, dict) or not axes:
         raise ConfigError(f"{path}: needs an [axes] table with at least one key = [values]")
@@ -134,7 +126,12 @@ def load_sweep(path: str | Path, overrides: tuple[str, ...] | list[str] = ()):
         config = load_config(data, SweepConfig)
     except ConfigError as error:
         raise ConfigError(f"{path}: {error}") from None
-    config = dataclasses.replace(config, overrides=(*config.overrides, *overrides))
+    try:  # against the evaluators registered now (a plugin's registers when it is imported)
+        evaluate = _load_evaluate(config.evaluate)
+    except ConfigError as error:
+        raise ConfigError(f"{path}: {error}") from None
+    config = dataclasses.replace(config, evaluate=evaluate,
+                                 overrides=(*config.overrides, *overrides))
     base = (path.parent / config.base).resolve() if not Path(config.base).is_absolute() \
         else Path(config.base)
     if not base.is_file():
@@ -143,6 +140,17 @@ def load_sweep(path: str | Path, overrides: tuple[str, ...] | list[str] = ()):
         lengths = ", ".join(f"{k}: {len(v)}" for k, v in axes.items())
         raise ConfigError(f"{path}: mode = 'zip' needs axes of equal length, got {lengths}")
     return config, axes, base
+
+
+def _load_evaluate(table: Any):
+    """The ``[evaluate]`` table (``table``, as TOML gave it) checked into the registered
+    evaluators' dataclass; ConfigError naming the key and the allowed ones."""
+    from jaxden.evaluate.registry import evaluate_table_class
+
+    cls = evaluate_table_class()
+    holder = dataclasses.make_dataclass("SweepConfig", [
+        ("evaluate", cls, dataclasses.field(default_factory=cls))], frozen=True)
+    return load_config({"evaluate": table}, holder).evaluate
 
 
 def _label(value: Any) -> str:
@@ -265,7 +273,8 @@ def _finished_result(path: Path, resolved: dict, evaluate: dict, values: dict) -
         recorded = config_to_dict(load_config(recorded, TrainConfig))
     except (ConfigError, TypeError, ValueError):
         pass
-    if recorded == resolved and previous["evaluate"] == evaluate and previous["values"] == values:
+    if (recorded == resolved and _same_evaluate(previous["evaluate"], evaluate)
+            and previous["values"] == values):
         return previous
     return None
 
@@ -329,31 +338,23 @@ def check_sweep(path: str | Path, overrides=(), *, only: Sequence[str] = (),
     return config, axes, base, runs, configs
 
 
-def _check_evaluate_sets(path, evaluate: EvaluateConfig) -> None:
-    """Each [evaluate] dataset exists, is complete and has crops in the split it is read at
-    (sequence sets: exist and are complete)."""
-    from jaxden.data.layout import load_manifest
-    from jaxden.errors import DatasetError
+def _check_evaluate_sets(path, evaluate) -> None:
+    """Each [evaluate] dataset exists and can be read as its evaluator reads it (its
+    ``sweep_check``: a rendered dataset is complete with crops in the split it is read at, a
+    sequence set is complete)."""
+    from jaxden.errors import JaxdenError
+    from jaxden.evaluate.registry import sweep_evaluators
 
-    for key in ("pd", "denoise", "sequences"):
-        for folder in getattr(evaluate, key):
-            where = f"{path}: [evaluate] {key} = {folder!r}"
+    table = config_to_dict(evaluate)
+    for evaluator in sweep_evaluators():
+        for folder in getattr(evaluate, evaluator.name):
+            where = f"{path}: [evaluate] {evaluator.name} = {folder!r}"
             if not Path(folder).is_dir():
                 raise ConfigError(f"{where}: no such dataset folder")
-            if key == "sequences":
-                if not (Path(folder) / "manifest.json").is_file():
-                    raise ConfigError(f"{where}: not a sequence set (no manifest.json)")
-                continue
             try:
-                manifest = load_manifest(folder)
-            except DatasetError as error:
+                evaluator.sweep_check(folder, table)
+            except JaxdenError as error:
                 raise ConfigError(f"{where}: {error}") from None
-            if not manifest.complete:
-                raise ConfigError(f"{where}: the dataset is not complete; finish `jaxden "
-                                  f"dataset build` first")
-            if not manifest.crops_in(evaluate.split):
-                raise ConfigError(f"{where}: no crops in split {evaluate.split!r} (splits: "
-                                  f"{manifest.split_counts()})")
 
 
 def run_sweep(path: str | Path, workdir: str | Path, overrides=(), *, executor: str = "serial",
@@ -381,9 +382,7 @@ def run_sweep(path: str | Path, workdir: str | Path, overrides=(), *, executor: 
     if progress:
         print(f"sweep {path}: {len(runs)} run(s) of {base} ({config.mode} over "
               f"{', '.join(axes)}) in {workdir}", flush=True)
-    evaluate = config_to_dict(config.evaluate)
-    for name in ("pd", "denoise", "sequences"):
-        evaluate[name] = [str(Path(p).absolute()) for p in getattr(config.evaluate, name)]
+    evaluate = _evaluate_record(config.evaluate)
     tasks = [(str(workdir / run.name), str(base), run.overrides, evaluate, run.values, progress)
              for run in runs]
     by_name = {}
@@ -414,23 +413,46 @@ def run_sweep(path: str | Path, workdir: str | Path, overrides=(), *, executor: 
     return results
 
 
+def _evaluate_record(evaluate) -> dict:
+    """The ``[evaluate]`` table as a run records it: every key, defaults filled in, datasets
+    as absolute paths (the runs may work in another folder)."""
+    from jaxden.evaluate.registry import sweep_evaluators
+
+    record = config_to_dict(evaluate)
+    for evaluator in sweep_evaluators():
+        record[evaluator.name] = [str(Path(p).absolute())
+                                  for p in getattr(evaluate, evaluator.name)]
+    return record
+
+
+def _same_evaluate(recorded: dict, evaluate: dict) -> bool:
+    """Whether a finished run's recorded ``[evaluate]`` is ``evaluate``: keys it lacks (an
+    evaluator registered since, by jaxden or a plugin) count as their defaults."""
+    from jaxden.evaluate.registry import evaluate_table_class
+
+    defaults = config_to_dict(evaluate_table_class()())
+    return {**defaults, **recorded} == evaluate
+
+
 def _provenance(path, workdir, overrides) -> dict[str, str]:
     """What made a summary: the sweep command (as run from the current folder), the git commit
     of the code (:func:`jaxden.provenance.git_commit`: '+dirty' with uncommitted changes to
     tracked files outside results and weights) and the date."""
     import shlex
 
-    from jaxden.provenance import git_commit, today
+    from jaxden.provenance import git_commit, plugin_record, today
 
     command = shlex.join(["jaxden", "sweep", str(path), "--workdir", str(workdir),
                           *map(str, overrides)])
-    return {"command": command, "commit": git_commit(), "date": today()}
+    return {"command": command, "commit": git_commit(), "date": today(), **plugin_record()}
 
 
 def _metrics(result: dict) -> dict[str, float]:
     """The numbers a summary row shows: final validation loss (and the baseline's), and per
-    PD evaluation the PD / denoiser ratios (RMSE, relMSE), the RMSE ratio without the t-test,
-    and PD / MC at the top spp."""
+    evaluation the columns its evaluator gives (its ``sweep_columns``), each labelled by the
+    dataset folder's name. ConfigError for an evaluation no registered evaluator made."""
+    from jaxden.evaluate.registry import evaluator_of_sweep_key
+
     out = {}
     for key in ("val_loss", "val_baseline_loss"):
         if isinstance(result["train"].get(key), (int, float)):
@@ -438,22 +460,9 @@ def _metrics(result: dict) -> dict[str, float]:
     for name, evaluation in result.get("evaluations", {}).items():
         kind, _, path = name.partition(":")
         label = path.rstrip("/").split("/")[-1]
-        if kind in ("den", "seq"):
-            prefixes = {"den": "den"} if kind == "den" else {"den": "den", "temporal": "tdn"}
-            for title, prefix in prefixes.items():
-                for metric, shown in (("psnr", "PSNR"), ("ssim", "SSIM"), ("relmse", "relMSE"),
-                                      ("flip", "FLIP")):
-                    key = f"{prefix}_{metric}"
-                    if key in evaluation:
-                        suffix = "" if title == "den" else f" {title}"
-                        out[f"{label}{suffix} {shown}"] = evaluation[key]
-            continue
-        head = evaluation["headline"]
-        out[f"{label} PD/den RMSE"] = head["pd_over_denoiser"]["rmse"]
-        out[f"{label} PD/den relMSE"] = head["pd_over_denoiser"]["relmse"]
-        if "mixed_over_denoiser" in head:  # the same mixer without the t-test
-            out[f"{label} no-t/den RMSE"] = head["mixed_over_denoiser"]["rmse"]
-        out[f"{label} PD/MC RMSE@{evaluation['max_spp']}"] = head["pd_over_mc_at_max_spp"]["rmse"]
+        columns = evaluator_of_sweep_key(kind).sweep_columns
+        for column, value in (columns(evaluation) if columns is not None else {}).items():
+            out[f"{label} {column}"] = value
     return out
 
 

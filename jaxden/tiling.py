@@ -166,8 +166,8 @@ def tile_budget(limit: int, frame_bytes: int, what: str) -> int:
     if frame_bytes > limit:
         raise MemoryPlanError(
             f"{what}: the frame's own arrays need about {format_bytes(frame_bytes)}, more than "
-            f"the memory limit {format_bytes(limit)} (JAXDEN_MEMORY_LIMIT or --memory-limit "
-            f"set it)")
+            f"the memory limit {format_bytes(limit)} (JAXDEN_MEMORY_LIMIT or the caller's "
+            f"limit sets it)")
     return min(int(limit * TILE_BUDGET_SHARE), TILE_BUDGET_CAP, limit - frame_bytes)
 
 

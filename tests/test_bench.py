@@ -1,7 +1,8 @@
 """Smoke runs of every benchmark in jaxden/bench at a tiny size: each runs through
-``jaxden.bench.run(name, as_json=True, quick=True)``, prints one JSON object with the keys its
-docstring promises, and its ratios are finite and positive. No timing is asserted (a shared
-2-core machine makes any bound meaningless here; the real numbers come from ``jaxden bench``).
+``jaxden.bench.run(name, as_json=True, quick=True)``, prints one JSON object (alone on stdout)
+with the keys its docstring promises, and its ratios are finite and positive. No timing is
+asserted (a shared 2-core machine makes any bound meaningless here; the real numbers come from
+``jaxden bench``).
 
 The ``quick`` sizes are shrunk further through each module's QUICK_* constants, and the frame
 the denoiser / SURE / progressive benchmarks read is a Mitsuba-free synthetic one
@@ -52,7 +53,7 @@ def tiny(monkeypatch, frame_file):
 def run_json(name, capsys) -> dict:
     capsys.readouterr()
     result = bench.run(name, as_json=True, quick=True)
-    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    printed = json.loads(capsys.readouterr().out)  # the JSON alone; the table on stderr
     assert printed == json.loads(json.dumps(result, sort_keys=True, default=str))
     assert printed["bench"] == name
     return printed

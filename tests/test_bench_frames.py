@@ -47,7 +47,7 @@ def run_json(capsys, name, sizes, quick=True) -> dict:
     capsys.readouterr()
     result = bench.run(name, as_json=True, quick=quick, sizes=sizes)
     out = capsys.readouterr().out
-    printed = json.loads(out.strip().splitlines()[-1])
+    printed = json.loads(out)  # the JSON alone; the table on stderr
     assert printed == json.loads(json.dumps(result, sort_keys=True, default=str))
     assert printed["bench"] == name
     return printed
@@ -145,7 +145,7 @@ def test_bad_sizes_are_one_line_errors(text, words, capsys):
 
 def test_size_is_refused_by_benchmarks_without_it(capsys):
     code, lines, _ = run_cli(["bench", "render", "--size", "64x64"], capsys)
-    assert_one_error_line(code, lines, "'render' takes no --size", "denoisers, progressive")
+    assert_one_error_line(code, lines, "'render' takes no sizes", "denoisers, progressive")
 
 
 def test_parse_sizes():

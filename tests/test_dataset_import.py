@@ -224,17 +224,46 @@ def test_options_are_checked_before_anything_is_written(tmp_path):
     one file per output, an output folder inside the source: one error each, no folder."""
     src = make_source(tmp_path / "src")
     out = tmp_path / "a"
-    with pytest.raises(DatasetError, match=r"--held-out: v7 is not a view .*v0, v1"):
+    with pytest.raises(DatasetError, match=r"^held_out: v7 is not a view .*v0, v1"):
         import_dataset(src, out, crop_size=16, held_out=("v7",), progress=False)
-    with pytest.raises(DatasetError, match=r"--held-out and --val both name v1"):
+    with pytest.raises(DatasetError, match=r"^held_out and val both name v1"):
         import_dataset(src, out, crop_size=16, held_out=("v1",), val=("v1",), progress=False)
-    with pytest.raises(DatasetError, match=r"--crop 21: must be in 1\.\.20"):
+    with pytest.raises(DatasetError, match=r"^crop_size=21: must be in 1\.\.20"):
         import_dataset(src, out, crop_size=21, progress=False)
-    with pytest.raises(DatasetError, match=r"--from falcor: .*one file per output"):
+    with pytest.raises(DatasetError, match=r"^convention=falcor: .*one file per output.* with "
+                                           r"convention left out"):
         import_dataset(src, out, crop_size=16, convention="falcor", progress=False)
-    with pytest.raises(DatasetError, match=r"inside the source folder"):
+    with pytest.raises(DatasetError, match=r"^out_dir=.*: inside the source folder"):
         import_dataset(src, src / "data", crop_size=16, progress=False)
     assert not out.exists() and not (src / "data").exists()
+
+
+@pytest.mark.parametrize("flags, words", [
+    (["--held-out", "v7"], "--held-out: v7 is not a view"),
+    (["--held-out", "v1", "--val", "v1"], "--held-out and --val both name v1"),
+    (["--crop", "21"], "--crop 21: must be in 1..20"),
+    (["--from", "falcor"], "with --from left out"),
+])
+def test_the_cli_names_its_flags_where_the_library_names_parameters(tmp_path, capsys, flags,
+                                                                      words):
+    src = make_source(tmp_path / "src")
+    out = tmp_path / "data"
+    code, errors, _ = run_cli(["dataset", "import", src, "--crop", 16, "--quiet", "--out", out,
+                               *flags], capsys)
+    assert_one_error_line(code, errors, words)
+    assert "held_out" not in errors[0] and "crop_size" not in errors[0]
+    assert not out.exists()
+
+
+def test_an_argument_error_pickles_with_its_message():
+    import pickle
+
+    from jaxden.data.importer import ImportArgumentError
+
+    error = ImportArgumentError(lambda name: f"{name('crop_size', 21)}: too big")
+    assert str(error) == "crop_size=21: too big"
+    assert error.naming({"crop_size": "--crop"}) == "--crop 21: too big"
+    assert str(pickle.loads(pickle.dumps(error))) == "crop_size=21: too big"
 
 
 def test_interrupted_import_resumes_and_a_finished_one_is_not_redone(tmp_path, monkeypatch):

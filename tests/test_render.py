@@ -817,10 +817,10 @@ def test_bench_registry_run_table_and_json(monkeypatch, capsys):
         return {"ratio": 0.5 if quick else 2.0, "peer_s": 1.25}
 
     result = bench.run("dummy", as_json=True, quick=True)
-    lines = capsys.readouterr().out.strip().splitlines()
+    out, err = capsys.readouterr()
     assert result["ratio"] == 0.5
-    assert json.loads(lines[-1]) == {"bench": "dummy", "peer_s": 1.25, "ratio": 0.5}
-    assert any("ratio" in line and "0.5" in line for line in lines[:-1])  # the table
+    assert json.loads(out) == {"bench": "dummy", "peer_s": 1.25, "ratio": 0.5}  # alone
+    assert any("ratio" in line and "0.5" in line for line in err.splitlines())  # the table
     bench.run("dummy", as_json=False)
     assert not capsys.readouterr().out.strip().splitlines()[-1].startswith("{")
     with pytest.raises(JaxdenError, match="unknown benchmark 'nope'; valid: .*dummy.*render"):

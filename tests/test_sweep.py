@@ -110,8 +110,8 @@ def test_bad_base_or_run_config_fails_before_any_training(tmp_path, capsys):
     ('[axes]\n"model_config.haed" = ["f_act"]\n', "run haed=f_act"),
     ('[axes]\n"optim.learning_rate" = [-0.1]\n', "learning_rate"),
     ('[axes]\n"model_config.head" = ["tree"]\n', "head"),
-    ('[evaluate]\npd = ["NOWHERE"]\n[axes]\nseed = [0]\n', r"\[evaluate\] pd = .*nowhere.*no "
-                                                          r"such dataset folder"),
+    ('[evaluate]\npd = ["NOWHERE"]\n[axes]\nseed = [0]\n',
+     r"\[evaluate\] pd = .*nowhere.*no such dataset folder"),
 ])
 def test_dry_run_makes_the_checks_of_a_real_sweep(tmp_path, capsys, body, words):
     """`--dry-run` exits 2 on the first problem a sweep would meet before training (a typo'd
@@ -259,3 +259,154 @@ def test_relative_dataset_and_init_paths_reach_the_runs_absolute(tmp_path, monke
         "seed=1", f'data.dataset="{tmp_path / "data"}"', f'init="{tmp_path / "runs" / "a"}"')
     shipped = SimpleNamespace(data=SimpleNamespace(dataset=str(tmp_path / "data")), init="wskp-6")
     assert _absolute_overrides(shipped, ()) == ()
+
+
+# ------------------------------------------------------------- the evaluators' sweep columns
+def pd_summary(max_spp: int, ratio: float) -> dict:
+    """The part of a PD evaluation's summary that a sweep's summary reads."""
+    return {"max_spp": max_spp, "headline": {
+        "pd_over_denoiser": {"rmse": ratio, "relmse": ratio / 2},
+        "mixed_over_denoiser": {"rmse": ratio + 0.1, "relmse": ratio},
+        "pd_over_mc_at_max_spp": {"rmse": 1.01, "relmse": 1.02}}}
+
+
+def test_summary_columns_match_the_committed_pd_ablations_summary():
+    """The columns of a PD sweep (from the pd evaluator's sweep_columns) are those of the
+    committed summary of experiments/sweeps/pd-ablations.toml, labels and order alike."""
+    from jaxden.sweep import summarize
+
+    committed = ROOT / "experiments" / "results" / "pd" / "pd-ablations.md"
+    header = committed.read_text().splitlines()[1]
+    axes = ["name", "model_config.features", "model_config.head"]
+    result = {"run": "full", "values": {"name": "full", "model_config.features": ["hdr", "den"],
+                                        "model_config.head": "f_act"},
+              "train": {"val_loss": 0.5, "val_baseline_loss": 0.7},
+              "evaluations": {"pd:/data/test": pd_summary(1024, 0.8),
+                              "pd:/data/test-high/": pd_summary(4096, 0.9)}}
+    lines = summarize([result], axes)["markdown"].splitlines()
+    assert lines[0] == header
+    assert lines[2].startswith("| full | full | hdr+den | f_act | 0.5 | 0.7 | 0.8 | 0.4 | 0.9 |")
+
+
+def test_summary_columns_of_denoiser_sweeps():
+    """A denoise and a sequences evaluation: PSNR, SSIM, relMSE, FLIP per dataset, and the
+    same after temporal accumulation for sequences; the mean and spread over seeds."""
+    from jaxden.sweep import summarize
+
+    def result(seed, psnr):
+        metrics = {f"{p}_{m}": v for p in ("den", "mc", "tdn") for m, v in
+                   (("psnr", psnr), ("ssim", 0.9), ("relmse", 0.01), ("flip", 0.1),
+                    ("rmse", 0.2))}
+        return {"run": f"seed={seed}", "values": {"seed": seed}, "train": {"val_loss": 1.0},
+                "evaluations": {"den:/d/rt-test": {k: v for k, v in metrics.items()
+                                                   if not k.startswith("tdn")},
+                                "seq:/d/rt-seq": metrics}}
+
+    summary = summarize([result(0, 30.0), result(1, 32.0)], ["seed"])
+    lines = summary["markdown"].splitlines()
+    assert lines[0] == (
+        "| run | seed | val_loss | rt-test PSNR | rt-test SSIM | rt-test relMSE | rt-test FLIP | "
+        "rt-seq PSNR | rt-seq SSIM | rt-seq relMSE | rt-seq FLIP | rt-seq temporal PSNR | "
+        "rt-seq temporal SSIM | rt-seq temporal relMSE | rt-seq temporal FLIP |")
+    assert lines[2].startswith("| seed=0 | 0 | 1 | 30 | 0.9 | 0.01 | 0.1 | 30 |")
+    assert summary["groups"][0]["metrics"]["rt-seq temporal PSNR"]["mean"] == 31.0
+
+
+@pytest.fixture
+def toy_evaluator(monkeypatch, tmp_path):
+    """An evaluator registered from outside jaxden (as a plugin's would be): datasets are
+    folders holding ``toy.txt``, one setting ``level``, one summary column."""
+    from jaxden.errors import DatasetError
+    from jaxden.evaluate import registry
+    from jaxden.evaluate.evaluator import Evaluator
+
+    def check(folder, table):
+        if not (Path(folder) / "toy.txt").is_file():
+            raise DatasetError("not a toy set (no toy.txt)")
+
+    toy = Evaluator(
+        name="toy", description="a toy", options=dict,
+        run=lambda data, options, progress=False: [{"score": float(options["level"])}],
+        summarize=lambda rows, provenance: {"summary": {"score": rows[0]["score"]}},
+        table=lambda fields, rows, provenance: "", provenance=lambda options: {},
+        sweep_options=lambda run_dir, table: {"level": table["level"]},
+        sweep_settings=(("level", int, 3),), sweep_check=check, sweep_key="toy",
+        sweep_columns=lambda summary: {"toy score": summary["score"]}, trains="mixer")
+    monkeypatch.setitem(registry.EVALUATORS, "toy", toy)
+    folder = tmp_path / "toyset"
+    folder.mkdir()
+    (folder / "toy.txt").write_text("toy")
+    return toy, folder
+
+
+def test_an_evaluator_from_outside_runs_in_a_sweep(toy_evaluator, tmp_path):
+    """The [evaluate] keys, the dataset check, the evaluation and the summary's columns all
+    come from the registered evaluators: one registered from outside jaxden takes part in
+    each, and a finished run recorded before it was registered is still finished."""
+    from jaxden.evaluate.registry import evaluate_run
+    from jaxden.sweep import _evaluate_record, _same_evaluate, check_sweep, summarize
+
+    _, folder = toy_evaluator
+    body = f'[evaluate]\ntoy = ["{folder}"]\nlevel = 5\n[axes]\nseed = [0]\n'
+    path = write_sweep(tmp_path, body)
+    config, *_ = check_sweep(path)
+    assert config.evaluate.toy == (str(folder),) and config.evaluate.level == 5
+    record = _evaluate_record(config.evaluate)
+    assert record["toy"] == [str(folder)] and record["pd"] == [] and record["split"] == "test"
+    evaluations = evaluate_run(tmp_path / "run", record, "mixer")
+    assert evaluations == {f"toy:{folder}": {"score": 5.0}}
+    result = {"run": "seed=0", "values": {"seed": 0}, "train": {}, "evaluations": evaluations}
+    assert summarize([result], ["seed"])["markdown"].splitlines()[0] == (
+        "| run | seed | toyset toy score |")
+    # A run recorded before "toy" existed: the same [evaluate] as one that leaves it out.
+    plain = write_sweep(tmp_path, "[axes]\nseed = [0]\n")
+    now = _evaluate_record(check_sweep(plain)[0].evaluate)
+    before = {k: v for k, v in now.items() if k not in ("toy", "level")}
+    assert _same_evaluate(before, now) and not _same_evaluate(before, record)
+    # Its setting is typed, and its check runs before any training.
+    bad = write_sweep(tmp_path, '[evaluate]\nlevel = "high"\n[axes]\nseed = [0]\n')
+    with pytest.raises(ConfigError, match=r"sweep.toml: .*'evaluate.level': expected int"):
+        check_sweep(bad)
+    (folder / "toy.txt").unlink()
+    write_sweep(tmp_path, body)
+    with pytest.raises(ConfigError, match=r"\[evaluate\] toy = .*toyset.*: not a toy set"):
+        check_sweep(path)
+
+
+def test_evaluate_keys_come_from_the_evaluators(toy_evaluator, tmp_path):
+    path = write_sweep(tmp_path, '[evaluate]\ntoys = ["x"]\n[axes]\nseed = [0]\n')
+    with pytest.raises(ConfigError, match=r"sweep.toml: .*unknown key 'toys' in table "
+                                          r"\[evaluate\].*did you mean 'toy'.*Allowed keys: "
+                                          r"denoise, denoise_spp, denoiser, level, pd, probes, "
+                                          r"seed, sequences, split, spp, toy"):
+        load_sweep(path)
+
+
+def test_evaluators_declaring_one_key_differently_are_refused(toy_evaluator, monkeypatch):
+    import dataclasses
+
+    from jaxden.evaluate import registry
+
+    toy, _ = toy_evaluator
+    monkeypatch.setitem(registry.EVALUATORS, "toy", dataclasses.replace(
+        toy, sweep_settings=(("split", str, "val"),)))
+    with pytest.raises(ValueError, match="'pd' and 'toy' declare the \\[evaluate\\] key "
+                                         "'split' differently"):
+        registry.evaluate_table_class()
+
+
+@pytest.mark.parametrize("key, words", [
+    ("pd", "is not a jaxden dataset: it has no manifest.json"),
+    ("denoise", "is not a jaxden dataset: it has no manifest.json"),
+    ("sequences", "is not a jaxden sequence set: it has no sequences.json"),
+])
+def test_evaluate_datasets_are_checked_as_their_evaluator_reads_them(tmp_path, key, words):
+    """Each evaluator's sweep_check: a rendered dataset or a sequence set, before training."""
+    from jaxden.sweep import check_sweep
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    path = write_sweep(tmp_path, f'[evaluate]\n{key} = ["{empty}"]\n[axes]\nseed = [0]\n')
+    with pytest.raises(ConfigError, match=rf"sweep.toml: \[evaluate\] {key} = .*empty.*: "
+                                          rf".*{words}"):
+        check_sweep(path)

@@ -3,8 +3,9 @@
 A benchmark is a function ``fn(quick: bool) -> dict`` registered with ``@register("name")`` in
 any module of this package (modules are discovered and imported on first use). Its dict holds
 at least one ratio key (e.g. ``"ratio"``: jaxden's time / the peer's time) and any times or
-settings worth printing. :func:`run` prints a readable table and, with ``as_json``, one JSON
-object on the last line (for scripts and CI).
+settings worth printing. :func:`run` prints a readable table on stdout or, with ``as_json``,
+on stderr, stdout then holding one JSON object alone (for scripts and CI: ``json.loads`` of
+the whole output).
 
 A benchmark may also measure whole frames of given sizes (``jaxden bench NAME --size
 WxH[,WxH...]``): ``fn(quick, sizes) -> dict`` registered with ``@register_sizes("name")``
@@ -14,9 +15,11 @@ sizes=[...])`` runs it instead, and refuses a name without one.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import json
 import pkgutil
+import sys
 from collections.abc import Callable
 
 from jaxden.errors import JaxdenError
@@ -131,8 +134,10 @@ def sized_names() -> list[str]:
 
 def run(name: str, as_json: bool = False, quick: bool = False,
         sizes: list[tuple[int, int]] | None = None) -> dict:
-    """Run benchmark ``name``, print a table (and a JSON line if ``as_json``), return its dict.
+    """Run benchmark ``name``, print a table, return its dict.
 
+    The table goes to stdout; with ``as_json`` it goes to stderr, and stdout holds the dict as
+    one JSON object and nothing else (what the benchmark itself prints goes to stderr too).
     ``quick`` asks the benchmark for a smaller problem (for smoke tests). ``sizes``, a list of
     (width, height), runs its frame-size form instead (:func:`register_sizes`). Raises
     JaxdenError for an unknown name, listing the valid ones, and for sizes given to a benchmark
@@ -144,24 +149,28 @@ def run(name: str, as_json: bool = False, quick: bool = False,
     table = None
     if sizes is not None:
         if name not in _SIZED:
-            raise JaxdenError(f"benchmark {name!r} takes no --size; those that do: "
+            raise JaxdenError(f"benchmark {name!r} takes no sizes; those that do: "
                               f"{', '.join(sized_names()) or 'none'}")
         if not sizes:
-            raise JaxdenError(f"benchmark {name!r}: --size names no size")
-        fn, table = _SIZED[name]
-        result = dict(fn(quick, [tuple(size) for size in sizes]))
-    else:
-        result = dict(_REGISTRY[name](quick))
-    result.setdefault("bench", name)
-    shown = (f" (sizes {', '.join(f'{w}x{h}' for w, h in sizes)})" if sizes is not None else "")
-    print(f"benchmark {name}{shown}{' (quick)' if quick else ''}")
-    if table is not None:
-        for line in table(result):
-            print(line)
-    else:
-        width = max(len(str(key)) for key in result)
-        for key, value in result.items():
-            print(f"  {key!s:<{width}}  {_format(value)}")
+            raise JaxdenError(f"benchmark {name!r}: sizes names no size")
+    shown = sys.stderr if as_json else sys.stdout
+    with contextlib.redirect_stdout(shown):
+        if sizes is not None:
+            fn, table = _SIZED[name]
+            result = dict(fn(quick, [tuple(size) for size in sizes]))
+        else:
+            result = dict(_REGISTRY[name](quick))
+        result.setdefault("bench", name)
+        where = (f" (sizes {', '.join(f'{w}x{h}' for w, h in sizes)})" if sizes is not None
+                 else "")
+        print(f"benchmark {name}{where}{' (quick)' if quick else ''}")
+        if table is not None:
+            for line in table(result):
+                print(line)
+        else:
+            width = max(len(str(key)) for key in result)
+            for key, value in result.items():
+                print(f"  {key!s:<{width}}  {_format(value)}")
     if as_json:
-        print(json.dumps(result, sort_keys=True, default=str))
+        print(json.dumps(result, sort_keys=True, default=str), flush=True)
     return result

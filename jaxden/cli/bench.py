@@ -32,7 +32,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
 def add_commands(sub) -> None:
     p = sub.add_parser("bench", help="run a benchmark (ratios against a peer in the same run)")
     p.add_argument("name", help="benchmark name (e.g. render, decoder)")
-    p.add_argument("--json", action="store_true", help="print one JSON object on the last line")
+    p.add_argument("--json", action="store_true",
+                   help="print the result as one JSON object, alone on stdout (the table and "
+                        "progress go to stderr)")
     p.add_argument("--quick", action="store_true", help="smaller problem, fewer repeats")
     p.add_argument("--size", type=_sizes, default=None, metavar="WxH[,WxH...]",
                    help="progressive, denoisers: instead of the crop benchmark, time the "

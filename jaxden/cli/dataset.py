@@ -22,15 +22,26 @@ def cmd_dataset_build(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_dataset_import(args: argparse.Namespace) -> int:
-    from jaxden.data.importer import import_dataset
+#: import_dataset's parameters -> the flags of `jaxden dataset import` that set them.
+IMPORT_FLAGS = {"out_dir": "--out", "convention": "--from", "layer": "--layer",
+                "crop_size": "--crop", "crops_per_view": "--crops-per-view", "seed": "--seed",
+                "held_out": "--held-out", "val": "--val", "reference_spp": "--reference-spp",
+                "name": "--name", "nonfinite": "--nonfinite"}
 
-    manifest = import_dataset(
-        args.source, args.out, convention=args.convention, layer=args.layer,
-        crop_size=args.crop, crops_per_view=args.crops_per_view, seed=args.seed,
-        held_out=_view_list(args.held_out), val=_view_list(args.val),
-        reference_spp=args.reference_spp, name=args.name, half=args.half,
-        nonfinite=args.nonfinite, progress=not args.quiet)
+
+def cmd_dataset_import(args: argparse.Namespace) -> int:
+    from jaxden.data.importer import ImportArgumentError, import_dataset
+    from jaxden.errors import DatasetError
+
+    try:
+        manifest = import_dataset(
+            args.source, args.out, convention=args.convention, layer=args.layer,
+            crop_size=args.crop, crops_per_view=args.crops_per_view, seed=args.seed,
+            held_out=_view_list(args.held_out), val=_view_list(args.val),
+            reference_spp=args.reference_spp, name=args.name, half=args.half,
+            nonfinite=args.nonfinite, progress=not args.quiet)
+    except ImportArgumentError as error:  # named by the flags that set them
+        raise DatasetError(error.naming(IMPORT_FLAGS)) from None
     config, counts = manifest.config, manifest.split_counts()
     print(f"dataset complete: {args.out} ({len(manifest.items)} items: {len(manifest.scenes)} "
           f"views x {config['crops_per_scene']} crops of {config['crop_size']} pixels, inputs "

@@ -29,7 +29,7 @@ curves), or a single `jaxden evaluate pd` JSON file."""
 
 def cmd_report(args: argparse.Namespace) -> int:
     from jaxden.fileio import check_outputs
-    from jaxden.report import build_report, default_output, discover
+    from jaxden.report import ReportError, build_report, default_output, discover
 
     found = discover(args.dir)  # before the output checks: a bad DIR is the first error
     out = Path(args.out) if args.out else default_output(args.dir)
@@ -39,8 +39,14 @@ def cmd_report(args: argparse.Namespace) -> int:
         more = f" and {len(found.ignored) - 5} more" if len(found.ignored) > 5 else ""
         stderr(f"jaxden: note: ignored {len(found.ignored)} .exr file(s) not named by the "
                f"convention (see jaxden report --help): {names}{more}")
-    path = build_report(args.dir, out, title=args.title, max_size=args.max_size,
-                        progress=True, found=found)
+    try:
+        path = build_report(args.dir, out, title=args.title, max_size=args.max_size,
+                            progress=True, found=found)
+    except ReportError as error:  # the library names its parameter out=, the CLI --out
+        parameter = f"out={out}:"
+        if not str(error).startswith(parameter):
+            raise
+        raise ReportError(f"--out {out}:{str(error)[len(parameter):]}") from None
     scenes = len(found.scenes)
     print(f"wrote {path} ({scenes} scene{'s' * (scenes != 1)}, "
           f"{len(found.metric_files)} metric file(s), {len(found.runs)} training run(s), "

@@ -16,12 +16,8 @@ names the differences.
 Parallelism: one Mitsuba ``llvm`` render already uses every core, so the default is one
 worker process per 8 CPUs (:func:`jaxden.executor.default_workers`); on a cluster use Ray
 (``executor='ray'``). Work is handed out one crop at a time (:class:`CropTask`), because
-Mitsuba compiles a kernel per crop window. Measured on the 2-core project machine while other
-jobs kept the load average near 7 (so only the ratios mean much), building
-``experiments/configs/dataset-tiny.toml`` (8 renders, 2 crops, cold kernel cache): 'serial'
-9.6-11.5 s, 'local' with 1 worker 13.6-16.4 s (the extra ~4 s is starting the worker and
-importing Mitsuba in it), 'local' with 2 workers of 1 thread each 16.8-18.4 s, and 2 workers
-of 2 threads each 25-29 s. The build time is mostly kernel compilation (~4 s per crop).
+Mitsuba compiles a kernel per crop window, and the build time is mostly that compilation
+(build times by executor and worker count: docs/results.md, "Data").
 """
 
 from __future__ import annotations
@@ -72,8 +68,8 @@ class CropTask:
     """The pending items of one crop, rendered one after another by one worker.
 
     Grouping by crop matters for speed: Mitsuba compiles its kernels with the film's crop
-    window baked in (a new crop costs a 1-5 s LLVM compile on the project machine, more than
-    rendering it at low spp), and every later render of the same crop reuses the kernel.
+    window baked in (a new crop costs an LLVM compile, more than rendering it at low spp:
+    docs/results.md, "Data"), and every later render of the same crop reuses the kernel.
     """
 
     directory: str

@@ -12,7 +12,7 @@ The source folder holds one folder per camera view::
 View names are folder names of letters, digits and ``- _ .``; every view has the same input
 levels N and every file the same size. Files and folders whose names start with ``.``, and
 files that are not ``.exr``, are ignored; any other ``.exr`` file or folder is an error. The
-files are read by a renderer's channel conventions (``convention``, the CLI's ``--from``:
+files are read by a renderer's channel conventions (``convention``:
 :mod:`jaxden.io.conventions`) and must hold the colour, albedo, normal and depth. Buffers are
 merged by :func:`jaxden.data.merge.merge_renders` (the variance of the mean from their spread,
 or pooled from their own variances), exactly as ``jaxden merge`` does. A sample count in a
@@ -32,7 +32,8 @@ manifest's ``renderer`` names the source files' digest (a rerun with other files
 and its ``extra.import`` records the source folder, the convention and every item's files.
 
 Everything is checked before anything is written: a bad source is one DatasetError (or
-ExrError / FrameError) naming the file, and leaves no dataset folder behind. The dataset's
+ExrError / FrameError) naming the file, and leaves no dataset folder behind; a bad argument is
+an :class:`ImportArgumentError` naming the parameter. The dataset's
 ``aux`` and ``feature_spp`` are the defaults and mean nothing here: the features are the
 source renderer's.
 """
@@ -45,6 +46,7 @@ import json
 import math
 import os
 import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +62,35 @@ VIEW_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 OPTIONAL_FIELDS: tuple[str, ...] = ("position", "emission")
 LAYOUT = ("SRC/<view>/reference.exr (or reference/b<k>.exr) and SRC/<view>/spp<N>.exr (or "
           "spp<N>/b<k>.exr)")
+
+
+def _parameter(parameter: str, *value) -> str:
+    return f"{parameter}={value[0]}" if value else parameter
+
+
+class ImportArgumentError(DatasetError):
+    """A DatasetError about :func:`import_dataset`'s arguments. Its message names them as the
+    function's parameters (``held_out``, ``crop_size=21``); :meth:`naming` gives the same
+    message naming them otherwise (the CLI's flags: ``--held-out``, ``--crop 21``).
+
+    ``describe(name)`` makes the message, ``name(parameter[, value])`` naming a parameter."""
+
+    def __init__(self, describe: Callable[[Callable[..., str]], str] | str) -> None:
+        self.describe = describe if callable(describe) else (lambda name: describe)
+        super().__init__(self.describe(_parameter))
+
+    def naming(self, names: dict[str, str]) -> str:
+        """The message with each parameter in ``names`` called by its entry there, followed
+        by its value after a space (``{"crop_size": "--crop"}``: ``--crop 21``)."""
+        def name(parameter: str, *value) -> str:
+            if parameter not in names:
+                return _parameter(parameter, *value)
+            return " ".join([names[parameter], *map(str, value)])
+
+        return self.describe(name)
+
+    def __reduce__(self):  # the message travels; the function that made it need not pickle
+        return type(self), (str(self),)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -235,9 +266,10 @@ def resolve_source(root: Path, source: Source, *, convention: str | None = None,
     stated = source.level if source.kind == "input" else reference_spp
     if all(c is None for c in counts):
         if stated is None:
-            raise DatasetError(f"{where}: the reference's sample count is in no header "
-                               f"(read as {convention or 'jaxden'}): give it with "
-                               f"--reference-spp N")
+            raise ImportArgumentError(
+                lambda name: f"{where}: the reference's sample count is in no header (read as "
+                             f"{convention or 'jaxden'}): give it with "
+                             f"{name('reference_spp', 'N')}")
         if source.buffers and stated % len(paths):
             raise DatasetError(f"{where}: {len(paths)} buffers without a sample count in their "
                                f"headers cannot share {stated} spp equally")
@@ -250,10 +282,11 @@ def resolve_source(root: Path, source: Source, *, convention: str | None = None,
     else:
         total, file_spp = sum(counts), tuple(counts)
         if stated is not None and not math.isclose(total, stated, rel_tol=1e-6):
-            said = "the name says" if source.kind == "input" else "--reference-spp says"
-            raise DatasetError(f"{where}: the header{'s say' if source.buffers else ' says'} "
-                               f"{total:g} spp{' in all' if source.buffers else ''}, {said} "
-                               f"{stated}")
+            said = "the name" if source.kind == "input" else None
+            raise ImportArgumentError(
+                lambda name: f"{where}: the header{'s say' if source.buffers else ' says'} "
+                             f"{total:g} spp{' in all' if source.buffers else ''}, "
+                             f"{said or name('reference_spp')} says {stated}")
         if abs(total - round(total)) > 1e-6 * total:
             raise DatasetError(f"{where}: the headers say {total:g} spp, not a whole number")
     spp = round(total)
@@ -341,12 +374,13 @@ class ImportedRenders:
 
 
 # ----------------------------------------------------------------------------- import
-def _check_views(option: str, names, views: list[str]) -> tuple[str, ...]:
+def _check_views(parameter: str, names, views: list[str]) -> tuple[str, ...]:
     names = tuple(dict.fromkeys(n for n in names if n))
     unknown = [n for n in names if n not in views]
     if unknown:
-        raise DatasetError(f"{option}: {', '.join(unknown)} is not a view of the source "
-                           f"(views: {', '.join(views)})")
+        raise ImportArgumentError(
+            lambda name: f"{name(parameter)}: {', '.join(unknown)} is not a view of the source "
+                         f"(views: {', '.join(views)})")
     return names
 
 
@@ -393,8 +427,9 @@ def import_dataset(
     directory = Path(out_dir)
     _check_convention(convention)
     if directory.absolute() == root or root in directory.absolute().parents:
-        raise DatasetError(f"--out {directory}: inside the source folder {root}; write the "
-                           f"dataset elsewhere")
+        raise ImportArgumentError(
+            lambda name: f"{name('out_dir', directory)}: inside the source folder {root}; "
+                         f"write the dataset elsewhere")
     views = scan_source(root)
     options = {"convention": convention, "layer": layer}
     resolved = [[resolve_source(root, s, reference_spp=reference_spp, **options) for s in view]
@@ -419,15 +454,17 @@ def import_dataset(
                            f"{references[0].spp} spp, fewer than the largest input's "
                            f"{max(levels)}")
     names = [view[0].view for view in views]
-    held_out = _check_views("--held-out", held_out, names)
-    val = _check_views("--val", val, names)
+    held_out = _check_views("held_out", held_out, names)
+    val = _check_views("val", val, names)
     both = sorted(set(held_out) & set(val))
     if both:
-        raise DatasetError(f"--held-out and --val both name {', '.join(both)}")
+        raise ImportArgumentError(
+            lambda name: f"{name('held_out')} and {name('val')} both name {', '.join(both)}")
     width, height = first.size
     if not 1 <= crop_size <= min(width, height):
-        raise DatasetError(f"--crop {crop_size}: must be in 1..{min(width, height)} (the "
-                           f"views are {width}x{height})")
+        raise ImportArgumentError(
+            lambda name: f"{name('crop_size', crop_size)}: must be in 1..{min(width, height)} "
+                         f"(the views are {width}x{height})")
     try:
         config = DatasetConfig(
             name=name or root.name, scenes=tuple(names), size=(width, height),
@@ -448,8 +485,9 @@ def import_dataset(
         match = view[0] if item.kind == "reference" else next(
             r for r in view[1:] if r.source.level == item.spp)
         if by_seed.setdefault(item.seed, match) is not match:
-            raise DatasetError(f"two items of the plan share the seed {item.seed}; import with "
-                               f"another --seed")
+            raise ImportArgumentError(
+                lambda name, seed=item.seed: f"two items of the plan share the seed {seed}; "
+                                             f"import with another {name('seed')}")
     renders = ImportedRenders(root, by_seed, digest, nonfinite=nonfinite,
                               keep=kept_fields(flat), **options)
     if not _resuming(directory, renderer_name(renders)):
@@ -475,11 +513,12 @@ def _check_convention(convention: str | None) -> None:
 
     known = CONVENTIONS.get(convention) if convention is not None else None
     if known is not None and getattr(known, "file_pattern", None):
-        raise DatasetError(
-            f"--from {convention}: {convention} writes one file per output, and the import "
-            f"reads one file per render: merge each render's captures into one file first "
-            f"(jaxden merge --from {convention} ... --out SRC/<view>/spp<N>.exr) and import "
-            f"without --from")
+        raise ImportArgumentError(
+            lambda name: f"{name('convention', convention)}: {convention} writes one file per "
+                         f"output, and the import reads one file per render: merge each "
+                         f"render's captures into one file SRC/<view>/spp<N>.exr first (as "
+                         f"`jaxden merge --from {convention}` does) and import those with "
+                         f"{name('convention')} left out")
 
 
 def _resuming(directory: Path, renderer: str) -> bool:
@@ -490,20 +529,23 @@ def _resuming(directory: Path, renderer: str) -> bool:
     if not directory.exists():
         return False
     if not directory.is_dir():
-        raise DatasetError(f"--out {directory}: exists and is not a folder")
+        raise ImportArgumentError(
+            lambda name: f"{name('out_dir', directory)}: exists and is not a folder")
     if not (directory / MANIFEST_NAME).exists():
         foreign = sorted(p.name for p in directory.iterdir()
                          if p.name != LOCK_NAME and not TEMP_PATTERN.match(p.name))
         if foreign:
-            raise DatasetError(f"--out {directory}: is not empty ({', '.join(foreign[:5])}) and "
-                               f"has no {MANIFEST_NAME}: refusing to import into it")
+            raise ImportArgumentError(
+                lambda name: f"{name('out_dir', directory)}: is not empty "
+                             f"({', '.join(foreign[:5])}) and has no {MANIFEST_NAME}: refusing "
+                             f"to import into it")
         return False
     stored = load_manifest(directory).renderer
     if stored != renderer:
-        raise DatasetError(
-            f"--out {directory}: holds a dataset made by {stored}, not by this import "
-            f"({renderer}: other source files or settings); import into another folder, or "
-            f"delete {directory} first")
+        raise ImportArgumentError(
+            lambda name: f"{name('out_dir', directory)}: holds a dataset made by {stored}, not "
+                         f"by this import ({renderer}: other source files or settings); import "
+                         f"into another folder, or delete {directory} first")
     return True
 
 

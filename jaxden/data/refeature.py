@@ -80,6 +80,7 @@ def refeature_dataset(
                            f"{', '.join(other)} would change the colour renders: build a new "
                            f"dataset instead")
     if Path(out_dir).resolve() == Path(source).resolve():
-        raise DatasetError(f"refeature writes a new dataset: --out must not be {source}")
+        raise DatasetError(f"refeature writes a new dataset: out_dir must not be the source "
+                           f"{source}")
     return build_dataset(config, out_dir, executor=executor, workers=workers,
                          render_fn=ColourFrom(source), progress=progress)

@@ -190,6 +190,29 @@ def _summary(rows, provenance) -> dict:
     return {"summary": summarize(rows)}
 
 
+#: The metrics a sweep's summary shows, by their column labels.
+SWEEP_METRICS = (("psnr", "PSNR"), ("ssim", "SSIM"), ("relmse", "relMSE"), ("flip", "FLIP"))
+
+
+def _sweep_columns(prefixes: dict[str, str]):
+    """``sweep_columns`` showing the :data:`SWEEP_METRICS` of each summary prefix, labelled
+    by ``prefixes[prefix]`` ("" for the plain label)."""
+    def columns(summary: dict) -> dict[str, float]:
+        return {" ".join(filter(None, (title, shown))): summary[f"{prefix}_{metric}"]
+                for prefix, title in prefixes.items() for metric, shown in SWEEP_METRICS
+                if f"{prefix}_{metric}" in summary}
+
+    return columns
+
+
+def check_sequence_set(data, table: dict) -> None:
+    """The ``sweep_check`` of a sequence set: its manifest is there, readable and says the
+    build finished (:func:`jaxden.data.sequences.read_manifest`'s DatasetError if not)."""
+    from jaxden.data.sequences import read_manifest
+
+    read_manifest(data)
+
+
 DENOISE = Evaluator(
     name="denoise",
     description="PSNR, SSIM, relMSE, FLIP and noise-corrected RMSE of a denoiser per crop and "
@@ -206,7 +229,9 @@ DENOISE = Evaluator(
                                 "include_input": options.include_input},
     sweep_options=lambda run_dir, table: DenoiseOptions(
         denoiser=str(run_dir), split=table["split"], spp=tuple(table["denoise_spp"])),
+    sweep_settings=(("split", str, "test"), ("denoise_spp", tuple[int, ...], (1,))),
     sweep_key="den",
+    sweep_columns=_sweep_columns({"den": ""}),
 )
 
 SEQUENCES = Evaluator(
@@ -222,5 +247,7 @@ SEQUENCES = Evaluator(
     provenance=lambda options: {**_weights(options), "skip_frames": options.skip_frames},
     dataset=sequence_provenance,
     sweep_options=lambda run_dir, table: SequencesOptions(denoiser=str(run_dir)),
+    sweep_check=check_sequence_set,
     sweep_key="seq",
+    sweep_columns=_sweep_columns({"den": "", "tdn": "temporal"}),
 )

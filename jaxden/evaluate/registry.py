@@ -3,11 +3,15 @@
 The names are those of ``jaxden evaluate NAME`` and of the dataset lists in a sweep's
 ``[evaluate]`` table (``pd = [...]``, ``denoise = [...]``, ``sequences = [...]``); a new
 evaluator is one more :class:`~jaxden.evaluate.evaluator.Evaluator` in :data:`EVALUATORS`.
+The keys a sweep's ``[evaluate]`` table allows are those the registered evaluators declare
+(:func:`evaluate_table_class`), so an evaluator registered by a plugin runs in sweeps too.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
+from typing import Any
 
 from jaxden.errors import ConfigError
 from jaxden.evaluate import denoise, oracle, pd, sure, sure_buffers
@@ -49,8 +53,7 @@ def evaluate_run(run_dir, table: dict, model: str) -> dict[str, dict]:
 
     run_dir = Path(run_dir)
     trains = get_trainable(model).kind  # "mixer" or "denoiser"
-    chosen = [e for e in EVALUATORS.values()
-              if e.sweep_options is not None and table.get(e.name)]
+    chosen = [e for e in sweep_evaluators() if table.get(e.name)]
     for evaluator in chosen:
         if evaluator.trains != trains:
             what = "trains a mixer (use pd)" if trains == "mixer" else f"trains {model!r}"
@@ -63,3 +66,60 @@ def evaluate_run(run_dir, table: dict, model: str) -> dict[str, dict]:
             evaluations[f"{evaluator.sweep_key}:{dataset}"] = (
                 evaluator.summarize(rows, {})["summary"])
     return evaluations
+
+
+def sweep_evaluators() -> list[Evaluator]:
+    """The registered evaluators that run in sweeps (they have ``sweep_options``), in order."""
+    return [e for e in EVALUATORS.values() if e.sweep_options is not None]
+
+
+def evaluator_of_sweep_key(key: str) -> Evaluator:
+    """The sweep evaluator whose entries in a run's ``result.json`` are ``KEY:<dataset>``;
+    ConfigError when none is registered (a plugin's evaluator whose plugin is not loaded)."""
+    for evaluator in sweep_evaluators():
+        if evaluator.sweep_key == key:
+            return evaluator
+    raise ConfigError(f"no evaluator records sweep results as {key!r}:...; the evaluators "
+                      f"that run in sweeps: {', '.join(e.name for e in sweep_evaluators())}")
+
+
+def evaluate_table_class() -> type:
+    """The frozen dataclass ``EvaluateConfig`` of a sweep's ``[evaluate]`` table: for every
+    evaluator of :func:`sweep_evaluators`, its name (a tuple of dataset folders, ``~`` and
+    ``$JAXDEN_HOME`` expanded; default none) and its ``sweep_settings``, in registry order.
+    ValueError (an evaluator's definition is wrong, not a user's file) for a name that is not
+    a Python identifier or two declarations of one key that differ."""
+    evaluators = sweep_evaluators()
+    declared: dict[str, tuple[Any, Any, str]] = {}  # key -> (type, default, declared by)
+
+    def declare(key: str, tp: Any, default: Any, by: str) -> None:
+        if not key.isidentifier():
+            raise ValueError(f"evaluator {by!r} declares the [evaluate] key {key!r}, which is "
+                             f"not a Python identifier")
+        if key in declared and declared[key][:2] != (tp, default):
+            raise ValueError(f"evaluators {declared[key][2]!r} and {by!r} declare the "
+                             f"[evaluate] key {key!r} differently: {declared[key][:2]} and "
+                             f"{(tp, default)}")
+        declared.setdefault(key, (tp, default, by))
+
+    datasets = [evaluator.name for evaluator in evaluators]
+    for evaluator in evaluators:
+        declare(evaluator.name, tuple[str, ...], (), evaluator.name)
+        for key, tp, default in evaluator.sweep_settings:
+            if key in datasets:
+                raise ValueError(f"evaluator {evaluator.name!r} declares the [evaluate] key "
+                                 f"{key!r}, the name of an evaluator")
+            declare(key, tp, default, evaluator.name)
+
+    def expand_datasets(self) -> None:
+        from jaxden.paths import expand_path
+
+        for name in datasets:
+            object.__setattr__(self, name, tuple(expand_path(p) for p in getattr(self, name)))
+
+    return dataclasses.make_dataclass(
+        "EvaluateConfig",
+        [(key, tp, dataclasses.field(default=default)) for key, (tp, default, _) in
+         declared.items()],
+        frozen=True, namespace={"__post_init__": expand_datasets,
+                                "__doc__": "A sweep's [evaluate] table (jaxden.sweep)."})

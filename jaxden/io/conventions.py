@@ -121,8 +121,9 @@ CONVENTIONS: dict[str, Convention] = {
         note="film \"gbuffer\": Ns, P in camera space unless \"string coordinatesystem\" "
              "\"world\" (depth = P.Z of camera space); its Variance.R/G/B is the per-sample "
              "variance of the sensor's values (CIE XYZ by default) over the samples that hit "
-             "a surface, not of R,G,B: merge K renders (jaxden merge), or read it anyway with "
-             "--channels variance=Variance.R,Variance.G,Variance.B --sample-variance"),
+             "a surface, not of R,G,B: merge K renders (jaxden merge), or read it anyway as "
+             "the variance, named Variance.R,Variance.G,Variance.B and taken as a per-sample "
+             "variance"),
     "mitsuba": Convention(
         name="mitsuba", variance="none",
         fields={"color": (_rgb(""),),

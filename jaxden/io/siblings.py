@@ -128,7 +128,7 @@ def read_outputs(path, convention: str | None, channel_map: Mapping | None,
     if match is None:
         raise ExrError(f"{path}: not named as {rule.name} names its files "
                        f"(<prefix>.<pass>.<output>.<frame>.exr, e.g. {rule.file_example}); "
-                       f"rename it, or read it without --from {rule.name}")
+                       f"rename it, or read it without convention={rule.name!r}")
     if not path.is_file():
         raise ExrError(f"{path}: no such file")
     prefix, frame = match["prefix"], match["frame"]

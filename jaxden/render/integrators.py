@@ -26,25 +26,24 @@ variance and mostly what a denoiser is trained to see); an inner integrator with
 ``hide_emitters`` gives emission 0 (its colour holds no directly visible emitter). The hit is
 found by one more ``ray_intersect`` of the camera ray, which draws no random numbers, so the
 colour, moments and cross moments are bit for bit those of a render without emission (the
-film already had 3+ extra channels; measured in tests/test_emission.py). Cost: +4 % (the
-``small-lights`` scene) and +9 % (the Cornell box) CPU time of the colour pass at 256 x 256 and
-64 spp (medians of 20 alternated renders on the loaded 2-core machine; ``jaxden bench render``
-reports it as ``ratio_emission``), a few per cent of a whole render_frame. Assumptions: the
-camera ray weight is 1 (perspective and thin-lens cameras in RGB variants) and no
-participating medium lies between the camera and the first surface (volpath would attenuate
-Le there).
+film already had 3+ extra channels; measured in tests/test_emission.py). Its cost is one more
+intersection per sample (``jaxden bench render`` reports it as ``ratio_emission``; measured:
+docs/results.md, "Data"). Assumptions: the camera ray weight is 1 (perspective and thin-lens
+cameras in RGB variants) and no participating medium lies between the camera and the first
+surface (volpath would attenuate Le there).
 
 The wrapper calls the inner integrator's ``sample`` with the same sampler and nothing else, so
 it draws exactly the same random numbers: with the same seed and spp its colour equals a plain
 render of the inner integrator. In ``llvm_ad_rgb`` it is equal to float32 round-off, not bit
-for bit (measured: at most 3 ulp, in about a third of the pixels): a film with 3+ extra
-channels accumulates in a different order; a 1-channel AOV or no AOV gives bit-identical
-colour, which shows the samples themselves are identical. In ``scalar_rgb`` it is bit-identical
-(but a Python integrator is slow in scalar mode: every sample calls into Python).
+for bit (measured: docs/results.md, "Data"): a film with 3+ extra channels accumulates in a
+different order; a 1-channel AOV or no AOV gives bit-identical colour, which shows the samples
+themselves are identical. In ``scalar_rgb`` it is bit-identical (but a Python integrator is
+slow in scalar mode: every sample calls into Python).
 
 ``jaxden_features`` (:func:`aov_integrator`) is Mitsuba's built-in ``aov`` integrator with
 albedo, shading normal, depth and position of the first hit (0 on misses). Two separate renders
-(moments, then AOVs) are about 2x faster than ``aov`` wrapping ``path``, and give the same result.
+(moments, then AOVs) are faster than ``aov`` wrapping ``path`` (docs/results.md, "Data"), and
+give the same result.
 
 ``jaxden_features_chain`` (:func:`chain_features_integrator`, ``aux = "specular-chain"``) gives
 the same 10 channels, but takes albedo and normal from the first *non-delta* surface: where a

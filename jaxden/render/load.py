@@ -312,7 +312,7 @@ class SensorSource:
     narrower, off-centre projection (:func:`crop_projection`), set through ``mi.traverse``:
     those parameters are opaque to Dr.Jit, so every crop of one size reuses the compiled
     kernels. Mitsuba's own film crop would bake the crop offset into the kernel and recompile
-    (~1 s) for every new crop position. Both give the same rays (tested to float round-off);
+    for every new crop position. Both give the same rays (tested to float round-off);
     other sensor types fall back to the film crop.
     """
 
@@ -403,9 +403,9 @@ def build_sensor(sensor_dict: dict, size: tuple[int, int],
 # that sensor: never the scene. Mitsuba scenes take neither attributes nor weak references, and
 # holding scenes alive is costly: every live BSDF, shape and emitter of the variant sits in
 # Dr.Jit's instance registry, and each symbolic virtual call traces and compiles the code of all
-# of them (a Cornell render took 30 s instead of 0.03 s after eight procedural scenes had been
-# held). A held sensor (film, sampler) is not dispatched to, and holding it keeps its id from
-# being reused, so ``scene.sensors()[0] is entry[0]`` identifies the scene exactly.
+# of them (measured: docs/results.md, "Data"). A held sensor (film, sampler) is not dispatched
+# to, and holding it keeps its id from being reused, so ``scene.sensors()[0] is entry[0]``
+# identifies the scene exactly.
 _loaded: collections.OrderedDict[int, tuple[Any, SensorSource]] = collections.OrderedDict()
 
 

@@ -9,10 +9,11 @@ from typing import Any
 
 # Per worker process: the most recently loaded Mitsuba scenes. render_frame reloads a scene
 # given by name on every call, and a freshly loaded scene with textures (the procedural ones)
-# misses Dr.Jit's kernel cache: a 4-6 s recompile per render. Rendering a loaded mi.Scene
-# reuses the kernels (same images: the seeds and the scene are the same). One scene only: every
-# live scene is traced into each render's kernels (jaxden.render.load), so a second one held
-# would slow the renders of the first; crops of one scene are built one after another.
+# misses Dr.Jit's kernel cache: a recompile per render (docs/results.md, "Data"). Rendering a
+# loaded mi.Scene reuses the kernels (same images: the seeds and the scene are the same). One
+# scene only: every live scene is traced into each render's kernels (jaxden.render.load), so a
+# second one held would slow the renders of the first; crops of one scene are built one after
+# another.
 _SCENE_CACHE: dict[tuple[str, tuple[int, int]], Any] = {}
 _SCENE_CACHE_SIZE = 1
 

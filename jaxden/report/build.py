@@ -37,11 +37,11 @@ def build_report(source, out=None, *, title: str | None = None, max_size: int | 
 
     out = Path(out) if out is not None else default_output(source)
     if out.suffix.lower() not in (".html", ".htm"):
-        raise ReportError(f"--out {out}: the report is an .html file")
+        raise ReportError(f"out={out}: the report is an .html file")
     if out.is_dir():
-        raise ReportError(f"--out {out}: is a folder; give a file name")
+        raise ReportError(f"out={out}: is a folder; give a file name")
     if not out.parent.is_dir():
-        raise ReportError(f"--out {out}: the folder {out.parent} does not exist")
+        raise ReportError(f"out={out}: the folder {out.parent} does not exist")
     found = found or discover(source)
     flip_maps = flip_maps or {}
     scenes = [scene_content(scene, max_size=max_size, progress=progress,
