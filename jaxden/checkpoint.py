@@ -4,7 +4,12 @@ A training checkpoint folder (``WORKDIR/checkpoints/<step>/``) holds the train s
 (params, optimiser state, step) and a JSON ``meta`` record::
 
     {"kind": "denoiser" | "mixer", "model": "wskp", "model_config": {...},
-     "jaxden_version": "...", "step": 1200, "train_config": {...}}
+     "jaxden_version": "...", "step": 1200, "train_config": {...},
+     "trained_features": {"aux": "first-hit", "feature_spp": 16}}
+
+``trained_features``: how the training dataset's features were rendered (its manifest's
+``aux`` and ``feature_spp``; absent for an imported dataset and in checkpoints written before
+the record), compared with a frame's by :mod:`jaxden.data.features`.
 
 Orbax writes each step to a temporary folder and renames it when complete, so an interrupted
 save never leaves a half-written checkpoint that looks finished.
@@ -88,7 +93,8 @@ def late_callbacks_dropped():
     finally:
         asyncio.set_event_loop_policy(previous)
 #: The fields every meta record (checkpoint or released weights) must have, with their types.
-META_FIELDS = {"kind": str, "model?": str, "model_config?": dict, "step?": int}
+META_FIELDS = {"kind": str, "model?": str, "model_config?": dict, "step?": int,
+               "trained_features?": dict}
 
 
 def _ocp():

@@ -34,6 +34,13 @@ from jaxden.errors import ConfigError
 from jaxden.render.integrators import AUX_MODES
 
 SPLIT_NAMES: tuple[str, ...] = ("train", "val", "test")
+#: The features of a dataset config without ``aux`` / ``feature_spp``: those of every dataset
+#: built before the options existed. Not render_frame's (specular-chain at 1024): changing them
+#: would change what the configs that leave them out build, and the identity of the datasets
+#: already built from them. A model records its training data's settings instead, and a frame
+#: of other features is named when it meets the model (:mod:`jaxden.data.features`).
+DEFAULT_AUX = "first-hit"
+DEFAULT_FEATURE_SPP = 16
 
 
 @dataclasses.dataclass(frozen=True)
@@ -126,6 +133,9 @@ class DatasetConfig:
       ``min(spp, feature_spp)`` samples per pixel; 16 (default) is what every dataset before
       this option used. More samples give OIDN cleaner features (docs/results.md, "OIDN's
       auxiliary features"); set it >= the largest spp to average as many samples as the colour.
+      Both defaults differ from ``jaxden render``'s (specular-chain at 1024); a model trained
+      on the dataset records them, and running it on a frame of other features prints a
+      warning (:mod:`jaxden.data.features`).
     - ``scene_parameters``: ``$name`` values for the XML scenes, as Mitsuba's ``-D``
       (``[scene_parameters]`` table, e.g. ``spp = "64"``); empty by default.
     - ``splits``: see :class:`SplitConfig`.
@@ -141,8 +151,8 @@ class DatasetConfig:
     reference_spp: int = bounded(16384, low=1, high=2**26)
     seed: int = bounded(0, low=0, high=4294967295)
     half: bool = False
-    aux: str = "first-hit"
-    feature_spp: int = bounded(16, low=1, high=2**24)
+    aux: str = DEFAULT_AUX
+    feature_spp: int = bounded(DEFAULT_FEATURE_SPP, low=1, high=2**24)
     scene_parameters: dict[str, str] = dataclasses.field(default_factory=dict)
     splits: SplitConfig = SplitConfig()
 

@@ -6,8 +6,11 @@ EXR viewer shows ordinary named layers. Files of other renderers are read throug
 conventions (:mod:`jaxden.io.conventions`: Cycles, pbrt-v4, Mitsuba), every part of a
 multi-part file included. Header attributes ``jaxden.spp``, ``jaxden.seed``,
 ``jaxden.scene`` and ``jaxden.version`` record provenance; ``jaxden.variance_dof`` the degrees
-of freedom of the variance estimate (``Frame.variance_dof``); a frame made from K buffers
-lists them (:class:`jaxden.data.merge.BufferList`).
+of freedom of the variance estimate (``Frame.variance_dof``); ``jaxden.aux`` and
+``jaxden.feature_spp`` how a render's features were made (the samples its feature pass
+averaged; :func:`jaxden.render.core.feature_attributes`), which a trained denoiser compares
+with its training data's (:mod:`jaxden.data.features`); a frame made from K buffers lists them
+(:class:`jaxden.data.merge.BufferList`).
 
 Writes are atomic: the file is written to a temporary name in the same folder and renamed, so
 an interrupted job never leaves a half-written EXR under the final name. Reads never return
@@ -325,8 +328,9 @@ def write_frame(
 ) -> None:
     """Write one (unbatched) Frame to ``path`` atomically.
 
-    ``attributes`` may carry ``seed``, ``scene`` and anything else worth recording; ``spp`` and
-    ``version`` are filled in from the frame and the package.
+    ``attributes`` may carry ``seed``, ``scene``, the features' ``aux`` and ``feature_spp``
+    (:func:`jaxden.render.core.feature_attributes`) and anything else worth recording; ``spp``
+    and ``version`` are filled in from the frame and the package.
     """
     from jaxden import __version__
 

@@ -70,6 +70,16 @@ def derive_seed(seed: int, purpose: str, index: int = 0) -> int:
     return int.from_bytes(digest, "little")
 
 
+def feature_attributes(spp: int, aux: str = DEFAULT_AUX,
+                       feature_spp: int = DEFAULT_FEATURE_SPP) -> dict[str, str | int]:
+    """The EXR header attributes that record how a render's features were made, for
+    ``write_frame(..., attributes=...)`` (written as ``jaxden.aux`` and ``jaxden.feature_spp``):
+    ``aux`` and the samples the feature pass averaged, ``min(spp, feature_spp)``. A denoiser
+    run on the file compares them with the features it was trained on
+    (:mod:`jaxden.data.features`)."""
+    return {"aux": str(aux), "feature_spp": min(int(spp), int(feature_spp))}
+
+
 def split_passes(spp: int, pixels: int, max_samples: int = MAX_SAMPLES_PER_PASS,
                  max_spp: int = MAX_SPP_PER_PASS) -> list[int]:
     """spp of each colour pass: as few passes as the budgets allow, spp split evenly."""

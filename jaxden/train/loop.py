@@ -4,7 +4,14 @@ The loop is the flax-examples shape: a pure jitted ``train_step(state, batch) ->
 metrics)`` with the state's buffers donated, data-parallel over all local devices with
 ``jax.sharding`` (the batch is split along its first axis, parameters are replicated), an optax
 Adam optimiser with a one-cycle cosine schedule, orbax checkpoints every ``checkpoint_every``
-steps, a JSONL metrics log and a progress bar.
+steps, a JSONL metrics log and a progress bar. A checkpoint's meta record holds the task's
+record, the training config and the features of the training data (``trained_features``:
+:mod:`jaxden.data.features`).
+
+Validation (:func:`evaluate`) is the mean over every example of the validation split (its
+first ``eval_batches`` batches), the same numbers on any device count: a batch that does not
+split over the devices is padded and the padding weighs nothing. Training batches are not
+padded: the loop uses the most devices that split ``data.batch_size`` evenly.
 
 Resuming: batches are a pure function of (seed, step) (the loader's epoch plan), and the state
 is restored from the newest checkpoint, so a killed run restarted with the same command
@@ -30,6 +37,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import itertools
 import math
 import os
 import signal
@@ -48,7 +56,14 @@ import optax
 from jaxden.errors import ConfigError, JaxdenError
 from jaxden.train.config import TrainConfig
 from jaxden.train.optim import loss_function, make_optimizer, make_schedule
-from jaxden.train.sharding import data_mesh, host_value, process_rows, replicate, shard_batch
+from jaxden.train.sharding import (
+    data_mesh,
+    host_value,
+    pad_to_devices,
+    process_rows,
+    replicate,
+    shard_batch,
+)
 from jaxden.train.task import Task
 from jaxden.train.tasks import get_trainable, make_task, model_config
 from jaxden.train.workdir import (
@@ -88,12 +103,29 @@ def make_train_step(task: Task, optimizer: optax.GradientTransformation, loss_fn
 
 
 def make_eval_step(task: Task, loss_fn):
-    def eval_step(params, batch) -> dict[str, jax.Array]:
+    """The pure evaluation step: (params, batch, weights) -> {'loss', 'baseline_loss'}, each
+    the sum over the batch of the per-example loss times the example's weight (0 for the
+    padding rows of :func:`evaluate`).
+
+    An example's loss is ``loss_fn`` on a batch of that one example. Every loss (and the
+    log-ratio reduction) is the mean over a batch of one value per image, and the crops of a
+    loader have one size, so the mean of these values over any set of examples is that set's
+    loss as one batch: per image equals per pixel here."""
+
+    def one(prediction, target, baseline):
+        return loss_fn(prediction[None], target[None], baseline[None])
+
+    each = jax.vmap(one)
+
+    def eval_step(params, batch, weights) -> dict[str, jax.Array]:
         prediction = task.predict(params, batch)
         target = task.target(batch)
         baseline = task.baseline(batch)
-        return {"loss": loss_fn(prediction, target, baseline),
-                "baseline_loss": loss_fn(baseline, target, baseline)}
+        per_example = {"loss": each(prediction, target, baseline),
+                       "baseline_loss": each(baseline, target, baseline)}
+        # where, not a product alone: a padding row never brings a NaN into the sum
+        return {key: jnp.sum(jnp.where(weights > 0, values * weights, 0.0))
+                for key, values in per_example.items()}
 
     return eval_step
 
@@ -160,19 +192,30 @@ def epoch_batches(loader, epoch: int, mesh=None) -> Iterator[tuple[Any, int]]:
 
 
 def evaluate(eval_step, params, loader, mesh, max_batches: int, prepare) -> dict[str, float]:
+    """``val_NAME``: the mean of each metric of ``eval_step`` over every example of the first
+    ``max_batches`` batches of ``loader``'s epoch 0 (the whole split when it has no more).
+
+    The numbers do not depend on the device count (to float rounding): a batch that does not
+    split over the mesh, a short last one or a split smaller than one batch, is padded with
+    copies of its last example that weigh 0 (:func:`jaxden.train.sharding.pad_to_devices`), and
+    the weighted sums are divided by the number of real examples, so a short batch weighs by
+    its examples. Nor on the batch size when the split fits in ``max_batches`` batches: the
+    validation loader's draws (order, windows) are per example, whatever the batch size.
+    Several processes: each reads and prepares only its rows of every padded batch."""
+    several = jax.process_count() > 1
     totals: dict[str, float] = {}
     count = 0
-    for index, (batch, size) in enumerate(epoch_batches(loader, 0, mesh)):
-        if index >= max_batches:
-            break
-        if batch is None or size % mesh.devices.size:
-            continue  # a last partial batch that does not split over the devices
-        metrics = eval_step(params, shard_batch(prepare(batch), mesh, size))
-        for key, value in metrics.items():
+    for draws in itertools.islice(loader.batch_draws(0), max_batches):
+        draws, weights = pad_to_devices(draws, mesh.devices.size)
+        size = len(draws)
+        rows = process_rows(size, mesh) if several else slice(None)
+        batch = shard_batch(prepare(loader.read(draws[rows])), mesh, size)
+        sums = eval_step(params, batch, shard_batch(weights[rows], mesh, size))
+        for key, value in sums.items():
             totals[key] = totals.get(key, 0.0) + float(host_value(value))
-        count += 1
-    if not count:
-        raise JaxdenError("the validation split produced no batch that fits the device count")
+        count += int(weights.sum())
+    if not count:  # the loader refuses an empty split; a guard against dividing by zero
+        raise JaxdenError("the validation split produced no example")
     return {f"val_{key}": value / count for key, value in totals.items()}
 
 
@@ -393,11 +436,16 @@ def _train(config, workdir, task, loss_fn, optimizer, train_loader, val_loader, 
     """The loop of :func:`train_and_evaluate` once the workdir is locked."""
     from jaxden.checkpoint import Checkpointer
     from jaxden.config import config_to_dict
+    from jaxden.data.features import META_KEY, dataset_features
     from jaxden.errors import CheckpointError
 
     primary = jax.process_index() == 0
     several = jax.process_count() > 1
     meta = {**task.meta, "train_config": config_to_dict(config)}
+    # The features the model learns from: a frame of others is named when the model meets it.
+    features = dataset_features(config.data.dataset)
+    if features is not None:
+        meta[META_KEY] = features.to_json()
     checkpointer = None
     if primary:
         checkpointer = Checkpointer(workdir, max_to_keep=config.keep_checkpoints)

@@ -5,10 +5,15 @@ In one process the mesh holds (some of) the local devices and the host batch is 
 In a multi-process job (:mod:`jaxden.distributed`) the mesh holds every device of every
 process: each process holds only the rows of the global batch that its own devices take
 (:func:`process_rows`) and :func:`shard_batch` assembles the global array from those.
+
+Training batches must split evenly over the mesh (the loop picks a mesh that splits them);
+validation batches are padded to a multiple of the devices (:func:`pad_to_devices`) and the
+padding weighs nothing, so the validation numbers do not depend on the device count.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import jax
@@ -37,6 +42,22 @@ def process_rows(size: int, mesh: jax.sharding.Mesh) -> slice | None:
     if mine != list(range(mine[0], mine[-1] + 1)):
         raise JaxdenError(f"the devices of process {me} are not contiguous in the mesh")
     return slice(mine[0] * per_device, (mine[-1] + 1) * per_device)
+
+
+def pad_to_devices(rows: Sequence[Any], count: int) -> tuple[list[Any], np.ndarray]:
+    """``rows`` padded with copies of its last entry to a multiple of ``count`` (the devices of
+    the mesh), and the weights of the padded rows: 1.0 for each given row, 0.0 for each copy
+    (float32, one per row). A copy is a real example, so whatever computes on it stays finite;
+    weighing it 0 leaves every weighted sum as it is without it
+    (:func:`jaxden.train.loop.evaluate`)."""
+    if not rows:
+        raise ValueError("pad_to_devices: no rows to pad")
+    rows = list(rows)
+    given = len(rows)
+    padded = -(-given // count) * count
+    weights = np.zeros(padded, np.float32)
+    weights[:given] = 1.0
+    return rows + [rows[-1]] * (padded - given), weights
 
 
 def shard_batch(batch: Any, mesh: jax.sharding.Mesh, global_size: int | None = None) -> Any:

@@ -4,8 +4,9 @@ what resuming from its checkpoints checks.
 A workdir holds ``config.toml`` and ``config.json`` (the resolved config, written once when
 the run starts), ``metrics.jsonl`` (:class:`MetricsLog`), TensorBoard event files
 (``events.out.tfevents.*``, the same scalars) and the orbax checkpoints
-(:class:`jaxden.checkpoint.Checkpointer`). A run on a workdir that holds a run with another
-config is refused; one run at a time trains in it (:data:`TRAIN_LOCK`).
+(:class:`jaxden.checkpoint.Checkpointer`). A run on a workdir that holds checkpoints of a run
+with another config is refused (one that stopped before its first checkpoint holds no work:
+the new config replaces its record); one run at a time trains in it (:data:`TRAIN_LOCK`).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import json
 import shutil
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -27,47 +29,69 @@ CONFIG_JSON = "config.json"
 def check_workdir(config, workdir: Path, init_record: dict[str, Any] | None = None
                   ) -> dict[str, Any]:
     """The resolved config (a dict) of a run of ``config`` in ``workdir``; ConfigError when
-    ``workdir`` is a file or records a run with another config (today's defaults filled in for
-    fields added since that run started: the same run).
+    ``workdir`` is a file or holds checkpoints of a run with another config (today's defaults
+    filled in for fields added since that run started: the same run).
+
+    A workdir whose run recorded another config but stopped before its first checkpoint (a
+    config that failed at its first step, a kill during compilation) holds no work: the new
+    config is accepted there, with one line on stderr, and :func:`claim_workdir` records it.
 
     ``init_record``: a fine-tuning run's resolved source
     (:meth:`jaxden.train.finetune.InitSource.record`), kept in the resolved config under
     :data:`~jaxden.train.finetune.INIT_RECORD`; a run whose recorded source has another digest
-    (the weights changed since it started) is refused too."""
-    from jaxden.config import config_diff, config_to_dict, load_config
-    from jaxden.train.config import TrainConfig
+    (the weights changed since it started) is refused too, unless it saved no checkpoint."""
+    from jaxden.config import config_to_dict
     from jaxden.train.finetune import INIT_RECORD
 
     if workdir.exists() and not workdir.is_dir():
         raise ConfigError(f"--workdir {workdir} is a file, not a folder")
     resolved = config_to_dict(config)
-    saved_json = workdir / CONFIG_JSON
-    if saved_json.exists():
-        from jaxden.fileio import read_json
-
-        previous = read_json(saved_json, "the run's recorded config", error=ConfigError)
-        previous_init = previous.pop(INIT_RECORD, None)
-        with contextlib.suppress(ConfigError, TypeError, ValueError):
-            # Today's defaults for fields added since the run started (same run).
-            previous = config_to_dict(load_config(previous, TrainConfig))
-        differences = config_diff(previous, resolved)
-        if differences:
-            raise ConfigError(
-                f"{workdir} holds a run with another config ({'; '.join(differences[:5])}); "
-                f"use a new --workdir"
-            )
-        if init_record is not None and isinstance(previous_init, dict):
-            before, now = previous_init.get("sha256"), init_record.get("sha256")
-            if before != now:
-                raise ConfigError(
-                    f"{workdir} holds a run fine-tuned from init = {config.init!r} as it was "
-                    f"when the run started (sha256 {str(before)[:12]}..., step "
-                    f"{previous_init.get('step')}); it has changed since (sha256 "
-                    f"{str(now)[:12]}..., step {init_record.get('step')}, "
-                    f"{init_record.get('path')}); use a new --workdir")
     if init_record is not None:
         resolved[INIT_RECORD] = init_record
+    problem = _recorded_difference(workdir, config, resolved)
+    if problem is not None:
+        if has_checkpoint(workdir):
+            raise ConfigError(problem)
+        from jaxden.distributed import is_primary
+
+        if is_primary():
+            print(f"jaxden: note: {workdir} recorded a run with another config that saved no "
+                  f"checkpoint: training there with this config", file=sys.stderr, flush=True)
     return resolved
+
+
+def _recorded_difference(workdir: Path, config, resolved: dict[str, Any]) -> str | None:
+    """Why the run recorded in ``workdir`` is not a run of ``resolved`` (another config, or a
+    fine-tuning source that has changed since it started), in words; None when it is, or when
+    ``workdir`` records no run."""
+    from jaxden.config import config_diff, config_to_dict, load_config
+    from jaxden.fileio import read_json
+    from jaxden.train.config import TrainConfig
+    from jaxden.train.finetune import INIT_RECORD
+
+    saved_json = workdir / CONFIG_JSON
+    if not saved_json.exists():
+        return None
+    previous = read_json(saved_json, "the run's recorded config", error=ConfigError)
+    previous_init = previous.pop(INIT_RECORD, None)
+    with contextlib.suppress(ConfigError, TypeError, ValueError):
+        # Today's defaults for fields added since the run started (same run).
+        previous = config_to_dict(load_config(previous, TrainConfig))
+    now = {key: value for key, value in resolved.items() if key != INIT_RECORD}
+    differences = config_diff(previous, now)
+    if differences:
+        return (f"{workdir} holds a run with another config ({'; '.join(differences[:5])}); "
+                f"use a new --workdir")
+    init_record = resolved.get(INIT_RECORD)
+    if isinstance(init_record, dict) and isinstance(previous_init, dict):
+        before, after = previous_init.get("sha256"), init_record.get("sha256")
+        if before != after:
+            return (f"{workdir} holds a run fine-tuned from init = {config.init!r} as it was "
+                    f"when the run started (sha256 {str(before)[:12]}..., step "
+                    f"{previous_init.get('step')}); it has changed since (sha256 "
+                    f"{str(after)[:12]}..., step {init_record.get('step')}, "
+                    f"{init_record.get('path')}); use a new --workdir")
+    return None
 
 
 def recorded_init(workdir: Path) -> dict[str, Any] | None:
@@ -95,13 +119,20 @@ def has_checkpoint(workdir: Path) -> bool:
 
 @contextlib.contextmanager
 def claim_workdir(workdir: Path, config, resolved: dict[str, Any]):
-    """Create and lock ``workdir`` for the block, recording the run's config the first time."""
+    """Create and lock ``workdir`` for the block, recording the run's config the first time,
+    and again over a recorded config of another run that saved no checkpoint
+    (:func:`check_workdir`; checked again under the lock: a run that has saved checkpoints
+    since is refused)."""
     from jaxden.config import dump_config
     from jaxden.fileio import atomic_write_text, folder_lock
 
     workdir.mkdir(parents=True, exist_ok=True)
     with folder_lock(workdir, TRAIN_LOCK, "training run"):
-        if not (workdir / CONFIG_JSON).exists():
+        recorded = (workdir / CONFIG_JSON).exists()
+        problem = _recorded_difference(workdir, config, resolved) if recorded else None
+        if problem is not None and has_checkpoint(workdir):
+            raise ConfigError(problem)
+        if not recorded or problem is not None:
             atomic_write_text(workdir / CONFIG_TOML,
                               dump_config(config, header="resolved training config"))
             atomic_write_text(workdir / CONFIG_JSON, json.dumps(resolved, indent=2))
