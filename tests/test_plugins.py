@@ -53,7 +53,7 @@ def outside(tmp_path_factory):
     (folder / "train.toml").write_text(
         'plugins = ["lab_denoisers.py"]\nmodel = "lab-tinyconv"\neval_every = 2\n'
         'checkpoint_every = 2\n[data]\ndataset = "tiny"\ncrop_size = 32\nbatch_size = 2\n'
-        '[optim]\nsteps = 2\n')
+        '[optim]\nsteps = 2\nloss = "lab-charbonnier"\n')
     return folder
 
 

@@ -5,7 +5,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from jaxden.cli.options import add_convention_options, exr_outputs, parse_size, positive_int
+from jaxden.cli.options import (
+    add_channels_option,
+    add_convention_options,
+    exr_outputs,
+    parse_size,
+    positive_int,
+)
 from jaxden.errors import JaxdenError
 from jaxden.render.scene_xml import parse_parameters
 
@@ -28,13 +34,15 @@ def cmd_render(args: argparse.Namespace) -> int:
 
     if args.buffers is not None:
         return _render_buffers(args, Path(args.out))
+    from jaxden.render.core import feature_attributes
+
     (out,) = exr_outputs(("--out", args.out))
     parameters = parse_parameters(args.define)
     frame = render_frame(args.scene, spp=args.spp, seed=args.seed, size=args.size, aux=args.aux,
                          feature_spp=args.feature_spp, parameters=parameters or None)
     write_frame(out, frame, half=args.half, attributes={
-        "seed": args.seed, "scene": args.scene, "aux": args.aux,
-        "feature_spp": min(args.spp, args.feature_spp)})
+        "seed": args.seed, "scene": args.scene,
+        **feature_attributes(args.spp, args.aux, args.feature_spp)})
     print(f"wrote {out} ({frame.width}x{frame.height}, {args.spp} spp, channels: "
           f"{', '.join(frame.features())})")
     return 0
@@ -49,6 +57,7 @@ def _render_buffers(args: argparse.Namespace, out: Path) -> int:
     from jaxden.data.merge import BufferList, colour_digest
     from jaxden.fileio import all_or_nothing
     from jaxden.io.exr import write_frame
+    from jaxden.render.core import feature_attributes
     from jaxden.render.scene_cache import render_cached
     from jaxden.sure.buffers import combine_buffers
 
@@ -74,9 +83,12 @@ def _render_buffers(args: argparse.Namespace, out: Path) -> int:
         for i, (path, part) in enumerate(zip(paths, parts)):
             write_frame(path, part, half=args.half, attributes={
                 "seed": seeds[i], "scene": args.scene, "buffer": i, "buffers": k,
-                "aux": args.aux})
+                **feature_attributes(args.spp // k, args.aux, args.feature_spp)})
+        # the combination averages the K buffers' features
+        combined = feature_attributes(args.spp // k, args.aux, args.feature_spp)
+        combined["feature_spp"] = min(args.spp, k * combined["feature_spp"])
         write_frame(out, full, half=args.half, attributes={
-            "seed": args.seed, "scene": args.scene, "buffers": k, "aux": args.aux,
+            "seed": args.seed, "scene": args.scene, "buffers": k, **combined,
             **listed.attributes()})
     print(f"wrote {out} ({full.width}x{full.height}, {args.spp} spp = {k} sub-buffers of "
           f"{args.spp // k}) and {paths[0].name} .. {paths[-1].name}; sub-buffer SURE: jaxden "
@@ -87,21 +99,29 @@ def _render_buffers(args: argparse.Namespace, out: Path) -> int:
 
 def cmd_merge(args: argparse.Namespace) -> int:
     """K independent renders of one frame -> one EXR with the variance of its mean."""
-    from jaxden.cli.options import convention_options
+    from jaxden.cli.options import channel_map, convention_options, stderr
     from jaxden.data.merge import BufferList, colour_digest, merge_renders
     from jaxden.io.exr import read_frame, write_frame
 
     (out,) = exr_outputs(("--out", args.out), inputs=tuple(args.renders))
     if len(set(map(str, (Path(r).resolve() for r in args.renders)))) != len(args.renders):
         raise JaxdenError("merge: a render is named twice")
-    frames = [read_frame(path, nonfinite="error", **convention_options(args))
+    mapping = channel_map(args)
+    notes: dict[str, list[str]] = {}  # one line per note, naming the renders it is about
+    frames = [read_frame(path, nonfinite="error", require=("color", *(mapping or {})),
+                         channel_map=mapping, refuse_denoised=True,
+                         on_note=lambda note, path=path: notes.setdefault(note, []).append(path),
+                         **convention_options(args))
               for path in args.renders]
+    for note, paths in notes.items():
+        stderr(f"jaxden: note: {', '.join(map(str, paths))}: {note}")
     merged = merge_renders(frames, names=args.renders)
     pooled = all(f.variance is not None for f in frames)
     convention = convention_options(args)
     listed = BufferList(tuple(str(Path(r)) for r in args.renders),
                         tuple(colour_digest(f.color) for f in frames),
-                        convention["convention"], convention["layer"])
+                        convention["convention"], convention["layer"],
+                        tuple((mapping or {}).items()))
     write_frame(out, merged, attributes={
         **listed.attributes(),
         "buffers": ";".join(str(Path(r)) for r in args.renders),
@@ -109,7 +129,7 @@ def cmd_merge(args: argparse.Namespace) -> int:
                             f"spread of {len(frames)} independent renders "
                             f"({len(frames) - 1} degrees of freedom)")})
     print(f"wrote {args.out} ({len(frames)} renders merged"
-          + ("" if merged.spp is None else f", {float(merged.spp):g} spp")
+          + (", no sample count" if merged.spp is None else f", {float(merged.spp):g} spp")
           + f", variance of {float(merged.variance_dof):g} degrees of freedom); sub-buffer "
           f"SURE: jaxden progressive {args.out} --buffers {' '.join(map(str, args.renders))} "
           f"--denoiser oidn --out OUT.exr")
@@ -147,9 +167,12 @@ def add_commands(sub) -> None:
                                    "own variances, else from their spread) and its degrees of "
                                    "freedom (jaxden.variance_dof), and a record of the renders "
                                    "(names and a sha256 of each colour) that `jaxden sure` and "
-                                   "`jaxden progressive` check --buffers against.")
+                                   "`jaxden progressive` check --buffers against. Only raw Monte "
+                                   "Carlo means are merged: a denoised Cycles render gives its "
+                                   "Noisy Image pass, and a denoised image is refused.")
     p.add_argument("renders", nargs="+", help="the renders' EXR files (K >= 2)")
     add_convention_options(p)
+    add_channels_option(p)
     p.add_argument("--out", required=True, help="output .exr (jaxden's layout)")
     p.set_defaults(func=cmd_merge)
 

@@ -160,18 +160,18 @@ def _render_one(task: CropTask, item: RenderTask, render: RenderFn) -> dict[str,
     if frame.spp is None:
         frame = frame.replace(spp=np.float32(item.spp))
     path = Path(task.directory) / item.path
-    write_frame(
-        path,
-        frame,
-        half=task.half,
-        attributes={
-            "seed": item.seed,
-            "scene": task.scene,
-            "item": item.item_id,
-            "crop": f"{top},{left},{height},{width}",
-            "dataset": task.dataset,
-        },
-    )
+    attributes = {
+        "seed": item.seed,
+        "scene": task.scene,
+        "item": item.item_id,
+        "crop": f"{top},{left},{height},{width}",
+        "dataset": task.dataset,
+    }
+    if task.render_fn is None:  # jaxden's renderer: the features it made (data.features)
+        from jaxden.render.core import feature_attributes
+
+        attributes.update(feature_attributes(item.spp, task.aux, task.feature_spp))
+    write_frame(path, frame, half=task.half, attributes=attributes)
     return {
         "id": item.item_id,
         "sha256": sha256_file(path),

@@ -75,7 +75,11 @@ def pu_inverse(x):
                                jnp.exp((x - _PU_G) / _PU_E) - _PU_F))
 
 
-PU_NORM = float(pu_forward(np.float32(HDR_MAX)))
+@functools.cache
+def pu_norm() -> float:
+    """pu_forward(HDR_MAX), OIDN's normalisation of the PU curve; computed on first use, not
+    at import (that would start JAX's backend before ``jax.distributed`` may initialise)."""
+    return float(pu_forward(np.float32(HDR_MAX)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -271,7 +275,7 @@ def _denoise_one(params, spec: OIDNSpec, color, albedo, normal, scale, precision
                  tiling: str):
     height, width = color.shape[:2]
     x = jnp.clip(jnp.nan_to_num(color * scale, nan=0.0), 0.0, np.finfo(np.float32).max)
-    parts = [pu_forward(x) / PU_NORM]
+    parts = [pu_forward(x) / pu_norm()]
     if spec.albedo:
         parts.append(jnp.clip(jnp.nan_to_num(albedo, nan=0.0), 0.0, 1.0))
     if spec.normal:
@@ -287,7 +291,7 @@ def _denoise_one(params, spec: OIDNSpec, color, albedo, normal, scale, precision
                                   (0, _round_up(width) - width), (0, 0)))
         out = net.apply(params, padded[None])[0, :height, :width]
     out = jnp.maximum(jnp.nan_to_num(out.astype(jnp.float32), nan=0.0), 0.0)
-    return pu_inverse(out * PU_NORM) / scale
+    return pu_inverse(out * pu_norm()) / scale
 
 
 def oidn_denoise(params, spec: OIDNSpec, color, albedo=None, normal=None, *, input_scale=None,

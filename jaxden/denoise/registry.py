@@ -129,6 +129,9 @@ class Denoiser:
     definition: DenoiserDef
     config: Any
     params: Any = None
+    #: the features its training data had (:class:`jaxden.data.features.FeatureRecord`,
+    #: from its checkpoint's meta record); None: not recorded
+    trained_features: Any = None
 
     @classmethod
     def from_function(
@@ -226,7 +229,13 @@ class Denoiser:
         return jax.jit(lambda params, frame: definition.apply(params, config, frame))
 
     def function(self) -> Callable[[Frame], Any]:
-        """``frame -> image`` with parameters bound (what SURE and the mixer pipeline take)."""
+        """``frame -> image`` with parameters bound (what SURE and the mixer pipeline take).
+        The same object every call on this Denoiser, so that functions compiled per function
+        object (:func:`jaxden.sure.sure`) compile once."""
+        return self._bound
+
+    @functools.cached_property
+    def _bound(self) -> Callable[[Frame], Any]:
         if not self.differentiable:
             return lambda frame: self.definition.apply(self.params, self.config, frame)
         return functools.partial(self._jitted, self.params)
@@ -243,7 +252,7 @@ class Denoiser:
         from jaxden.denoise.nn.layers import reparameterize
 
         return Denoiser(self.definition, dataclasses.replace(self.config, deploy=True),
-                        reparameterize(self.params))
+                        reparameterize(self.params), self.trained_features)
 
 
 def _bound_apply(fn, with_params: bool):
@@ -375,10 +384,11 @@ def with_options(denoiser: Denoiser, emission: str = "filter", **options: str) -
         params = denoiser.params
         if definition.pretrained and definition.init is not None:
             params = definition.init(jax.random.PRNGKey(0), config)
-        denoiser = Denoiser(definition, config, params)
+        denoiser = Denoiser(definition, config, params, denoiser.trained_features)
     if emission == "filter":
         return denoiser
-    return Denoiser(emission_separated(denoiser.definition), denoiser.config, denoiser.params)
+    return Denoiser(emission_separated(denoiser.definition), denoiser.config, denoiser.params,
+                    denoiser.trained_features)
 
 
 WEIGHTS_DIR = Path(__file__).parent.parent / "weights"
@@ -445,7 +455,9 @@ def _load_base(spec: str | os.PathLike, options: dict[str, str] | None = None) -
     # Only structure and shapes are needed: eval_shape skips the (seconds-long) init.
     target = jax.eval_shape(lambda: definition.init(jax.random.PRNGKey(0), config))
     params, _ = load_trained_params(path, target, expect={"model": definition.name})
-    return Denoiser(definition, config, params)
+    from jaxden.data.features import meta_features
+
+    return Denoiser(definition, config, params, meta_features(meta))
 
 
 def shipped_denoisers() -> list[str]:

@@ -43,7 +43,9 @@ class OptimConfig:
     learning_rate: float = bounded(1e-3, low=0, low_open=True, high=10)  # the peak of the one-cycle schedule
     schedule: Literal["onecycle", "constant"] = "onecycle"
     warmup_fraction: float = bounded(0.05, low=0, high=0.99)
-    loss: Literal["smape", "relmse", "relmse_sg", "l1", "l2"] = "smape"
+    # A registered loss (jaxden.train.losses: smape, relmse, relmse_sg, l1, l2, and those of
+    # plugins, register_loss).
+    loss: str = "smape"
     # How the per-image losses of a batch become one number: "mean" (the plain mean over
     # every pixel) or "log_ratio" (the mean of log(loss_i / loss_i(baseline)), the baseline
     # being the task's image to beat: every image weighs the same, whatever its noise level;
@@ -53,6 +55,9 @@ class OptimConfig:
 
     def __post_init__(self):
         check_fields(self)  # the bounded ranges above, for a config built in Python too
+        from jaxden.train.losses import get_loss
+
+        get_loss(self.loss, where="optim.loss")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -15,10 +15,14 @@ At ``prediction == target`` |x - y| has a subgradient; JAX returns sign(0) = 0 t
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import jax
 import jax.numpy as jnp
 
 from jaxden import metrics
+from jaxden.errors import ConfigError
+from jaxden.registry import Registry
 
 
 def l1_loss(prediction, target):
@@ -67,23 +71,54 @@ relmse = relmse_loss
 relmse_sg = relmse_sg_loss
 smape = smape_loss
 
-LOSSES = {
-    "l1": l1_loss,
-    "l2": l2_loss,
-    "relmse": relmse_loss,
-    "relmse_sg": relmse_sg_loss,
-    "smape": smape_loss,
-}
-
+#: Every loss by name: ``loss(prediction, target) -> scalar``, the mean over the batch of
+#: its per-image form (:data:`PER_IMAGE`); jaxden's own and those of plugins
+#: (:func:`register_loss`).
+LOSSES: Registry = Registry("loss")
 #: The same losses per image, (..., H, W, C) -> (...): for reductions other than the plain
 #: mean (``log_ratio_loss``).
-PER_IMAGE = {
-    "l1": metrics.mae,
-    "l2": metrics.mse,
-    "relmse": metrics.relmse,
-    "relmse_sg": _relmse_sg_per_image,
-    "smape": metrics.smape,
-}
+PER_IMAGE: dict[str, Callable] = {}
+_REGISTER_PLUMBING = True  # registrations through this module belong to their caller
+
+
+def register_loss(name: str, per_image: Callable, loss: Callable | None = None, *,
+                  owner: str | None = None) -> Callable:
+    """Add a training loss: ``per_image(prediction, target) -> (...,)`` over (..., H, W, C)
+    images (what the ``log_ratio`` reduction and masked validation means use), and
+    ``loss(prediction, target) -> scalar`` (default: the mean of ``per_image``, which is the
+    mean over every pixel for images of one size). A name that jaxden or another module holds
+    is refused in one line. Then ``optim.loss = NAME`` in a train config."""
+    from jaxden.registry import caller_module
+
+    owner = owner or caller_module()
+    if loss is None:
+        def loss(prediction, target):
+            return jnp.mean(per_image(prediction, target))
+    LOSSES.add(name, loss, owner)
+    PER_IMAGE[name] = per_image
+    return loss
+
+
+def get_loss(name: str, where: str = "loss") -> Callable:
+    """The loss called ``name`` (plugins named by ``JAXDEN_PLUGINS`` or entry points are
+    imported first); ConfigError naming the registered losses otherwise."""
+    if name not in LOSSES:
+        from jaxden.plugins import load_ambient
+
+        load_ambient()
+    if name not in LOSSES:
+        raise ConfigError(f"{where}: unknown loss {name!r}; the losses: {', '.join(LOSSES)} "
+                          f"(a loss of your own: jaxden.train.losses.register_loss in a plugin "
+                          f"module)")
+    return LOSSES[name]
+
+
+for _name, _loss, _per_image in (("l1", l1_loss, metrics.mae), ("l2", l2_loss, metrics.mse),
+                                 ("relmse", relmse_loss, metrics.relmse),
+                                 ("relmse_sg", relmse_sg_loss, _relmse_sg_per_image),
+                                 ("smape", smape_loss, metrics.smape)):
+    register_loss(_name, _per_image, _loss, owner=__name__)
+del _name, _loss, _per_image
 
 #: Floor inside the logarithms of :func:`log_ratio_loss` (a perfect image has loss 0).
 LOG_RATIO_FLOOR = 1e-12
@@ -108,11 +143,13 @@ def log_ratio_loss(name: str, prediction, target, baseline):
 __all__ = [
     "LOSSES",
     "PER_IMAGE",
+    "get_loss",
     "l1",
     "l1_loss",
     "l2",
     "l2_loss",
     "log_ratio_loss",
+    "register_loss",
     "relmse",
     "relmse_loss",
     "relmse_sg",

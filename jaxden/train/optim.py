@@ -39,11 +39,9 @@ def loss_function(name: str, reduction: str = "mean") -> Callable[..., jax.Array
     batch by ``reduction`` ('mean', or 'log_ratio' against ``baseline``)."""
     from jaxden.train import losses
 
-    table = losses.LOSSES
-    if name not in table:
-        raise ConfigError(f"unknown loss {name!r}; choose from {', '.join(table)}")
+    loss = losses.get_loss(name)
     if reduction == "mean":
-        return lambda prediction, target, baseline=None: table[name](prediction, target)
+        return lambda prediction, target, baseline=None: loss(prediction, target)
     if reduction == "log_ratio":
         def log_ratio(prediction, target, baseline=None):
             if baseline is None:

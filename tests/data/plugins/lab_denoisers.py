@@ -1,6 +1,7 @@
-"""An outside plugin for jaxden's tests: a cross-bilateral filter (a registered function) and a
-small trainable convolutional denoiser (a registered model). It lives outside the package and
-is never on sys.path: the tests name it by --plugin, JAXDEN_PLUGINS or a config's plugins."""
+"""An outside plugin for jaxden's tests: a cross-bilateral filter (a registered function), a
+small trainable convolutional denoiser (a registered model) and a loss. It lives outside the
+package and is never on sys.path: the tests name it by --plugin, JAXDEN_PLUGINS or a config's
+plugins."""
 
 import dataclasses
 
@@ -8,6 +9,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxden.denoise import Denoiser, DenoiserDef, register
+from jaxden.train.losses import register_loss
 
 RADIUS = 2
 
@@ -59,3 +61,11 @@ def tiny_apply(params, config, frame):
 register(DenoiserDef(name="lab-tinyconv", description="residual two-layer CNN (test plugin)",
                      config_cls=TinyConvConfig, required=lambda config: ("albedo",),
                      apply=tiny_apply, init=tiny_init))
+
+
+def charbonnier(prediction, target):
+    """Per-image Charbonnier loss (a smooth L1)."""
+    return jnp.mean(jnp.sqrt((prediction - target) ** 2 + 1e-6), axis=(-3, -2, -1))
+
+
+register_loss("lab-charbonnier", charbonnier)
