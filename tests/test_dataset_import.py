@@ -235,6 +235,13 @@ def test_options_are_checked_before_anything_is_written(tmp_path):
         import_dataset(src, out, crop_size=16, convention="falcor", progress=False)
     with pytest.raises(DatasetError, match=r"^out_dir=.*: inside the source folder"):
         import_dataset(src, src / "data", crop_size=16, progress=False)
+    with pytest.raises(DatasetError, match=r"^channel_map: albedo=a,b: expected 3 channel "
+                                           r"name\(s\) for albedo"):
+        import_dataset(src, out, crop_size=16, channel_map={"albedo": ("a", "b")},
+                       progress=False)
+    with pytest.raises(DatasetError, match=r"^channel_map: colour=R,G,B: expected one of color"):
+        import_dataset(src, out, crop_size=16, channel_map={"colour": ("R", "G", "B")},
+                       progress=False)
     assert not out.exists() and not (src / "data").exists()
 
 

@@ -2,8 +2,9 @@
 conventions of Cycles, pbrt-v4 and Mitsuba (jaxden.io.conventions), and the messages when a
 channel is missing or named under another case.
 
-The Cycles files in tests/data/cycles/ are real: Blender 5.0.1 (``bpy`` from PyPI) rendered
-them with experiments/renderers/cycles_render.py (32 x 24, 16 spp, seeds 1 and 2). The pbrt-v4
+The Cycles files spheres-16spp-seed{1,2}.exr in tests/data/cycles/ are real: Blender 5.0.1
+(``bpy`` from PyPI) rendered them with experiments/renderers/cycles_render.py (32 x 24, 16 spp,
+seeds 1 and 2; tests/test_cycles_passes.py reads the files with every other pass). The pbrt-v4
 and Mitsuba files are written here with the channel names their sources and films use.
 """
 
@@ -134,9 +135,15 @@ def test_layers_must_be_chosen_when_a_file_holds_several():
     present = [f"{layer}.Combined.{c}" for layer in ("Front", "Back") for c in "RGB"]
     with pytest.raises(ExrError, match="layers found: Back, Front; choose one with --layer"):
         resolve("cycles", present, {})
-    mapping, spp, kind = resolve("cycles", present, {"cycles.Back.samples": "8"}, layer="Back")
-    assert mapping["color"] == ("Back.Combined.R", "Back.Combined.G", "Back.Combined.B")
-    assert spp == 8.0 and kind == "none"
+    reading = resolve("cycles", present, {"cycles.Back.samples": "8"}, layer="Back")
+    assert reading.mapping["color"] == ("Back.Combined.R", "Back.Combined.G", "Back.Combined.B")
+    assert reading.spp == 8.0 and reading.variance == "none" and reading.layer == "Back"
+    assert reading.denoised == () and reading.sample_fraction is None
+    noisy = [f"Back.Noisy Image.{c}" for c in "RGB"] + ["Back.Debug Sample Count.X"]
+    reading = resolve("cycles", present + noisy, {}, layer="Back")
+    assert reading.mapping["color"] == tuple(noisy[:3])  # the raw colour of a denoised render
+    assert reading.denoised == ("Back.Combined.R", "Back.Combined.G", "Back.Combined.B")
+    assert reading.sample_fraction == "Back.Debug Sample Count.X"
     with pytest.raises(ExrError, match="no render layer 'Side'"):
         resolve("cycles", present, {}, layer="Side")
 

@@ -112,3 +112,36 @@ def test_merge_command_on_real_cycles_renders(tmp_path, capsys):
                  "--out", str(tmp_path / "twice.exr")]) == 2
     assert "named twice" in capsys.readouterr().err
     assert not (tmp_path / "twice.exr").exists()
+
+
+def test_one_cycles_seed_rendered_twice_is_refused_though_not_bit_for_bit_equal(tmp_path,
+                                                                                 capsys):
+    """Blender 5.0.1's Cycles does not repeat a render bit for bit: passes-seed1-again.exr is
+    seed 1 once more, with about 40 % of its colour values changed by rounding. Their spread
+    would put the variance near 0; merge refuses them as one render twice, and takes the
+    renders of two seeds."""
+    from jaxden.data.merge import same_render
+
+    again = [CYCLES / "passes-seed1.exr", CYCLES / "passes-seed1-again.exr"]
+    colours = [read_frame(p, convention="cycles").color for p in again]
+    assert 0.3 < np.mean(colours[0] != colours[1]) < 0.8
+    assert same_render(*colours, spp=4)
+    other = read_frame(CYCLES / "passes-seed2.exr", convention="cycles").color
+    assert not same_render(colours[0], other, spp=4)
+    assert not same_render(colours[0], other)  # the stricter bound, without a sample count
+    assert main(["merge", *map(str, again), "--from", "cycles",
+                 "--out", str(tmp_path / "m.exr")]) == 2
+    assert "are the same image (rendered with the same seed?)" in capsys.readouterr().err
+
+
+def test_renders_of_noise_far_below_their_values_are_not_taken_for_one_render():
+    """Independent renders differ by about 0.5 CV / sqrt(spp) (CV: a sample's coefficient of
+    variation); even at CV 0.01 per sample and 4096 spp they stay clear of the bound."""
+    from jaxden.data.merge import same_render
+
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0.1, 10.0, (32, 32, 3))
+    spp, cv = 4096, 0.01
+    a, b = (truth * (1 + cv / np.sqrt(spp) * rng.standard_normal(truth.shape))
+            for _ in range(2))
+    assert not same_render(a.astype(np.float32), b.astype(np.float32), spp=spp)

@@ -96,15 +96,15 @@ def main(argv=None) -> int:
         blender=blender, spp=args.spp, size=args.size, seeds=f"1..{args.merges * args.k}")
     markdown = "\n".join([
         "## Is `jaxden merge`'s variance calibrated on real Cycles renders?", "",
-        f"{args.merges} merges of {args.k} Blender {blender} Cycles renders each ({args.size}, "
+        (f"{args.merges} merges of {args.k} Blender {blender} Cycles renders each ({args.size}, "
         f"{args.spp} spp, seeds 1..{args.merges * args.k}); per pixel and channel, the empirical "
         f"variance of the merged colours over the mean of the merges' estimates; "
         f"{result['values']} of {result['values_total']} values (emitters above radiance "
-        f"{args.emitter:g} and background without variance left out).", "",
+        f"{args.emitter:g} and background without variance left out)."), "",
         "| median ratio | its median under a Gaussian null | observed / null | sum ratio |",
         "|---:|---:|---:|---:|",
-        f"| {result['median_ratio']:.3f} | {result['null_median_ratio']:.3f} | "
-        f"{result['median_over_null']:.3f} | {result['sum_ratio']:.3f} |", ""])
+        (f"| {result['median_ratio']:.3f} | {result['null_median_ratio']:.3f} | "
+        f"{result['median_over_null']:.3f} | {result['sum_ratio']:.3f} |"), ""])
     write_result(args.out, result, markdown)
     return 0
 

@@ -181,8 +181,7 @@ def build_scene(scene_seed: int, width: int, height: int):
     import bpy
 
     rng = random.Random(scene_seed)
-    scene = cycles_scene(width, height)
-    scene.cycles.sample_clamp_direct = scene.cycles.sample_clamp_indirect = 0.0
+    scene = cycles_scene(width, height)  # no clamping, no denoising, no adaptive sampling
     scene.cycles.pixel_filter_type = "BOX"  # one pixel's samples per pixel, as jaxden's data
     scene.cycles.filter_width = 1.0
     scene.render.use_persistent_data = True

@@ -96,11 +96,11 @@ def main(argv=None) -> int:
         run_identity(argv, program="python experiments/renderers/cycles_pd.py"),
         blender=blender, seeds="levels 101.., reference 9001..")
     lines = [f"## Progressive denoising of Blender {blender} Cycles renders", "",
-             f"{args.size}, each level `jaxden merge --from cycles` of {args.k} renders; "
+             (f"{args.size}, each level `jaxden merge --from cycles` of {args.k} renders; "
              f"reference {REFERENCE_SPP} spp merged alike. Whole frame (lamp and glossy "
-             f"reflections included): noise-corrected MSE, relMSE.", "",
-             "| spp | MC MSE | OIDN MSE | PD(OIDN) MSE | PD / min(MC, OIDN) | MC relMSE | "
-             "OIDN relMSE | PD relMSE |", "|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             f"reflections included): noise-corrected MSE, relMSE."), "",
+             ("| spp | MC MSE | OIDN MSE | PD(OIDN) MSE | PD / min(MC, OIDN) | MC relMSE | "
+             "OIDN relMSE | PD relMSE |"), "|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for row in rows:
         lines.append(f"| {row['spp']} | {row['mc']['mse_nc']:.4g} | {row['oidn']['mse_nc']:.4g} "
                      f"| {row['pd']['mse_nc']:.4g} | {row['pd_over_best_mse']:.3f} | "

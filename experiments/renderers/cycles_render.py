@@ -6,10 +6,12 @@ the Denoising Data passes: the files a Blender user hands to jaxden (``--from cy
         --out tests/data/cycles/spheres-16spp-seed1.exr
 
 The scene: a diffuse floor, a glossy sphere, a small emissive sphere in view and a point
-light; Cycles on the CPU, fixed seed, no adaptive sampling and no denoising (the raw Monte
-Carlo mean). Blender writes one EXR part per pass (``ViewLayer.Combined``, ``ViewLayer.Depth``,
-``ViewLayer.Denoising Albedo`` / ``Normal`` / ``Depth``), and the sample count in the header
-attribute ``cycles.ViewLayer.samples``.
+light; Cycles on the CPU, fixed seed, no adaptive sampling, no denoising and no clamping (the
+raw Monte Carlo mean: Blender's default Indirect Light clamp of 10 would cut the bright
+paths and bias the mean and its variance low). Blender writes one EXR part per pass
+(``ViewLayer.Combined``, ``ViewLayer.Depth``, ``ViewLayer.Denoising Albedo`` / ``Normal`` /
+``Depth``), and the sample count in the header attribute ``cycles.ViewLayer.samples``.
+``cycles_fixtures.py`` beside it writes the test files with every other pass too.
 """
 
 from __future__ import annotations
@@ -32,8 +34,9 @@ def store_denoising_passes(scene) -> None:
 
 def cycles_scene(width: int, height: int):
     """An empty Blender scene (factory settings) rendered by Cycles on the CPU at ``width`` x
-    ``height``, no denoising, no adaptive sampling: what every render of these scripts starts
-    from. Returns the bpy scene."""
+    ``height``, no denoising, no adaptive sampling, no clamping (Render Properties > Light
+    Paths > Clamping: Direct and Indirect Light 0; Blender's default clamps indirect light at
+    10): what every render of these scripts starts from. Returns the bpy scene."""
     import bpy
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -42,6 +45,7 @@ def cycles_scene(width: int, height: int):
     scene.cycles.device = "CPU"
     scene.cycles.use_denoising = False
     scene.cycles.use_adaptive_sampling = False
+    scene.cycles.sample_clamp_direct = scene.cycles.sample_clamp_indirect = 0.0
     scene.render.resolution_x, scene.render.resolution_y = width, height
     scene.render.resolution_percentage = 100
     return scene

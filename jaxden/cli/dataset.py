@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from jaxden.cli.options import positive_float, positive_int
+from jaxden.cli.options import add_channels_option, channel_map, positive_float, positive_int
 from jaxden.cli.train import add_ray_address_option, check_ray_address
 
 
@@ -26,7 +26,7 @@ def cmd_dataset_build(args: argparse.Namespace) -> int:
 IMPORT_FLAGS = {"out_dir": "--out", "convention": "--from", "layer": "--layer",
                 "crop_size": "--crop", "crops_per_view": "--crops-per-view", "seed": "--seed",
                 "held_out": "--held-out", "val": "--val", "reference_spp": "--reference-spp",
-                "name": "--name", "nonfinite": "--nonfinite"}
+                "name": "--name", "nonfinite": "--nonfinite", "channel_map": "--channels"}
 
 
 def cmd_dataset_import(args: argparse.Namespace) -> int:
@@ -39,7 +39,7 @@ def cmd_dataset_import(args: argparse.Namespace) -> int:
             crop_size=args.crop, crops_per_view=args.crops_per_view, seed=args.seed,
             held_out=_view_list(args.held_out), val=_view_list(args.val),
             reference_spp=args.reference_spp, name=args.name, half=args.half,
-            nonfinite=args.nonfinite, progress=not args.quiet)
+            nonfinite=args.nonfinite, progress=not args.quiet, channel_map=channel_map(args))
     except ImportArgumentError as error:  # named by the flags that set them
         raise DatasetError(error.naming(IMPORT_FLAGS)) from None
     config, counts = manifest.config, manifest.split_counts()
@@ -65,8 +65,10 @@ Source layout, one folder per camera view:
   SRC/<view>/spp<N>/b0.exr ..       K >= 2 independent renders whose spp sum to N
 
 Buffers are merged as `jaxden merge` merges them. Every view has the same levels N, every
-file the same size, and the colour, albedo, normal and depth. Resumable: run the same
-command again after an interruption. Example (docs/your-renderer.md):
+file the same size, and the colour, albedo, normal and depth. Only raw Monte Carlo means are
+imported: a denoised Cycles render gives its Noisy Image pass; a denoised image, and a render
+made with adaptive sampling (Cycles' Debug Sample Count pass), are refused. Resumable: run the
+same command again after an interruption. Example (docs/your-renderer.md):
 
   jaxden dataset import renders/ --from cycles --crop 128 --held-out v12,v13 \\
       --out $JAXDEN_HOME/data/cycles"""
@@ -156,6 +158,7 @@ def add_commands(sub) -> None:
                         "output (falcor) is merged into one file per render first")
     i.add_argument("--layer", default=None,
                    help="the render layer of a layered file (--from cycles) holding several")
+    add_channels_option(i)
     i.add_argument("--crop", type=positive_int, default=128, metavar="N",
                    help="side of the square crops in pixels (default 128; at most the views' "
                         "smaller side: give it to keep whole square views)")

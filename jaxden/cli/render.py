@@ -113,9 +113,9 @@ def cmd_merge(args: argparse.Namespace) -> int:
                          on_note=lambda note, path=path: notes.setdefault(note, []).append(path),
                          **convention_options(args))
               for path in args.renders]
+    merged = merge_renders(frames, names=args.renders)
     for note, paths in notes.items():
         stderr(f"jaxden: note: {', '.join(map(str, paths))}: {note}")
-    merged = merge_renders(frames, names=args.renders)
     pooled = all(f.variance is not None for f in frames)
     convention = convention_options(args)
     listed = BufferList(tuple(str(Path(r)) for r in args.renders),

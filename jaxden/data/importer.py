@@ -13,7 +13,11 @@ View names are folder names of letters, digits and ``- _ .``; every view has the
 levels N and every file the same size. Files and folders whose names start with ``.``, and
 files that are not ``.exr``, are ignored; any other ``.exr`` file or folder is an error. The
 files are read by a renderer's channel conventions (``convention``:
-:mod:`jaxden.io.conventions`) and must hold the colour, albedo, normal and depth. Buffers are
+:mod:`jaxden.io.conventions`; ``channel_map`` names channels by hand and wins) and must hold
+the colour, albedo, normal and depth. Only raw Monte Carlo means are imported: a denoised
+Cycles render gives its Noisy Image pass, a denoised image is refused, and so is a render
+made with adaptive sampling (seen in Cycles' Debug Sample Count pass), whose pixels took
+other counts than its level's N. Buffers are
 merged by :func:`jaxden.data.merge.merge_renders` (the variance of the mean from their spread,
 or pooled from their own variances), exactly as ``jaxden merge`` does. A sample count in a
 file's header must agree with the name (``spp<N>``: N in all; the reference's must agree with
@@ -221,7 +225,8 @@ def _buffer_files(root: Path, folder: Path) -> tuple[str, ...]:
 
 
 # ----------------------------------------------------------------------------- headers
-def _file_header(path: Path, convention: str | None, layer: str | None):
+def _file_header(path: Path, convention: str | None, layer: str | None,
+                 channel_map: dict | None = None):
     """(sample count or None, size (W, H), fields present) from one file's header."""
     from jaxden.frame import CHANNELS
     from jaxden.io.conventions import resolve
@@ -230,9 +235,11 @@ def _file_header(path: Path, convention: str | None, layer: str | None):
     header = read_header(path)
     present = set(header["channels"])
     if convention is None:
-        mapping, spp = CHANNELS, header.get("spp")
+        mapping, spp = dict(CHANNELS), header.get("spp")
     else:
-        mapping, spp, _ = resolve(convention, present, header, layer=layer, where=str(path))
+        reading = resolve(convention, present, header, layer=layer, where=str(path))
+        mapping, spp = dict(reading.mapping), reading.spp
+    mapping.update({field: tuple(names) for field, names in (channel_map or {}).items()})
     if spp is not None:
         try:
             spp = float(spp)
@@ -245,14 +252,14 @@ def _file_header(path: Path, convention: str | None, layer: str | None):
 
 
 def resolve_source(root: Path, source: Source, *, convention: str | None = None,
-                   layer: str | None = None, reference_spp: int | None = None
-                   ) -> ResolvedSource:
+                   layer: str | None = None, reference_spp: int | None = None,
+                   channel_map: dict | None = None) -> ResolvedSource:
     """Read a source's headers: its sample count (see the module docstring), size and
     fields. Raises DatasetError naming the file for a count that contradicts the name or
     ``reference_spp``, a reference whose count is nowhere, buffers of different sizes or
     fields, and a single file of N > 1 samples without a variance."""
     paths = [root / f for f in source.files]
-    headers = [_file_header(p, convention, layer) for p in paths]
+    headers = [_file_header(p, convention, layer, channel_map) for p in paths]
     where = root / source.name
     for path, (_, size, fields) in zip(paths[1:], headers[1:]):
         if size != headers[0][1] or fields != headers[0][2]:
@@ -305,16 +312,20 @@ def resolve_source(root: Path, source: Source, *, convention: str | None = None,
 
 
 def read_source(root: Path, resolved: ResolvedSource, *, convention: str | None = None,
-                layer: str | None = None, nonfinite: str = "error"):
+                layer: str | None = None, nonfinite: str = "error",
+                channel_map: dict | None = None):
     """The source as one Frame: the file, or its buffers merged (:func:`merge_renders`);
-    ExrError / FrameError naming the file for a missing colour or feature, a non-finite
-    value (unless ``nonfinite='zero'``) and buffers that are one render twice."""
+    ExrError / FrameError naming the file for a missing colour, feature or channel of
+    ``channel_map``, a non-finite value (unless ``nonfinite='zero'``), a denoised colour, a
+    render made with adaptive sampling (its pixels took other counts than the level's) and
+    buffers that are one render twice."""
     from jaxden.data.merge import merge_renders
     from jaxden.io.exr import read_frame
 
     paths = [root / f for f in resolved.source.files]
-    frames = [read_frame(path, require=ITEM_FEATURES, nonfinite=nonfinite,
-                         convention=convention, layer=layer, spp=spp)
+    require = tuple(dict.fromkeys((*ITEM_FEATURES, *(channel_map or {}))))
+    frames = [read_frame(path, require=require, nonfinite=nonfinite, convention=convention,
+                         layer=layer, spp=spp, channel_map=channel_map, refuse_denoised=True)
               for path, spp in zip(paths, resolved.file_spp)]
     if not resolved.source.buffers:
         return frames[0]
@@ -342,10 +353,11 @@ class ImportedRenders:
 
     def __init__(self, root: Path, by_seed: dict[int, ResolvedSource], digest: str, *,
                  convention: str | None, layer: str | None, nonfinite: str,
-                 keep: tuple[str, ...]) -> None:
+                 keep: tuple[str, ...], channel_map: dict | None = None) -> None:
         self.root = root
         self.by_seed = by_seed
-        self.options = {"convention": convention, "layer": layer, "nonfinite": nonfinite}
+        self.options = {"convention": convention, "layer": layer, "nonfinite": nonfinite,
+                        "channel_map": channel_map}
         self.keep = keep
         self.__qualname__ = f"ImportedRenders[{convention or 'jaxden'},{digest[:16]}]"
         self._view: str | None = None
@@ -408,12 +420,14 @@ def import_dataset(
     half: bool = False,
     nonfinite: str = "error",
     progress: bool = True,
+    channel_map: dict | None = None,
 ) -> Manifest:
     """Import the source folder (module docstring) as a dataset in ``out_dir``; return its
     complete manifest.
 
     ``convention``: the renderer whose channel names the files follow (None: jaxden's);
-    ``layer``: the render layer of a layered (Cycles) file with several. ``crop_size``,
+    ``layer``: the render layer of a layered (Cycles) file with several; ``channel_map``:
+    field -> channel names, named by hand (wins over the convention). ``crop_size``,
     ``crops_per_view`` (the config's ``crops_per_scene``), ``seed``, ``half``: as in a
     :class:`DatasetConfig`. ``held_out`` / ``val``: view names for the test / val splits.
     ``reference_spp``: the references' sample count where no header records it. ``name``:
@@ -431,7 +445,8 @@ def import_dataset(
             lambda name: f"{name('out_dir', directory)}: inside the source folder {root}; "
                          f"write the dataset elsewhere")
     views = scan_source(root)
-    options = {"convention": convention, "layer": layer}
+    channel_map = _check_channel_map(channel_map)
+    options = {"convention": convention, "layer": layer, "channel_map": channel_map}
     resolved = [[resolve_source(root, s, reference_spp=reference_spp, **options) for s in view]
                 for view in views]
     flat = [r for view in resolved for r in view]
@@ -475,6 +490,8 @@ def import_dataset(
     except ConfigError as error:
         raise DatasetError(f"import of {root}: {error}") from None
     settings = {**options, "nonfinite": nonfinite, "reference_spp": references[0].spp}
+    if channel_map is None:  # as before channel_map existed: earlier imports resume
+        del settings["channel_map"]
     digest = sources_digest(root, flat, settings)
     plan = plan_dataset(config)
     by_view = {view[0].source.view: view for view in resolved}
@@ -496,6 +513,7 @@ def import_dataset(
                              progress=progress)
     manifest.extra = {**manifest.extra, "import": {
         "source": str(root), "convention": convention or "jaxden", "layer": layer,
+        **({} if channel_map is None else {"channels": channel_map}),
         "sources_sha256": digest, "nonfinite": nonfinite,
         "items": {item.id: list(by_seed[item.seed].source.files) for item in manifest.items}}}
     from jaxden.fileio import folder_lock
@@ -504,6 +522,25 @@ def import_dataset(
         if load_manifest(directory).extra != manifest.extra:
             manifest.save(directory)
     return manifest
+
+
+def _check_channel_map(channel_map) -> dict[str, list[str]] | None:
+    """``channel_map`` as field -> list of names (JSON-ready); ImportArgumentError for an
+    unknown field or a wrong count of names."""
+    from jaxden.frame import CHANNELS
+
+    if not channel_map:
+        return None
+    checked = {}
+    for field, names in channel_map.items():
+        names = [str(n) for n in ((names,) if isinstance(names, str) else names)]
+        if field not in CHANNELS or len(names) != len(CHANNELS[field]):
+            want = ("one of " + ", ".join(CHANNELS) if field not in CHANNELS
+                    else f"{len(CHANNELS[field])} channel name(s) for {field}")
+            given = f"{field}={','.join(names)}: expected {want}"
+            raise ImportArgumentError(lambda name, given=given: f"{name('channel_map')}: {given}")
+        checked[field] = names
+    return checked
 
 
 def _check_convention(convention: str | None) -> None:

@@ -18,10 +18,12 @@ renderer   file layout         colour / albedo / normal / depth   variance
 =========  ==================  =================================  ===========================
 jaxden     one EXR             R,G,B / albedo.* / normal.* /      variance.*: of the mean
                                depth.Z
-cycles     multilayer EXR      {layer}.Combined.* / Denoising     none: jaxden merge
-                               Albedo or DiffCol / Denoising
-                               Normal or Normal / Denoising
-                               Depth or Depth.Z
+cycles     multilayer EXR      {layer}.Noisy Image.* (a denoised  none: jaxden merge
+                               render), else Combined.* /
+                               Denoising Albedo, Diffuse Color
+                               or DiffCol / Denoising Normal or
+                               Normal / Denoising Depth or
+                               Depth.Z
 pbrt-v4    one EXR (film       R,G,B / Albedo.* / Ns.* (camera    none read: Variance.* is
            "gbuffer")          space unless coordinatesystem      per sample, of the sensor's
                                "world") / P.Z (camera space)      XYZ, over hits only
@@ -37,8 +39,19 @@ falcor     one EXR (PNG for    AccumulatePass.output or           none: jaxden m
 
 docs/renderers.md has the full table, with how to get a variance from each renderer.
 
-Checked against files the renderers wrote: Blender 5.0 Cycles (``bpy`` from PyPI, multilayer
-EXR with the Denoising Data passes; ``experiments/renderers/cycles_render.py``) and Mitsuba 3
+A renderer that can write a denoised image beside the raw one (Cycles with Render Properties
+> Sampling > Render > Denoise on: ``Combined`` is denoised, ``Noisy Image`` is the raw Monte
+Carlo mean) reads the raw one as the colour; :attr:`Convention.denoised_colour` names the other,
+which nothing merges into a variance (:func:`jaxden.io.exr.read_frame`'s ``refuse_denoised``).
+A per-pixel sample-count pass (Cycles' ``Debug Sample Count``: each pixel's samples over the
+most any pixel took) shows adaptive sampling, under which the header's count is not every
+pixel's (:attr:`Convention.sample_fraction`). ``Convention.how_to`` says, in the renderer's
+own terms, how to make it write a field or change a setting, for messages.
+
+Checked against files the renderers wrote: Blender 5.0.1 Cycles (``bpy`` from PyPI, multilayer
+EXR with every pass a user may enable, denoised and adaptive renders among them:
+``experiments/renderers/cycles_fixtures.py``, ``tests/data/cycles/``; the older pass names
+``Emit`` and ``DiffCol`` from Blender's source, ``RE_PASSNAME_*``) and Mitsuba 3
 (the ``aov`` integrator's film, AOVs named as below). pbrt-v4 from its source
 (``src/pbrt/film.cpp``, ``GBufferFilm::AddSample`` and ``GetImage``: its channels, and
 ``Variance.*`` as a Welford estimate of the per-sample variance of the sensor's values (CIE
@@ -83,6 +96,33 @@ class Convention:
     file_example: str = ""  # a file name the pattern matches, for messages
     #: Depth at or above this (+inf included) is a miss, read as jaxden's 0 (None: as stored).
     depth_miss: float | None = None
+    #: Channels of the renderer's denoised image, when the raw one (``fields["color"][0]``)
+    #: is beside them in a file: never merged into a variance.
+    denoised_colour: tuple[str, ...] = ()
+    #: A channel holding each pixel's sample count over the most any pixel took (adaptive
+    #: sampling when below 1 somewhere); None: the renderer writes none.
+    sample_fraction: str | None = None
+    #: How to make the renderer write a field (keyed by field) or turn off a setting (keys
+    #: "denoise", "adaptive", "file"), in its own terms, for messages.
+    how_to: Mapping[str, str] = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass(frozen=True)
+class Reading:
+    """What a convention makes of one file (:func:`resolve`).
+
+    ``mapping``: field -> the file's channels for it (the fields the file has);
+    ``spp``: the header's sample count (None: none there); ``variance``: one of
+    :data:`VARIANCE_KINDS`; ``layer``: the render layer read (None: not layered);
+    ``denoised``: the channels of a denoised image beside the raw colour (empty: none);
+    ``sample_fraction``: the channel of a per-pixel sample-count pass (None: none)."""
+
+    mapping: dict[str, tuple[str, ...]]
+    spp: float | None
+    variance: str
+    layer: str | None = None
+    denoised: tuple[str, ...] = ()
+    sample_fraction: str | None = None
 
 
 def _xyz(prefix: str) -> tuple[str, str, str]:
@@ -105,13 +145,31 @@ CONVENTIONS: dict[str, Convention] = {
         note="jaxden render and jaxden merge: variance of the mean, jaxden.spp"),
     "cycles": Convention(
         name="cycles", variance="none", spp_attributes=("cycles.{layer}.samples",),
-        layer_pass="Combined",
-        fields={"color": (_rgb("{layer}.Combined."),),
-                "albedo": (_rgb("{layer}.Denoising Albedo."), _rgb("{layer}.DiffCol.")),
+        layer_pass="Combined", depth_miss=1e10,  # the Z pass's misses
+        fields={"color": (_rgb("{layer}.Noisy Image."), _rgb("{layer}.Combined.")),
+                "albedo": (_rgb("{layer}.Denoising Albedo."), _rgb("{layer}.Diffuse Color."),
+                           _rgb("{layer}.DiffCol.")),
                 "normal": (_xyz("{layer}.Denoising Normal."), _xyz("{layer}.Normal.")),
                 "depth": (("{layer}.Denoising Depth.Z",), ("{layer}.Depth.Z",)),
                 "position": (_xyz("{layer}.Position."),),
-                "emission": (_rgb("{layer}.Emit."),)},
+                "emission": (_rgb("{layer}.Emission."), _rgb("{layer}.Emit."))},
+        denoised_colour=_rgb("{layer}.Combined."),
+        sample_fraction="{layer}.Debug Sample Count.X",
+        how_to={
+            "color": "enable View Layer Properties > Passes > Data > Combined",
+            "albedo": "enable View Layer Properties > Passes > Data > Denoising Data (or "
+                      "Passes > Light > Diffuse > Color)",
+            "normal": "enable View Layer Properties > Passes > Data > Denoising Data (or "
+                      "Passes > Data > Normal)",
+            "depth": "enable View Layer Properties > Passes > Data > Denoising Data (or "
+                     "Passes > Data > Z)",
+            "position": "enable View Layer Properties > Passes > Data > Position",
+            "emission": "enable View Layer Properties > Passes > Light > Emission",
+            "denoise": "turn off Render Properties > Sampling > Render > Denoise",
+            "adaptive": "turn off Render Properties > Sampling > Render > Noise Threshold "
+                        "(adaptive sampling)",
+            "file": "save a multilayer EXR: Output Properties > Output > Media Type: "
+                    "Multi-Layer EXR (before Blender 5.0: File Format: OpenEXR MultiLayer)"},
         note="multilayer EXR, one part per pass; no variance: merge K renders (jaxden merge)"),
     "pbrt-v4": Convention(
         name="pbrt-v4", variance="none", spp_attributes=("samplesPerPixel",),
@@ -159,12 +217,14 @@ def _layers(convention: Convention, present: Iterable[str]) -> list[str]:
 
 
 def resolve(name: str, present: Iterable[str], header: Mapping[str, Any], *,
-            layer: str | None = None, where: str = "") -> tuple[dict, float | None, str]:
-    """The channel map, sample count (None: not in the header) and variance kind that
-    convention ``name`` gives the file whose channels are ``present``.
+            layer: str | None = None, where: str = "") -> Reading:
+    """What convention ``name`` makes of the file whose channels are ``present`` and whose
+    header is ``header``: a :class:`Reading` (its channel map, sample count, variance kind,
+    layer, denoised channels and sample-count pass).
 
     Raises ExrError for an unknown convention (with a close match suggested), a layered
-    file whose layer is ambiguous or missing, and a header sample count that is no number.
+    file whose layer is ambiguous or missing (a single-layer file told how to save a
+    layered one), and a header sample count that is no number.
     """
     convention = CONVENTIONS.get(name)
     if convention is None:
@@ -178,29 +238,53 @@ def resolve(name: str, present: Iterable[str], header: Mapping[str, Any], *,
         layers = _layers(convention, present)
         if layer is None:
             if len(layers) != 1:
-                found = ", ".join(layers) if layers else "none"
-                raise ExrError(
-                    f"{prefix}a {name} file names its render layer in every channel "
-                    f"('<layer>.{convention.layer_pass}.R'); layers found: {found}"
-                    + ("; choose one with --layer" if layers else ""))
+                raise ExrError(prefix + _layer_problem(convention, layers, present))
             layer = layers[0]
         elif layer not in layers:
             raise ExrError(f"{prefix}no render layer {layer!r}; layers: "
                            f"{', '.join(layers) or 'none'}")
+
+    def named(names):
+        return tuple(n.replace("{layer}", layer or "") for n in names)
+
     mapping = {}
     for field, candidates in convention.fields.items():
-        for names in candidates:
-            names = tuple(n.replace("{layer}", layer or "") for n in names)
+        for names in map(named, candidates):
             if set(names) <= present:
                 mapping[field] = names
                 break
+    denoised = named(convention.denoised_colour)
+    if not (denoised and set(named(convention.fields["color"][0])) <= present
+            and set(denoised) <= present):
+        denoised = ()
+    fraction = None
+    if convention.sample_fraction is not None:
+        fraction = named((convention.sample_fraction,))[0]
+        fraction = fraction if fraction in present else None
     spp = None
     for key in convention.spp_attributes:
         value = header.get(key.replace("{layer}", layer or ""))
         if value is not None:
             spp = header_number(value, f"{prefix}header attribute {key}")
             break
-    return mapping, spp, convention.variance
+    return Reading(mapping, spp, convention.variance, layer, denoised, fraction)
+
+
+def _layer_problem(convention: Convention, layers: list[str], present: set[str]) -> str:
+    """Why a layered file's layer cannot be chosen: several layers, no colour pass in a
+    file of passes, or a single-layer file (plain channel names)."""
+    colour = f"<layer>.{convention.layer_pass}.R"
+    if layers:
+        return (f"a {convention.name} file names its render layer in every channel "
+                f"('{colour}'); layers found: {', '.join(layers)}; choose one with --layer")
+    shown = ", ".join(sorted(present)[:8]) + (", ..." if len(present) > 8 else "")
+    passes = sorted({n.rsplit(".", 1)[0] for n in present if n.count(".") >= 2})
+    if passes:
+        return (f"no '{colour}' channel among its passes ({', '.join(passes[:8])}): "
+                + convention.how_to.get("color", f"write the {convention.layer_pass} pass"))
+    return (f"a single-layer EXR (channels {shown or 'none'}), but a {convention.name} file "
+            f"is a multilayer EXR with a part per pass ('{colour}', ...); "
+            + convention.how_to.get("file", "save a multilayer EXR"))
 
 
 def header_number(value: Any, what: str) -> float:

@@ -24,7 +24,7 @@ import contextlib
 import os
 import sys
 import tempfile
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -32,9 +32,9 @@ import numpy as np
 
 from jaxden.errors import ExrError, FrameError
 from jaxden.fileio import atomic_write
+from jaxden.frame import CHANNELS, IMAGE_FIELDS, Frame, NonFinitePolicy
 from jaxden.io.conventions import header_number
 from jaxden.limits import check_exr_size
-from jaxden.frame import CHANNELS, IMAGE_FIELDS, Frame, NonFinitePolicy
 
 ATTRIBUTE_PREFIX = "jaxden."
 #: Key that :func:`read_channels` sets in the header of a file with jaxden's attributes.
@@ -378,6 +378,8 @@ def read_frame(
     layer: str | None = None,
     spp_override: bool = False,
     keep: Iterable[str] | None = None,
+    refuse_denoised: bool = False,
+    on_note: Callable[[str], None] | None = None,
 ) -> Frame:
     """Read a Frame from an EXR, checking it.
 
@@ -395,9 +397,19 @@ def read_frame(
     the fields, the variance's meaning and the header's sample count come from it; ``layer``
     picks the render layer of a layered (Cycles) file that holds several. ``channel_map`` wins.
     A renderer that writes one file per output (``falcor``) reads ``path`` with its sibling
-    files (:mod:`jaxden.io.siblings`).
+    files (:mod:`jaxden.io.siblings`). A denoised render (Cycles with Denoise on) gives its raw
+    colour (``Noisy Image``), not the denoised one. A render whose sample-count pass (Cycles'
+    ``Debug Sample Count``) shows adaptive sampling gets no ``spp``: the header's count is not
+    every pixel's (a ``spp`` given for it is an ExrError unless ``spp_override``).
     ``keep``: the fields to return (besides ``require``; None: every field the file has):
     what a command does not use is never stacked (memory at 8K).
+    ``refuse_denoised``: the colour is to be merged into a variance (``jaxden merge``, ``jaxden
+    dataset import``): a denoised one (a renderer's denoised pass named by ``channel_map``, or
+    an image ``jaxden denoise`` / ``progressive`` wrote) is an ExrError saying what to read
+    or change instead.
+    ``on_note``: called with one line (without the path) for what the reading decided that a
+    user may want to know: the colour taken from a denoised render's raw pass, the sample
+    count dropped for adaptive sampling.
     """
     path = Path(path)
     if convention is None:
@@ -409,11 +421,12 @@ def read_frame(
                                             read_header)
     present = set(all_channels)
     mapping = {field: tuple(names) for field, names in CHANNELS.items()}
+    reading = None
     if convention is not None:
         from jaxden.io.conventions import resolve
 
-        mapping, header_spp, kind = resolve(convention, present, header, layer=layer,
-                                            where=str(path))
+        reading = resolve(convention, present, header, layer=layer, where=str(path))
+        mapping, header_spp, kind = dict(reading.mapping), reading.spp, reading.variance
         if kind == "mean" and variance_is_sample_variance:
             raise ExrError(f"{path}: a {convention} file stores the variance of the pixel mean; "
                            f"it is not a per-sample variance (drop --sample-variance)")
@@ -443,7 +456,12 @@ def read_frame(
         required.insert(0, "color")
     missing_fields = [f for f in required if f not in mapping or not set(mapping[f]) <= present]
     if missing_fields:
-        raise ExrError(_missing_message(path, missing_fields, mapping, present, convention))
+        raise ExrError(_missing_message(path, missing_fields, mapping, present, convention,
+                                        None if reading is None else reading.layer))
+    _check_denoised(path, header, mapping, reading, convention, refuse_denoised, on_note)
+    if reading is not None and reading.sample_fraction is not None:
+        header = _adaptive_sampling(path, header, all_channels[reading.sample_fraction],
+                                    convention, spp, spp_override, on_note)
     fields: dict[str, Any] = {}
     wanted = [f for f in IMAGE_FIELDS if f in mapping and (keep is None or f in keep
                                                              or f in required)]
@@ -460,6 +478,9 @@ def read_frame(
             if field not in wanted:
                 continue
             fields[field] = np.stack([all_channels[c] for c in names], axis=-1)
+            if field == "depth" and convention is not None:
+                fields[field] = _depth_misses(fields[field], names, convention,
+                                              reading.layer)
             later = {c for f in wanted[wanted.index(field) + 1:] for c in mapping[f]}
             for name in names:
                 if name not in later:
@@ -512,9 +533,78 @@ def read_frame(
         raise ExrError(str(error)) from None
 
 
-def _missing_message(path, fields, mapping, present, convention) -> str:
-    """One line: the missing fields, the channels each needs (or a convention's candidates),
-    a case-insensitive or close match where there is one, and the channels the file has."""
+def _check_denoised(path, header, mapping, reading, convention, refuse, on_note) -> None:
+    """Refuse (``refuse``) or note a denoised colour: a renderer's denoised pass named by
+    ``channel_map`` while its raw pass is beside it, or an image jaxden's denoisers wrote."""
+    from jaxden.io.conventions import CONVENTIONS
+
+    if header.get(WRITTEN_BY_JAXDEN) and header.get("denoiser") is not None and refuse:
+        raise ExrError(f"{path}: an image denoised by {header['denoiser']} (written by jaxden "
+                       f"denoise or progressive): its spread over renders is no variance; "
+                       f"merge the renders themselves")
+    if reading is None or not reading.denoised:
+        return
+    rule = CONVENTIONS[convention]
+    raw = rule.fields["color"][0][0].rsplit(".", 1)[0].replace("{layer}", reading.layer or "")
+    denoised = reading.denoised[0].rsplit(".", 1)[0]
+    colour = tuple(mapping["color"])
+    if colour == reading.denoised:
+        if refuse:
+            raise ExrError(
+                f"{path}: the colour named ({denoised}) is the renderer's denoised image (the "
+                f"file has the raw one, {raw}, beside it): its spread over renders is no "
+                f"variance; drop --channels color to read {raw}, or "
+                f"{rule.how_to.get('denoise', 'turn the denoiser off')} and render again")
+        if on_note is not None:
+            on_note(f"the colour is {denoised}, the renderer's denoised image, as named; "
+                    f"the raw one is {raw}")
+    elif on_note is not None and colour == reading.mapping["color"]:
+        on_note(f"a denoised render: the colour read is its raw Monte Carlo mean, {raw}, not "
+                f"the denoised {denoised}")
+
+
+def _adaptive_sampling(path, header, fraction, convention, spp, spp_override, on_note):
+    """The header without its sample count when the sample-count pass ``fraction`` (each
+    pixel's samples over the most any pixel took) shows that pixels took different counts
+    (adaptive sampling); an ExrError when a count was given for such a render."""
+    from jaxden.io.conventions import CONVENTIONS
+
+    short = np.asarray(fraction) < np.float32(1 - 1e-6)
+    if not short.any():
+        return header
+    share = float(short.mean())
+    said = header.get("spp")
+    setting = CONVENTIONS[convention].how_to.get("adaptive", "turn off adaptive sampling")
+    if spp is not None and not spp_override:
+        raise ExrError(
+            f"{path}: rendered with adaptive sampling: its sample-count pass says {share:.0%} "
+            f"of the pixels took fewer samples than the most, so no one count ({spp:g}) holds "
+            f"for every pixel; {setting} and render again")
+    if on_note is not None:  # the same words for every file, so that a caller can group them
+        on_note("rendered with adaptive sampling (its sample-count pass differs between "
+                "pixels): no one sample count holds for every pixel, so the header's"
+                + ("" if said is None else f" {float(said):g}") + " is not used")
+    return {key: value for key, value in header.items() if key != "spp"}
+
+
+def _depth_misses(depth, names, convention, layer):
+    """A convention's miss depth (and +inf) as jaxden's 0, where ``names`` are its own depth
+    channels (Cycles' Z pass: 1e10; Falcor's linearZ: 1e8, +inf once stored as half)."""
+    from jaxden.io.conventions import CONVENTIONS
+
+    rule = CONVENTIONS[convention]
+    own = {tuple(n.replace("{layer}", layer or "") for n in candidate)
+           for candidate in rule.fields.get("depth", ())}
+    if rule.depth_miss is None or tuple(names) not in own:
+        return depth
+    return np.where(np.isposinf(depth) | (depth >= rule.depth_miss), np.float32(0),
+                    depth).astype(np.float32)
+
+
+def _missing_message(path, fields, mapping, present, convention, layer=None) -> str:
+    """One line: the missing fields, the channels each needs (or a convention's candidates
+    and how to make the renderer write them), a case-insensitive or close match where there
+    is one, and the channels the file has."""
     from jaxden.io.conventions import CONVENTIONS, case_hints
 
     details, wanted = [], []
@@ -524,11 +614,14 @@ def _missing_message(path, fields, mapping, present, convention) -> str:
             details.append(f"{field} needs {', '.join(names)}")
             wanted += names
         else:
-            candidates = CONVENTIONS[convention].fields.get(field, ())
+            rule = CONVENTIONS[convention]
+            candidates = [tuple(n.replace("{layer}", layer or "<layer>") for n in names)
+                          for names in rule.fields.get(field, ())]
             options = " or ".join(",".join(names) for names in candidates)
+            how = f": {rule.how_to[field]}" if field in rule.how_to else ""
             details.append(f"{field}: a {convention} file has "
-                           + (f"it as {options}" if candidates else
-                              f"no such channels ({CONVENTIONS[convention].note})"))
+                           + (f"it as {options}{how}" if candidates else
+                              f"no such channels ({rule.note})"))
             wanted += [name for names in candidates for name in names]
     return (f"{path}: missing feature(s) {', '.join(fields)} ({'; '.join(details)})"
             f"{case_hints(wanted, present)}; the file has channels "

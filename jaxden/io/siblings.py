@@ -45,23 +45,16 @@ class OutputFiles(MutableMapping):
     channels is first read and dropped when none of its channels is left (a dict to
     :func:`jaxden.io.exr.read_frame`)."""
 
-    def __init__(self, sources: Mapping[str, tuple[Path, str]], read_file, depth_channels=(),
-                 depth_miss: float | None = None):
+    def __init__(self, sources: Mapping[str, tuple[Path, str]], read_file):
         self._sources = dict(sources)  # channel -> (file, the channel's name in the file)
         self._read_file = read_file
         self._decoded: dict[Path, dict[str, np.ndarray]] = {}
-        self._depth = set(depth_channels) if depth_miss is not None else set()
-        self._depth_miss = depth_miss
 
     def __getitem__(self, name: str) -> np.ndarray:
         path, stored = self._sources[name]
         if path not in self._decoded:
             self._decoded[path] = self._read_file(path)
-        array = self._decoded[path][stored]
-        if name in self._depth:
-            array = np.where(np.isposinf(array) | (array >= self._depth_miss), np.float32(0),
-                             array).astype(np.float32)
-        return array
+        return self._decoded[path][stored]
 
     def __delitem__(self, name: str) -> None:
         path, _ = self._sources.pop(name)
@@ -216,7 +209,6 @@ def read_outputs(path, convention: str | None, channel_map: Mapping | None,
         channels, _ = read_channels(file)
         return channels
 
-    depth = [c for names in rule.fields.get("depth", ()) for c in names]
     header = {k: v for k, v in headers[colour_file].items()
               if k not in ("channels", "size", "parts")}
-    return OutputFiles(sources, read_file, depth, rule.depth_miss), header
+    return OutputFiles(sources, read_file), header  # misses in depth: read_frame
