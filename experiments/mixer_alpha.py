@@ -67,7 +67,8 @@ def evaluate(data: Path, crops, spp, mixers, denoiser: str = "oidn", seed: int =
 
     from jaxden.data.crops import iter_crops
     from jaxden.denoise.registry import load_denoiser
-    from jaxden.progressive.mixer import _mixer_alpha, _mixer_swap_args, closed_form_alpha
+    from jaxden.progressive.closed_form import closed_form_alpha
+    from jaxden.progressive.network import _mixer_alpha, _mixer_swap_args
     from jaxden.progressive.tstat import _gaussian_sigma, consistent_mix
     from jaxden.sure.denoiser import denoise_with_sure
 

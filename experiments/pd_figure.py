@@ -137,6 +137,7 @@ def cmd_images(args) -> None:
     from jaxden.io.png import preview, write_png
     from jaxden.progressive.mixer import load_mixer
     from jaxden.progressive.pipeline import progressive_denoise
+    from jaxden.sure.settings import SureSettings
     from jaxden.provenance import result_provenance, run_identity
 
     if args.mixer is None:
@@ -169,7 +170,7 @@ def cmd_images(args) -> None:
     for index, (spp, frame) in enumerate(inputs):
         z, alpha_prime, extras = progressive_denoise(
             frame, model, params, config, jax.random.fold_in(jax.random.PRNGKey(args.seed), index),
-            num_probes=args.probes)
+            sure=SureSettings(probes=args.probes))
         panels = {"MC": frame.color, label: extras["denoised"], f"PD({label})": z}
         errors.append({"spp": spp, "alpha_prime_mean": float(np.mean(alpha_prime)),
                        **{name: float(metrics.rmse(np.asarray(image, np.float64), ref))

@@ -52,10 +52,8 @@ def measure(data: Path, denoiser: str, gammas: tuple[float, ...], split: str):
         r = np.asarray(reference.color, np.float64)
         r_var = np.asarray(reference.variance, np.float64)
         for level, frame in inputs:
-            if not config.sure_covariance:
-                frame = frame.replace(covariance=None)
             result, frame = denoise_with_sure(model, frame, jax.random.PRNGKey(0),
-                                              num_probes=config.sure_probes)
+                                              sure=config.sure)
             x = np.asarray(frame.color, np.float64)
             y = np.asarray(result.denoised, np.float64)
             mc, den = _nc_mse(x, r, r_var), _nc_mse(y, r, r_var)

@@ -140,8 +140,13 @@ def _use_text(name: str, base: dict) -> str:
 
 
 def _denoiser_text(mc: dict, base: dict, versions: dict) -> str:
-    """The card's Denoiser line: which base, and how SURE of its output was taken."""
-    method = mc["sure_method"]
+    """The card's Denoiser line: which base, and how SURE of its output was taken (``mc``: the
+    MixerConfig as a dict, its SURE settings the ``sure`` table or an older card's flat keys)."""
+    from jaxden.progressive.mixer_config import upgrade_mixer_config
+
+    settings = {"method": "auto", "eps": None, "seed": 0, "probe_dist": "normal",
+                **upgrade_mixer_config(mc).get("sure", {})}
+    method = settings["method"]
     if method == "auto":  # as jaxden.sure.denoiser.resolve_method resolves it
         method = "fd" if base["black_box"] else "jvp"
     if base["spec"] == "oidn":
@@ -159,18 +164,18 @@ def _denoiser_text(mc: dict, base: dict, versions: dict) -> str:
         source = "the weights shipped as" if base["shipped"] is not None else "the checkpoint"
         which = (f"{base['label']}, {source} `{base['spec']}`"
                  + (f" ({'; '.join(details)})" if details else ""))
-    dist = mc.get("sure_probe_dist", "normal")
+    dist = settings["probe_dist"] or "normal"
     kind = "" if dist == "normal" else f"{dist} "
     if method == "jvp":
         sure = (f"SURE of its output by jax.jvp (forward-mode derivative), "
-                f"{_plural(mc['sure_probes'], kind + 'probe')}")
+                f"{_plural(settings['probes'], kind + 'probe')}")
     else:
         default = ("1e-2 (default for black boxes)" if base["black_box"] else
                    "1e-3 (default for JAX denoisers)")
-        eps = mc['sure_eps'] if mc['sure_eps'] is not None else default
-        sure = (f"SURE of its output by forward differences, {mc['sure_probes']} {kind}probes, "
+        eps = settings["eps"] if settings["eps"] is not None else default
+        sure = (f"SURE of its output by forward differences, {settings['probes']} {kind}probes, "
                 f"eps {eps}")
-    return (f"- Denoiser: {which}; {sure}, probe seed {mc['sure_seed']} "
+    return (f"- Denoiser: {which}; {sure}, probe seed {settings['seed']} "
             f"(`jaxden dataset sure-cache`).")
 
 

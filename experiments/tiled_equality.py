@@ -41,9 +41,11 @@ def measure(size, seed: int):
     from jaxden.bench import bench_frame
     from jaxden.denoise.registry import load_denoiser
     from jaxden.denoise.tiled import denoise_frame
-    from jaxden.progressive.mixer import closed_form_mixer, load_mixer
+    from jaxden.progressive.mixer_checkpoints import load_mixer
+    from jaxden.progressive.mixer_config import closed_form_mixer
     from jaxden.progressive.pipeline import shipped_mixer_path
     from jaxden.progressive.tiled import progressive_frame, tile_halo
+    from jaxden.sure.settings import SureSettings
     from jaxden.sure.tiled import sure_frame
 
     frame = bench_frame(size).numpy()
@@ -59,20 +61,19 @@ def measure(size, seed: int):
             params, config = load_mixer(str(shipped_mixer_path(denoiser_name)))
         keep = ("z", "alpha_prime", "denoised", "sure")
         start = time.perf_counter()
-        probes = 1
+        one_probe = SureSettings(probes=1)
         whole, _ = progressive_frame(frame, denoiser, params, config, key, keep=keep, tile=0,
-                                     num_probes=probes)
+                                     sure=one_probe)
         whole_s = time.perf_counter() - start
         start = time.perf_counter()
         tiled, plan = progressive_frame(frame, denoiser, params, config, key, keep=keep,
-                                        tile=TILE, num_probes=probes)
+                                        tile=TILE, sure=one_probe)
         tiled_s = time.perf_counter() - start
         halo = tile_halo(denoiser, config, config.tstat)
         from jaxden.progressive.tiled import progressive_denoise_tiled
 
         short, _ = progressive_denoise_tiled(
-            frame.replace(covariance=None) if not config.sure_covariance else frame, denoiser,
-            params, config, key, num_probes=probes, tstat=config.tstat,
+            frame, denoiser, params, config, key, sure=one_probe, tstat=config.tstat,
             keep=("z",), tile=TILE, halo=halo - SHORT)
         rows.append({"pipeline": f"PD({denoiser_name}) + {mixer_name}", "halo": halo,
                      "tiles": len_tiles(size, TILE, halo, plan.multiple),
@@ -89,8 +90,8 @@ def measure(size, seed: int):
                                         denoiser.tile_spec().multiple),
                      "z_relative_rmse": _rel(tiled, whole)})
     denoiser = load_denoiser("wskp-6")
-    whole, _ = sure_frame(denoiser, frame, key, num_probes=1, tile=0)
-    tiled, _ = sure_frame(denoiser, frame, key, num_probes=1, tile=TILE)
+    whole, _ = sure_frame(denoiser, frame, key, sure=SureSettings(probes=1), tile=0)
+    tiled, _ = sure_frame(denoiser, frame, key, sure=SureSettings(probes=1), tile=TILE)
     rows.append({"pipeline": "SURE of wskp-6 by jvp (1 probe)",
                  "halo": denoiser.tile_spec().radius,
                  "tiles": len_tiles(size, TILE, denoiser.tile_spec().radius, 1),

@@ -349,6 +349,9 @@ def _convert_at(tp: Any, value: Any, source: _Source, path: tuple[str, ...]) -> 
 def _build(cls: type[T], data: Any, source: _Source, path: tuple[str, ...]) -> T:
     if not isinstance(data, Mapping):
         raise _Mismatch(f"expected a table ({cls.__name__}), found {_found(data)}")
+    upgrade = getattr(cls, "upgrade_config", None)  # a class's map of its older keys
+    if upgrade is not None:
+        data = upgrade(data)
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
     allowed = sorted(fields)

@@ -410,7 +410,7 @@ def test_a_covariance_mixer_on_a_file_without_the_covariance_says_so(tmp_path, c
     from jaxden.progressive.mixer import load_mixer, save_mixer
 
     params, config = load_mixer("oidn-pd")
-    save_mixer(tmp_path / "cov.msgpack", params, dataclasses.replace(config, sure_covariance=True))
+    save_mixer(tmp_path / "cov.msgpack", params, dataclasses.replace(config, sure=config.sure.replace(covariance=True)))
     frame_file(tmp_path)
     argv = ["progressive", str(tmp_path / "f.exr"), "--denoiser", "oidn", "--mixer",
             str(tmp_path / "cov.msgpack"), "--out", str(tmp_path / "o.exr")]

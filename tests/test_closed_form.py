@@ -17,7 +17,9 @@ import pytest
 
 from jaxden import progressive as P
 from jaxden.errors import CheckpointError, ConfigError, FrameError
-from jaxden.progressive.mixer import inference_alpha
+from jaxden.progressive.heads import ALPHA_HEADS, CLOSED_FORM_LOGIT_EPS, closed_form_logit_alpha
+from jaxden.progressive.inputs import MIXER_FEATURES, MIXER_FEATURES_NO_SURE, mixer_channel_slices
+from jaxden.progressive.network import inference_alpha
 from jaxden.sure.stein import sure
 
 
@@ -129,8 +131,8 @@ def test_closed_form_spec_config_and_errors(tmp_path):
     assert params == {} and config.kind == "closed_form" and config.closed_form_sigma == 12.0
     _, config = P.load_mixer("closed-form:sigma=3, per_channel=true")
     assert (config.closed_form_sigma, config.closed_form_per_channel) == (3.0, True)
-    assert not config.sure_covariance
-    assert P.load_mixer("closed-form:covariance=true")[1].sure_covariance
+    assert not config.sure.covariance
+    assert P.load_mixer("closed-form:covariance=true")[1].sure.covariance
     assert P.mixer_init(jax.random.PRNGKey(0), config) == {}
     for spec, message in [("closed-form:width=3", "KEY one of sigma, per_channel"),
                           ("closed-form:sigma", "KEY=VALUE"),
@@ -153,11 +155,11 @@ def test_closed_form_as_a_network_input_feature():
     """The optional ``closed_form`` feature is closed_form_alpha at the config's width, turns
     into 1 - alpha when the inputs are swapped, and a network with it initialises and runs."""
     x, y, var, sure_map = _inputs(6)
-    features = (*P.MIXER_FEATURES, "closed_form")
+    features = (*MIXER_FEATURES, "closed_form")
     inputs = np.asarray(P.mixer_inputs(x, y, var, sure_map, features=features,
                                        closed_form_sigma=2.0))
     assert inputs.shape == (*x.shape[:-1], 21)
-    part = P.mixer_channel_slices(features)["closed_form"]
+    part = mixer_channel_slices(features)["closed_form"]
     want = np.asarray(P.closed_form_alpha(x, y, var, sure_map, sigma=2.0))
     np.testing.assert_allclose(inputs[..., part], want, atol=1e-6)
     swapped = np.asarray(P.mixer_inputs(y, x, sure_map, var, features=features,
@@ -168,8 +170,8 @@ def test_closed_form_as_a_network_input_feature():
     alpha = np.asarray(P.mixer_alpha(params, config, x, y, var, sure_map))
     assert alpha.shape == x.shape and np.all((alpha >= 0) & (alpha <= 1))
     with pytest.raises(ConfigError, match="unknown mixer feature"):
-        P.MixerConfig(features=(*P.MIXER_FEATURES, "oracle"))
-    assert "closed_form" not in P.MIXER_FEATURES_NO_SURE
+        P.MixerConfig(features=(*MIXER_FEATURES, "oracle"))
+    assert "closed_form" not in MIXER_FEATURES_NO_SURE
 
 
 def test_closed_form_logit_head_starts_at_the_closed_form_and_corrects_it():
@@ -178,14 +180,14 @@ def test_closed_form_logit_head_starts_at_the_closed_form_and_corrects_it():
     output r moves the logit by exactly r; it needs SURE whatever the features."""
     x, y, var, sure_map = _inputs(8)
     config = P.MixerConfig(head="closed_form_logit", closed_form_sigma=2.0, width=8,
-                           features=P.MIXER_FEATURES_NO_SURE)
-    assert config.uses_sure and P.ALPHA_HEADS["closed_form_logit"] == 3
+                           features=MIXER_FEATURES_NO_SURE)
+    assert config.uses_sure and ALPHA_HEADS["closed_form_logit"] == 3
     params = P.mixer_init(jax.random.PRNGKey(0), config)
     out = params["params"]["conv_out"]
     zero = jax.tree_util.tree_map(np.zeros_like, out)
     flat = {"params": {**params["params"], "conv_out": zero}}
     want = np.clip(np.asarray(P.closed_form_alpha(x, y, var, sure_map, sigma=2.0)),
-                   P.CLOSED_FORM_LOGIT_EPS, 1 - P.CLOSED_FORM_LOGIT_EPS)
+                   CLOSED_FORM_LOGIT_EPS, 1 - CLOSED_FORM_LOGIT_EPS)
     got = np.asarray(P.mixer_alpha(flat, config, x, y, var, sure_map))
     np.testing.assert_allclose(got, np.broadcast_to(want, got.shape), atol=2e-6)
     averaged = dataclasses.replace(config, swap_average=True)
@@ -214,21 +216,21 @@ def test_closed_form_logit_bound_is_a_trust_region_around_the_closed_form():
     logit_a = np.log(a.astype(np.float64)) - np.log1p(-a.astype(np.float64))
     for bound in (0.5, 2.0, 3.0):
         for raw in (-1e4, -40.0, -1.0, 1.0, 40.0, 1e4):
-            got = np.asarray(P.closed_form_logit_alpha(np.full(a.shape, raw, np.float32), a,
+            got = np.asarray(closed_form_logit_alpha(np.full(a.shape, raw, np.float32), a,
                                                        bound), np.float64)
             shift = np.log(got) - np.log1p(-got) - logit_a
             want = bound * np.tanh(raw / bound)
             np.testing.assert_allclose(shift, want, atol=2e-3 * max(1.0, abs(want)))
             assert np.all(np.abs(shift) <= bound + 1e-3)
         small = np.full(a.shape, 1e-3, np.float32)
-        np.testing.assert_allclose(P.closed_form_logit_alpha(small, a, bound),
-                                   P.closed_form_logit_alpha(small, a), atol=1e-6)
+        np.testing.assert_allclose(closed_form_logit_alpha(small, a, bound),
+                                   closed_form_logit_alpha(small, a), atol=1e-6)
     # Unbounded, a huge raw output overrides the closed form completely.
-    assert float(np.max(P.closed_form_logit_alpha(np.full(a.shape, -40.0, np.float32), a))) < 1e-3
+    assert float(np.max(closed_form_logit_alpha(np.full(a.shape, -40.0, np.float32), a))) < 1e-3
     # eps: alpha_cf = 1 is clipped to 1 - eps before the logit.
     one = np.ones((2, 2, 3), np.float32)
     zero_raw = np.zeros_like(one)
-    np.testing.assert_allclose(P.closed_form_logit_alpha(zero_raw, one, None, 1e-4), 1 - 1e-4,
+    np.testing.assert_allclose(closed_form_logit_alpha(zero_raw, one, None, 1e-4), 1 - 1e-4,
                                atol=1e-6)
     x, y, var, sure_map = _inputs(8)
     config = P.MixerConfig(head="closed_form_logit", closed_form_sigma=2.0, width=8,

@@ -18,6 +18,11 @@ import pytest
 
 from jaxden import progressive as P
 from jaxden.errors import ConfigError
+from jaxden.progressive.closed_form import (
+    CLOSED_FORM_PROXY_SIGMA,
+    CLOSED_FORM_RANGE_CEIL,
+    CLOSED_FORM_RANGE_FLOOR,
+)
 
 
 def _blur_reference(image: np.ndarray, sigma: float) -> np.ndarray:
@@ -45,8 +50,8 @@ def reference_range_alpha(x, y, var, sure_map, sigma, per_channel, stops) -> np.
     if not per_channel:
         numerator = numerator.sum(-1, keepdims=True)
         denominator = denominator.sum(-1, keepdims=True)
-    proxy = _blur_reference(((x + y) / 2).mean(-1, keepdims=True), P.CLOSED_FORM_PROXY_SIGMA)
-    proxy = np.clip(proxy[..., 0], P.CLOSED_FORM_RANGE_FLOOR, P.CLOSED_FORM_RANGE_CEIL)
+    proxy = _blur_reference(((x + y) / 2).mean(-1, keepdims=True), CLOSED_FORM_PROXY_SIGMA)
+    proxy = np.clip(proxy[..., 0], CLOSED_FORM_RANGE_FLOOR, CLOSED_FORM_RANGE_CEIL)
     level = np.log2(proxy) / stops
     radius = max(1, math.ceil(3 * sigma))
     alpha = np.empty(numerator.shape)

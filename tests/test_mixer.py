@@ -23,7 +23,8 @@ from jaxden import progressive as P
 from jaxden.checkpoint import save_weights
 from jaxden.config import load_config
 from jaxden.errors import CheckpointError, ConfigError, FrameError
-from jaxden.progressive.network import PDNet, head_bias
+from jaxden.progressive.inputs import MIXER_FEATURES, MIXER_FEATURES_NO_SURE
+from jaxden.progressive.network import PDNet, head_bias, mixer_module
 
 # ------------------------------------------------------------------------ NumPy reference
 
@@ -96,10 +97,10 @@ def test_pdnet_parameter_layout_of_the_paper():
 @pytest.mark.parametrize(
     "features, head, in_channels, out_channels",
     [
-        (P.MIXER_FEATURES, "f_act", 18, 9),
-        (P.MIXER_FEATURES_NO_SURE, "f_act", 12, 9),  # "w/o SURE"
-        (P.MIXER_FEATURES, "sigmoid", 18, 3),  # "w/o f_act"
-        (P.MIXER_FEATURES, "clip", 18, 3),
+        (MIXER_FEATURES, "f_act", 18, 9),
+        (MIXER_FEATURES_NO_SURE, "f_act", 12, 9),  # "w/o SURE"
+        (MIXER_FEATURES, "sigmoid", 18, 3),  # "w/o f_act"
+        (MIXER_FEATURES, "clip", 18, 3),
     ],
 )
 def test_shapes_for_the_paper_and_its_ablations(features, head, in_channels, out_channels):
@@ -126,13 +127,13 @@ def test_pdnet_matches_numpy_reference():
 
 
 def test_mixer_alpha_is_head_of_network_of_mixer_inputs():
-    for features, head in ((P.MIXER_FEATURES, "f_act"), (P.MIXER_FEATURES_NO_SURE, "sigmoid"),
-                           (P.MIXER_FEATURES, "clip")):
+    for features, head in ((MIXER_FEATURES, "f_act"), (MIXER_FEATURES_NO_SURE, "sigmoid"),
+                           (MIXER_FEATURES, "clip")):
         config = P.MixerConfig(features=features, head=head, width=4)
         params = randomized(P.mixer_init(jax.random.PRNGKey(2), config), seed=7)
         x, y, var, sure = random_images(1)
         inputs = P.mixer_inputs(x, y, var, sure, features=features)
-        raw = jax.jit(P.mixer_module(config).apply)(params, inputs)
+        raw = jax.jit(mixer_module(config).apply)(params, inputs)
         want = P.alpha_from_head(raw, head)
         got = P.mixer_alpha(params, config, x, y, var, sure)
         np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-6, atol=1e-7)
@@ -229,7 +230,7 @@ def test_swap_symmetry_analytic_values():
 
 
 def test_no_sure_ablation_swaps_images_only():
-    config = P.MixerConfig(features=P.MIXER_FEATURES_NO_SURE, width=4)
+    config = P.MixerConfig(features=MIXER_FEATURES_NO_SURE, width=4)
     params = randomized(P.mixer_init(jax.random.PRNGKey(0), config), seed=2)
     x, y, var, _ = random_images(7)
     a = np.asarray(P.mixer_alpha(params, config, x, y, var))
@@ -243,11 +244,11 @@ def test_no_sure_ablation_swaps_images_only():
 
 def test_mixer_config_from_toml_dict_with_nested_tstat():
     config = load_config(
-        {"features": list(P.MIXER_FEATURES_NO_SURE), "head": "sigmoid",
+        {"features": list(MIXER_FEATURES_NO_SURE), "head": "sigmoid",
          "tstat": {"window": 7, "per_channel": True}},
         P.MixerConfig,
     )
-    assert config.features == P.MIXER_FEATURES_NO_SURE and not config.uses_sure
+    assert config.features == MIXER_FEATURES_NO_SURE and not config.uses_sure
     assert config.tstat == P.TStatConfig(window=7, per_channel=True)
 
 
@@ -259,7 +260,7 @@ def test_mixer_config_from_toml_dict_with_nested_tstat():
         ({"swap_probability": 1.5}, "swap_probability"),
         ({"swap_average": "yes"}, "swap_average"),
         ({"width": 0}, "width"),
-        ({"sure_probes": 0}, "sure_probes"),
+        ({"sure": {"probes": 2}}, "sure: expected a SureSettings"),
         ({"denoiser": ""}, "denoiser"),
     ],
 )
@@ -282,7 +283,7 @@ def test_mixer_input_errors():
 
 
 def test_save_and_load_mixer_round_trip(tmp_path):
-    config = P.MixerConfig(features=P.MIXER_FEATURES_NO_SURE, head="sigmoid", width=4,
+    config = P.MixerConfig(features=MIXER_FEATURES_NO_SURE, head="sigmoid", width=4,
                            input_transform="log")
     params = randomized(P.mixer_init(jax.random.PRNGKey(0), config), seed=9)
     path = tmp_path / "mixer.msgpack"
@@ -312,8 +313,8 @@ def test_mixer_checkpoint_mismatches_are_checkpoint_errors(tmp_path):
     P.save_mixer(path, params, config)
 
     def to_no_sure(meta):
-        meta["model_config"]["features"] = list(P.MIXER_FEATURES_NO_SURE)
-        meta["layout"] = P.mixer_layout(P.MixerConfig(features=P.MIXER_FEATURES_NO_SURE, width=4))
+        meta["model_config"]["features"] = list(MIXER_FEATURES_NO_SURE)
+        meta["layout"] = P.mixer_layout(P.MixerConfig(features=MIXER_FEATURES_NO_SURE, width=4))
 
     _tamper(path, to_no_sure)
     with pytest.raises(CheckpointError, match=r"conv_in.*\(5, 5, 18, 4\).*\(5, 5, 12, 4\)"):
@@ -328,7 +329,7 @@ def test_mixer_checkpoint_mismatches_are_checkpoint_errors(tmp_path):
     # Features other than the caller needs.
     P.save_mixer(path, params, config)
     with pytest.raises(CheckpointError, match="trained on features"):
-        P.load_mixer(path, expect_features=P.MIXER_FEATURES_NO_SURE)
+        P.load_mixer(path, expect_features=MIXER_FEATURES_NO_SURE)
 
     # A config this jaxden cannot read.
     _tamper(path, lambda meta: meta["model_config"].update(colour_space="aces"))
@@ -349,7 +350,7 @@ def test_denoiser_checkpoint_is_not_a_mixer(tmp_path):
 def test_mixer_init_is_lecun_normal_and_matches_flax_structure():
     config = P.MixerConfig()
     params = P.mixer_init(jax.random.PRNGKey(0), config)
-    flax_params = jax.eval_shape(P.mixer_module(config).init, jax.random.PRNGKey(0),
+    flax_params = jax.eval_shape(mixer_module(config).init, jax.random.PRNGKey(0),
                                  jnp.zeros((1, 8, 8, 18)))
     assert jax.tree_util.tree_structure(params) == jax.tree_util.tree_structure(flax_params)
     # 3 x 3 x 48 x 48 = 20736 draws: the sample std is within 3 % (about 6 standard errors)

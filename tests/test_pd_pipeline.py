@@ -29,9 +29,11 @@ from jaxden.denoise.registry import load_denoiser, make_denoiser
 from jaxden.errors import CheckpointError, ConfigError, FrameError
 from jaxden.io.exr import read_channels, read_header, read_image, write_channels, write_frame
 from jaxden.progressive.cache import SureCache
-from jaxden.progressive.mixer import inference_alpha
+from jaxden.progressive.inputs import MIXER_FEATURES_NO_SURE
+from jaxden.progressive.network import inference_alpha
 from jaxden.render.synthetic import synthetic_render
 from jaxden.sure.denoiser import denoise_with_sure
+from jaxden.sure.settings import SureSettings
 from jaxden.sure.stein import draw_probes, sure_blackbox
 from jaxden.train.config import load_train_config
 from jaxden.train.loop import _loaders
@@ -433,7 +435,7 @@ def test_cli_bad_inputs_are_clear_errors(trained, tmp_path, capsys):
     mismatched = tmp_path / "mismatched.msgpack"
     P.save_mixer(mismatched, params, config)
     meta = json.loads(mismatched.with_suffix(".json").read_text())
-    other = P.MixerConfig(features=P.MIXER_FEATURES_NO_SURE)
+    other = P.MixerConfig(features=MIXER_FEATURES_NO_SURE)
     meta["model_config"]["features"] = list(other.features)
     meta["layout"] = P.mixer_layout(other)
     mismatched.with_suffix(".json").write_text(json.dumps(meta))
@@ -855,24 +857,27 @@ def test_cli_progressive_closed_form_mixer(tmp_path, capsys):
 
 
 def test_probes_default_to_the_mixers_training_probes(tmp_path, capsys):
-    """Without num_probes / --probes, PD takes as many SURE probes as the mixer was trained
-    with (its ``sure_probes``: the noise level of the SURE input it learned on); an explicit
-    count still wins."""
+    """Without ``sure`` / --probes, PD takes as many SURE probes as the mixer was trained
+    with (its ``sure.probes``: the noise level of the SURE input it learned on); an explicit
+    count still wins, as a SureSettings field or the older ``num_probes`` keyword."""
     frame = small_frame(seed=13)
     params, config = P.load_mixer("closed-form:sigma=4")
-    config = dataclasses.replace(config, sure_probes=2)
+    config = dataclasses.replace(config, sure=config.sure.replace(probes=2))
     key = jax.random.PRNGKey(5)
     z_default = np.asarray(P.progressive_denoise(frame, "oidn", params, config, key)[2]["sure"])
-    z_two, z_four = (np.asarray(P.progressive_denoise(frame, "oidn", params, config, key,
-                                                      num_probes=k)[2]["sure"]) for k in (2, 4))
+    z_two, z_four = (np.asarray(P.progressive_denoise(
+        frame, "oidn", params, config, key, sure=SureSettings(probes=k))[2]["sure"])
+        for k in (2, 4))
     np.testing.assert_array_equal(z_default, z_two)
     assert np.abs(z_two - z_four).max() > 1e-4
+    older = P.progressive_denoise(frame, "oidn", params, config, key, num_probes=4)[2]["sure"]
+    np.testing.assert_array_equal(np.asarray(older), z_four)
     params, shipped = P.load_mixer("oidn-pd")
     source, out = tmp_path / "in.exr", tmp_path / "out.exr"
     write_frame(source, frame)
     code, _, stderr = run_cli(["progressive", source, "--denoiser", "oidn", "--out", out], capsys)
     assert code == 0, stderr
-    assert read_header(out)["probes"] == shipped.sure_probes
+    assert read_header(out)["probes"] == shipped.sure.probes
     code, _, stderr = run_cli(["progressive", source, "--denoiser", "oidn", "--out", out,
                                "--probes", 3], capsys)
     assert code == 0, stderr

@@ -29,8 +29,9 @@ from jaxden.errors import ConfigError, DatasetError
 from jaxden.io.exr import read_frame, read_header
 from jaxden.progressive import cache as pdcache
 from jaxden.progressive import cache_build
-from jaxden.progressive.mixer import MixerConfig
+from jaxden.progressive.mixer_config import MixerConfig
 from jaxden.render.synthetic import synthetic_render
+from jaxden.sure.settings import SureSettings
 from jaxden.sure.stein import draw_probes, sure, sure_blackbox
 
 TINY = "experiments/configs/dataset-tiny.toml"
@@ -221,7 +222,7 @@ def test_refuses_incomplete_dataset_foreign_folder_and_bad_options(dataset, tmp_
     # SURE from the covariance on a dataset without one (the synthetic renderer records none):
     # refused, naming the item, before anything is written.
     out = tmp_path / "cov"
-    with pytest.raises(DatasetError, match=r"\.exr: no colour covariance.*sure_covariance"):
+    with pytest.raises(DatasetError, match=r"\.exr: no colour covariance.*sure\.covariance"):
         cache_build.build_sure_cache(dataset, blur_denoiser(), out, covariance=True,
                                      progress=False)
     assert not list(out.rglob("*.exr"))
@@ -231,8 +232,9 @@ def test_the_two_forms_of_sure_have_their_own_default_folders(dataset):
     # SURE per channel and from the colour covariance are different caches of one denoiser:
     # side by side (a study of the two trains mixers on both), never in each other's way.
     plain = cache_build.default_cache_dir(dataset, blur_denoiser())
-    assert cache_build.default_cache_dir(dataset, blur_denoiser(), True) == plain.with_name(
-        plain.name + "-cov")
+    covariance = SureSettings(covariance=True)
+    assert cache_build.default_cache_dir(dataset, blur_denoiser(), covariance) == (
+        plain.with_name(plain.name + "-cov"))
 
 
 def test_spec_options_give_their_own_cache_folder(tmp_path):
@@ -254,7 +256,8 @@ def test_open_training_cache_without_building(dataset, tmp_path, oidn_cache):
     ok = cache_build.open_training_cache(dataset, MixerConfig(denoiser="oidn", build_cache=False))
     assert ok.directory == oidn_cache.directory
     with pytest.raises(DatasetError, match="num_probes"):
-        cache_build.open_training_cache(dataset, MixerConfig(build_cache=False, sure_probes=1))
+        cache_build.open_training_cache(dataset, MixerConfig(build_cache=False,
+                                                             sure=SureSettings(probes=1)))
 
 
 # ------------------------------------------------------------------------ reading

@@ -23,6 +23,13 @@ from scipy.stats import norm
 
 from jaxden import progressive as P
 from jaxden.errors import ConfigError, FrameError
+from jaxden.progressive.heads import ALPHA_HEADS, alpha_direct
+from jaxden.progressive.inputs import (
+    MIXER_FEATURES,
+    MIXER_FEATURES_NO_SURE,
+    MIXER_LAYOUT,
+    mixer_channel_slices,
+)
 
 # ------------------------------------------------------------------------ NumPy reference
 
@@ -270,11 +277,11 @@ def test_mixer_inputs_layout():
         "residual": np.arctan(r2),
         "divergence": np.arctan(sure + var - r2),
     }
-    assert P.MIXER_LAYOUT == P.mixer_channel_slices()
+    assert MIXER_LAYOUT == mixer_channel_slices()
     expected_slices = [slice(i, i + 3) for i in range(0, 18, 3)]
-    assert [P.MIXER_LAYOUT[n] for n in P.MIXER_FEATURES] == expected_slices
+    assert [MIXER_LAYOUT[n] for n in MIXER_FEATURES] == expected_slices
     for name, value in expected.items():
-        np.testing.assert_allclose(features[..., P.MIXER_LAYOUT[name]], value, rtol=1e-6, atol=1e-7)
+        np.testing.assert_allclose(features[..., MIXER_LAYOUT[name]], value, rtol=1e-6, atol=1e-7)
 
 
 def test_log_input_transform_is_a_signed_log_and_scale_free():
@@ -286,7 +293,7 @@ def test_log_input_transform_is_a_signed_log_and_scale_free():
     var = np.full((4, 5, 3), 1e-6, np.float32)
     sure = np.full((4, 5, 3), -4e-6, np.float32)
     f = np.asarray(P.mixer_inputs(x, y, var, sure, transform="log"))
-    L = P.MIXER_LAYOUT
+    L = MIXER_LAYOUT
     np.testing.assert_allclose(f[..., L["hdr"]], x)
     np.testing.assert_allclose(f[..., L["var"]], 0.1 * np.log1p(100.0), rtol=1e-5)
     np.testing.assert_allclose(f[..., L["sure"]], -0.1 * np.log1p(400.0), rtol=1e-5)
@@ -310,10 +317,10 @@ def test_mixer_inputs_without_sure_for_ablation():
     rng = np.random.default_rng(1)
     x, y = (rng.normal(1.0, 0.5, (4, 5, 3)).astype(np.float32) for _ in range(2))
     var = rng.uniform(0, 0.2, (4, 5, 3)).astype(np.float32)
-    features = np.asarray(P.mixer_inputs(x, y, var, None, features=P.MIXER_FEATURES_NO_SURE))
-    assert P.MIXER_FEATURES_NO_SURE == ("hdr", "den", "var", "residual")
+    features = np.asarray(P.mixer_inputs(x, y, var, None, features=MIXER_FEATURES_NO_SURE))
+    assert MIXER_FEATURES_NO_SURE == ("hdr", "den", "var", "residual")
     assert features.shape == (4, 5, 12)
-    slices = P.mixer_channel_slices(P.MIXER_FEATURES_NO_SURE)
+    slices = mixer_channel_slices(MIXER_FEATURES_NO_SURE)
     np.testing.assert_allclose(features[..., slices["residual"]], np.arctan((x - y) ** 2),
                                rtol=1e-6)
     with pytest.raises(FrameError, match="need 'sure'"):
@@ -365,9 +372,9 @@ def test_f_act_values_by_hand():
 
 def test_alpha_heads_and_mix():
     raw = np.array([[[-2.0, 0.0, 0.3]]], np.float32)
-    np.testing.assert_allclose(np.asarray(P.alpha_direct(raw)), 1 / (1 + np.exp(-raw)), rtol=1e-6)
-    np.testing.assert_allclose(np.asarray(P.alpha_direct(raw, "clip")), [[[0.0, 0.0, 0.3]]])
-    assert P.ALPHA_HEADS == {"f_act": 9, "sigmoid": 3, "clip": 3, "closed_form_logit": 3}
+    np.testing.assert_allclose(np.asarray(alpha_direct(raw)), 1 / (1 + np.exp(-raw)), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(alpha_direct(raw, "clip")), [[[0.0, 0.0, 0.3]]])
+    assert ALPHA_HEADS == {"f_act": 9, "sigmoid": 3, "clip": 3, "closed_form_logit": 3}
     with pytest.raises(ConfigError, match="unknown alpha head"):
         P.alpha_from_head(raw, "softmax")
     x = np.array([[[1.0, 2.0, 3.0]]], np.float32)

@@ -19,7 +19,10 @@ from jaxden import progressive as P
 from jaxden.denoise.registry import WEIGHTS_DIR
 from jaxden.errors import CheckpointError
 from jaxden.io.exr import read_image, write_frame
+from jaxden.progressive.inputs import MIXER_FEATURES
+from jaxden.progressive.mixer_config import upgrade_mixer_config
 from jaxden.render.synthetic import synthetic_render
+from jaxden.sure.settings import SureSettings
 
 
 def test_shipped_mixer_files_and_model_card():
@@ -41,20 +44,22 @@ def test_shipped_mixer_files_and_model_card():
     # The recorded recipe, with today's defaults for optim fields added since (the same run).
     recorded = config_to_dict(load_config(meta["train_config"]["optim"], OptimConfig))
     assert recorded == config_to_dict(committed.optim)
-    assert meta["train_config"]["model_config"] == committed.model_config
+    # (recorded with the flat SURE keys of before: the one map of older configs reads them)
+    assert upgrade_mixer_config(meta["train_config"]["model_config"]) == committed.model_config
     card = path.with_suffix(".md").read_text()
     for needle in (f"jaxden train {config_file}",
                    "dataset-default.toml", "## Measured", "PD(OIDN) / OIDN"):
         assert needle in card
     params, config = P.load_mixer("oidn-pd")
-    assert config.features[:len(P.MIXER_FEATURES)] == P.MIXER_FEATURES
+    assert config.features[:len(MIXER_FEATURES)] == MIXER_FEATURES
     assert config.head == "closed_form_logit" and config.logit_bound == 4.0  # the bounded head
     # The closed form under the logit is range-aware and the t-statistic per channel, both
     # set at inference: the shipped config is the trained one with exactly the recorded
     # overrides applied.
     assert config.closed_form_stops == 1.0 and config.tstat.per_channel
     assert meta["inference_overrides"] == ["closed_form_stops=1", "tstat.per_channel=true"]
-    trained = load_config(meta["train_config"]["model_config"], P.MixerConfig)
+    trained = load_config(upgrade_mixer_config(meta["train_config"]["model_config"]),
+                          P.MixerConfig)
     assert trained.closed_form_stops is None
     assert config == load_config(trained, P.MixerConfig,
                                  overrides=["swap_average=true", *meta["inference_overrides"]])
@@ -94,10 +99,11 @@ def test_a_twin_loads_its_originals_mixer_with_its_own_sure():
     import dataclasses
 
     params, config = P.load_mixer("oidn-pd")
-    assert config.sure_probes == 4 and config.sure_probe_dist == "normal"
+    assert config.sure == SureSettings(probes=4, method="auto", fd_scheme="forward",
+                                       probe_dist="normal", covariance=False, seed=0)
     twin_params, twin = P.load_shipped_mixer("oidn-jax")
-    assert twin == dataclasses.replace(config, sure_probes=1, sure_method="jvp",
-                                       sure_probe_dist="rademacher")
+    assert twin == dataclasses.replace(config, sure=config.sure.replace(
+        probes=1, method="jvp", probe_dist="rademacher"))
     assert jax.tree_util.tree_all(jax.tree_util.tree_map(np.array_equal, twin_params, params))
     assert P.load_shipped_mixer("oidn")[1] == config
     assert P.load_shipped_mixer("unet") is None
@@ -123,12 +129,12 @@ def test_oidn_in_jax_takes_oidns_mixer_with_one_rademacher_probe(tmp_path, capsy
     header = read_header(out)
     assert int(header["probes"]) == 1 and header["probe_dist"] == "rademacher"
     params, config = P.load_mixer("oidn-pd")
-    assert config.sure_probes == 4 and config.sure_probe_dist == "normal"
+    assert config.sure.probes == 4 and config.sure.probe_dist == "normal"
     assert P.load_shipped_mixer("oidn-jax")[1] == dataclasses.replace(
-        config, sure_probes=1, sure_method="jvp", sure_probe_dist="rademacher")
+        config, sure=config.sure.replace(probes=1, method="jvp", probe_dist="rademacher"))
     key = jax.random.PRNGKey(4)
-    z, _, _ = P.progressive_denoise(frame, "oidn-jax", params, config, key, num_probes=1,
-                                    probe_dist="rademacher")
+    z, _, _ = P.progressive_denoise(frame, "oidn-jax", params, config, key,
+                                    sure=SureSettings(probes=1, probe_dist="rademacher"))
     # The CLI's compiled program differs from progressive_denoise's: OIDN's U-Net and its jvp
     # round differently, measured up to 1e-4 relative in z on this frame.
     close = dict(rtol=1e-3, atol=1e-4)
@@ -194,10 +200,10 @@ def test_wskp6_mixer_ships_with_its_recipe_and_is_the_default_for_wskp6(tmp_path
     assert meta["kind"] == "mixer" and meta["model_config"]["denoiser"] == "wskp-6"
     assert meta["train_config_file"] == "experiments/configs/mixer-wskp6.toml"
     committed = load_train_config(Path(__file__).parent.parent / meta["train_config_file"])
-    assert meta["train_config"]["model_config"] == committed.model_config
+    assert upgrade_mixer_config(meta["train_config"]["model_config"]) == committed.model_config
     assert meta["trained_steps"] == committed.optim.steps and meta["seed"] == committed.seed
     params, config = P.load_mixer("wskp-6-pd")
-    assert config.sure_probes == 1 and config.sure_method == "auto" and config.width == 16
+    assert (config.sure.probes, config.sure.method, config.width) == (1, "auto", 16)
     card = path.with_suffix(".md").read_text()
     assert "OIDN" not in card and "--denoiser wskp-6 --mixer wskp-6-pd" in card
     assert "jax.jvp" in card and "## Measured" in card

@@ -2,7 +2,7 @@
 the normal draws (so every path that shares a key shares them), the divergence estimate stays
 unbiased with the variance the module docstring states (no diagonal term), one probe is exact
 through a diagonal Jacobian, tiles and the black-box path see the whole frame's probes, and a
-mixer's ``sure_probe_dist`` reaches inference, its cache folder and the command line."""
+mixer's ``sure.probe_dist`` reaches inference, its cache folder and the command line."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxden.config import load_config
 from jaxden.errors import ConfigError
 from jaxden.frame import Frame
 from jaxden.sure.stein import PROBE_DISTS, colour_factor, colour_probes, draw_probes, sure
@@ -45,9 +46,14 @@ def _pixelwise(scale, frame):
 
 
 def test_the_command_line_offers_the_library_s_distributions():
-    from jaxden.cli.options import PROBE_DISTS_CLI
+    import argparse
 
-    assert PROBE_DISTS_CLI == PROBE_DISTS == ("normal", "rademacher")
+    from jaxden.cli.options import add_sure_options
+
+    parser = argparse.ArgumentParser()
+    add_sure_options(parser)
+    (action,) = [a for a in parser._actions if a.dest == "probe_dist"]
+    assert tuple(action.choices) == PROBE_DISTS == ("normal", "rademacher")
 
 
 def test_rademacher_probes_are_the_signs_of_the_normal_draws():
@@ -144,7 +150,7 @@ def test_tiles_and_the_pipeline_see_the_whole_frame_s_rademacher_probes(small_kp
     assert not np.allclose(normal.divergence_term, whole.divergence_term, atol=1e-3 * scale)
 
     params, config = closed_form_mixer("closed-form:sigma=2")
-    config = dataclasses.replace(config, sure_probe_dist="rademacher")
+    config = dataclasses.replace(config, sure=config.sure.replace(probe_dist="rademacher"))
     _, _, extras = progressive_denoise(frame, small_kp, params, config, key, num_probes=2)
     direct, _ = denoise_with_sure(small_kp, frame, key, num_probes=2, probe_dist="rademacher")
     np.testing.assert_allclose(extras["divergence"], direct.divergence_term, rtol=1e-5,
@@ -155,7 +161,8 @@ def test_the_black_box_path_draws_the_same_signs():
     """Forward differences of a black box (one probe at a time, float64 sums) against the
     exact jvp with the same key: the same Rademacher probes (rtol 2e-3 at eps 1e-2, as the
     normal probes' test in test_sure.py)."""
-    from jaxden.sure.denoiser import sure_blackbox_streamed
+    from jaxden.sure.settings import SureSettings
+    from jaxden.sure.stein import sure_blackbox_streamed
 
     frame = _frame().validated(where="test")
     kernel = _mixing_kernel()
@@ -165,7 +172,8 @@ def test_the_black_box_path_draws_the_same_signs():
         return np.asarray(_conv(kernel, f))
 
     exact = sure(_conv, frame, key, 2, params=kernel, probe_dist="rademacher")
-    streamed = sure_blackbox_streamed(denoise_np, frame, key, 2, 1e-2, "rademacher")
+    streamed = sure_blackbox_streamed(denoise_np, frame, key,
+                                      SureSettings(probes=2, eps=1e-2, probe_dist="rademacher"))
     scale = np.abs(np.asarray(exact.divergence_term)).max()
     np.testing.assert_allclose(streamed.divergence_term, exact.divergence_term, rtol=2e-3,
                                atol=2e-3 * scale)
@@ -173,15 +181,20 @@ def test_the_black_box_path_draws_the_same_signs():
 
 def test_a_wrong_distribution_is_one_line():
     from jaxden.progressive.cache import default_cache_dir
-    from jaxden.progressive.mixer import MixerConfig
+    from jaxden.progressive.mixer_config import MixerConfig, upgrade_mixer_config
+    from jaxden.sure.settings import SureSettings
 
     frame = _frame()
     with pytest.raises(ConfigError, match="normal, rademacher, got 'uniform'"):
         sure(_pixelwise, frame, jax.random.PRNGKey(0), 1, params=1.0, probe_dist="uniform")
-    with pytest.raises(ConfigError, match="sure_probe_dist"):
-        MixerConfig(sure_probe_dist="sobol")
-    assert default_cache_dir("/d", "oidn", probe_dist="rademacher").name == "oidn-rademacher"
-    assert default_cache_dir("/d", "oidn", True, "rademacher").name == "oidn-cov-rademacher"
+    with pytest.raises(ConfigError, match="probe_dist must be one of normal, rademacher"):
+        MixerConfig(sure=SureSettings(probe_dist="sobol"))
+    with pytest.raises(ConfigError, match="probe_dist"):  # an older config's flat key
+        load_config(upgrade_mixer_config({"sure_probe_dist": "sobol"}), MixerConfig)
+    rademacher = SureSettings(probe_dist="rademacher")
+    assert default_cache_dir("/d", "oidn", rademacher).name == "oidn-rademacher"
+    assert default_cache_dir("/d", "oidn", rademacher.replace(covariance=True)).name == (
+        "oidn-cov-rademacher")
     assert default_cache_dir("/d", "oidn").name == "oidn"
 
 

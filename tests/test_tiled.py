@@ -14,7 +14,8 @@ import pytest
 
 from jaxden.denoise.registry import make_denoiser
 from jaxden.frame import Frame
-from jaxden.progressive.mixer import MixerConfig, closed_form_mixer, mixer_alpha, mixer_init
+from jaxden.progressive.mixer_config import MixerConfig, closed_form_mixer
+from jaxden.progressive.network import mixer_alpha, mixer_init
 from jaxden.progressive.tiled import (
     MemoryPlanError,
     closed_form_radius,
@@ -26,6 +27,7 @@ from jaxden.progressive.tiled import (
 )
 from jaxden.progressive.tstat import TStatConfig, consistent_alpha
 from jaxden.render.synthetic import synthetic_render
+from jaxden.sure.settings import SureSettings
 from jaxden.sure.stein import window_normal
 from jaxden.tiling import tile_grid
 
@@ -97,7 +99,7 @@ def test_tiles_equal_the_whole_frame_and_a_short_overlap_shows(small_kp):
     key = jax.random.PRNGKey(1)
     halo = tile_halo(small_kp, config, config.tstat)
     assert halo == 4 + 6 + 5
-    options = dict(num_probes=2, tstat=config.tstat,
+    options = dict(sure=SureSettings(probes=2), tstat=config.tstat,
                    keep=("z", "alpha_prime", "denoised", "sure"))
     whole, plan = progressive_denoise_tiled(frame, small_kp, {}, config, key, tile=0, **options)
     assert plan.tile == 0
@@ -122,7 +124,7 @@ def test_tiled_matches_the_untiled_pipeline_with_a_network_mixer(small_kp):
     from jaxden.progressive.pipeline import progressive_denoise
 
     frame = _frame(seed=4)
-    config = MixerConfig(width=4, denoiser="kp", sure_probes=1)
+    config = MixerConfig(width=4, denoiser="kp", sure=SureSettings(probes=1))
     params = mixer_init(jax.random.PRNGKey(2), config)
     key = jax.random.PRNGKey(5)
     z, alpha_prime, _ = progressive_denoise(frame, small_kp, params, config, key)
@@ -140,7 +142,7 @@ def test_black_box_runs_whole_and_the_mixer_over_tiles():
     _, config = closed_form_mixer("closed-form:sigma=2")
     oidn = load_denoiser("oidn")
     key = jax.random.PRNGKey(0)
-    options = dict(num_probes=1, tstat=config.tstat, keep=("z", "alpha"))
+    options = dict(sure=SureSettings(probes=1), tstat=config.tstat, keep=("z", "alpha"))
     whole, _ = progressive_denoise_tiled(frame, oidn, {}, config, key, tile=0, **options)
     tiled, plan = progressive_denoise_tiled(frame, oidn, {}, config, key, tile=32, **options)
     assert plan.stage == "mixer" and plan.halo == 6 + 5
@@ -219,7 +221,7 @@ def test_stated_mixer_and_tstat_fields_bound_the_measured_ones():
 def test_plan_refuses_what_cannot_fit_in_one_line(small_kp):
     frame = _frame()
     _, config = closed_form_mixer("closed-form:sigma=2")
-    options = dict(num_probes=1, tstat=config.tstat)
+    options = dict(sure=SureSettings(probes=1), tstat=config.tstat)
     with pytest.raises(MemoryPlanError, match="own arrays need about"):
         progressive_denoise_tiled(frame, small_kp, {}, config, jax.random.PRNGKey(0),
                                   limit=100_000, **options)

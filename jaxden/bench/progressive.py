@@ -59,16 +59,14 @@ def bench_progressive(quick: bool) -> dict:
     import numpy as np
 
     from jaxden.denoise.registry import load_denoiser
-    from jaxden.progressive.mixer import (
-        closed_form_alpha,
-        closed_form_mixer,
-        inference_alpha,
-        load_mixer,
-        mixer_alpha,
-    )
+    from jaxden.progressive.closed_form import closed_form_alpha
+    from jaxden.progressive.mixer_checkpoints import load_mixer
+    from jaxden.progressive.mixer_config import closed_form_mixer
+    from jaxden.progressive.network import inference_alpha, mixer_alpha
     from jaxden.progressive.pipeline import TWIN_SURE, progressive_denoise, shipped_mixer_path
     from jaxden.progressive.tstat import error_guard, t_statistic_scaling
     from jaxden.sure.denoiser import denoise_with_sure
+    from jaxden.sure.settings import SureSettings
 
     size = QUICK_SIZE if quick else (1280, 720)
     repeats = QUICK_REPEATS if quick else 3
@@ -76,15 +74,15 @@ def bench_progressive(quick: bool) -> dict:
     oidn = load_denoiser("oidn")
     params, config = load_mixer(str(shipped_mixer_path("oidn")))
     key = jax.random.PRNGKey(0)
-    result, _ = denoise_with_sure(oidn, frame, key, num_probes=4)
+    result, _ = denoise_with_sure(oidn, frame, key, sure=SureSettings(probes=4))
     x, var = np.asarray(frame.color), np.asarray(frame.variance)
     y, sure_map = np.asarray(result.denoised), np.asarray(result.sure)
     alpha = mixer_alpha(params, config, x, y, var, sure_map)
     mixed = np.asarray(x + alpha * (y - x))
 
     def pd(swap_average: bool):
-        return progressive_denoise(frame, oidn, params, config, key, num_probes=4,
-                                   swap_average=swap_average)[0]
+        return progressive_denoise(frame, oidn, params, config, key,
+                                   sure=SureSettings(probes=4), swap_average=swap_average)[0]
 
     wskp6 = load_denoiser("wskp-6")
     wskp6_forward = wskp6.function()
@@ -97,36 +95,33 @@ def bench_progressive(quick: bool) -> dict:
         wskp6_params, wskp6_config = load_mixer(str(wskp6_mixer))
         wskp6_mixer_name = wskp6_mixer.stem
     else:
-        wskp6_params, wskp6_config = params, dataclasses.replace(config, sure_probes=4)
+        wskp6_params, wskp6_config = params, dataclasses.replace(
+            config, sure=config.sure.replace(probes=4))
         wskp6_mixer_name = "oidn-pd (no wskp-6-pd shipped)"
 
     def pd_wskp6(mixer_params=wskp6_params, mixer_config=wskp6_config, probes=None):
         out = progressive_denoise(device_frame, wskp6, mixer_params, mixer_config, key,
-                                  num_probes=probes, swap_average=False)[0]
+                                  sure=SureSettings(probes=probes), swap_average=False)[0]
         return jax.block_until_ready(out)
 
     oidnjax = load_denoiser("oidn-jax")
     oidnjax_forward = oidnjax.function()
-    # The frame as the pipeline hands it to SURE (per-channel probes unless the mixer's differ).
-    sure_frame = device_frame if config.sure_covariance else device_frame.replace(covariance=None)
-
-    twin = TWIN_SURE["oidn-jax"]
-    one_probe = dict(num_probes=twin["sure_probes"], method=twin["sure_method"],
-                     probe_dist=twin["sure_probe_dist"])
+    # The SURE the pipeline takes for the twin: TWIN_SURE over the mixer's settings.
+    one_probe = TWIN_SURE["oidn-jax"].over(config.sure)
 
     def oidnjax_sure():
-        result, _ = denoise_with_sure(oidnjax, sure_frame, key, **one_probe)
+        result, _ = denoise_with_sure(oidnjax, device_frame, key, sure=one_probe)
         return result.sure
 
-    jax_result = denoise_with_sure(oidnjax, sure_frame, key, **one_probe)[0]
+    jax_result = denoise_with_sure(oidnjax, device_frame, key, sure=one_probe)[0]
     jax_y, jax_sure = np.asarray(jax_result.denoised), np.asarray(jax_result.sure)
     jax_alpha = np.asarray(inference_alpha(params, x, jax_y, var, jax_sure, config,
                                            config.swap_average))
     jax_mixed = np.asarray(x + jax_alpha * (jax_y - x))
 
     def pd_oidnjax(probes: int = 1):
-        options = one_probe if probes == 1 else dict(num_probes=probes, method="jvp")
-        out = progressive_denoise(device_frame, oidnjax, params, config, key, **options)[0]
+        settings = one_probe if probes == 1 else SureSettings(probes=probes, method="jvp")
+        out = progressive_denoise(device_frame, oidnjax, params, config, key, sure=settings)[0]
         return jax.block_until_ready(out)
 
     runners = {
@@ -168,9 +163,9 @@ def bench_progressive(quick: bool) -> dict:
         "mixer": "oidn-pd",
         "sure": "forward differences, 4 probes",
         "pd_wskp6_mixer": wskp6_mixer_name,
-        "pd_wskp6_sure": f"jvp, {wskp6_config.sure_probes} probes",
+        "pd_wskp6_sure": f"jvp, {wskp6_config.sure.probes} probes",
         "pd_oidnjax_denoiser": f"oidn-jax ({oidnjax.config.quality} quality, albedo + normal)",
-        "pd_oidnjax_sure": f"jvp, {twin['sure_probes']} {twin['sure_probe_dist']} probe",
+        "pd_oidnjax_sure": f"jvp, {one_probe.probes} {one_probe.probe_dist} probe",
         "pd_oidnjax_mixer": f"oidn-pd (swap_average {config.swap_average})",
         "width": size[0],
         "height": size[1],

@@ -26,6 +26,7 @@ def bench_sure(quick: bool) -> dict:
     import jax
 
     from jaxden.denoise.registry import make_denoiser
+    from jaxden.sure.settings import SureSettings
     from jaxden.sure.stein import sure
 
     size = QUICK_SIZE if quick else (1280, 720)
@@ -39,11 +40,11 @@ def bench_sure(quick: bool) -> dict:
 
     key = jax.random.PRNGKey(1)
     forward = jax.jit(apply)
-    jvp_k1 = jax.jit(lambda p, f, k: sure(apply, f, k, 1, "jvp", params=p).sure)
-    jvp_k4 = jax.jit(lambda p, f, k: sure(apply, f, k, 4, "jvp", params=p, probe_batch=1).sure)
-    fd_k4 = jax.jit(
-        lambda p, f, k: sure(apply, f, k, 4, "fd", 1e-3, params=p, probe_batch=1).sure
-    )
+    jvp_k1, jvp_k4, fd_k4 = (
+        jax.jit(lambda p, f, k, s=settings: sure(apply, f, k, settings=s, params=p).sure)
+        for settings in (SureSettings(probes=1, method="jvp"),
+                         SureSettings(probes=4, method="jvp", probe_batch=1),
+                         SureSettings(probes=4, method="fd", eps=1e-3, probe_batch=1)))
     runners = {
         "forward": lambda: forward(params, frame),
         "jvp_k1": lambda: jvp_k1(params, frame, key),

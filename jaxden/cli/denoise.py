@@ -39,13 +39,12 @@ from jaxden.cli.options import (
     read_input_frame,
     stderr,
     sure_input_options,
+    sure_settings,
 )
 from jaxden.errors import CheckpointError, ConfigError, FrameError
 
 
 def cmd_denoise(args: argparse.Namespace) -> int:
-    import numpy as np
-
     from jaxden.cli.options import convention_options, exr_outputs, feature_notice
     from jaxden.denoise.registry import load_denoiser
     from jaxden.denoise.tiled import denoise_frame
@@ -82,46 +81,48 @@ def cmd_sure(args: argparse.Namespace) -> int:
 
     from jaxden.denoise.registry import load_denoiser
     from jaxden.progressive.cache import write_sure_exr
-    from jaxden.sure.denoiser import default_eps, resolve_method
+    from jaxden.sure.denoiser import for_denoiser
     from jaxden.sure.tiled import sure_frame
 
     (out,) = exr_outputs(("--out", args.out), inputs=(args.input, *(args.buffers or ())),
                          overwrite_input=args.overwrite_input)
+    settings = sure_settings(args).resolved()
     denoiser = load_denoiser(args.denoiser)
-    frame = read_input_frame(args, "jaxden sure", None if args.buffers else denoiser)
+    frame = read_input_frame(args, "jaxden sure", None if args.buffers else denoiser,
+                             covariance=settings.covariance)
     feature_notice(frame, denoiser, args.input)
     if args.buffers:
         return _sure_from_buffers(args, frame, denoiser, out)
     if args.extrapolate:
         raise ConfigError("--extrapolate needs --buffers")
     buffers_notice(args.input)
-    method = resolve_method(args.method, denoiser)
-    eps = args.eps if args.eps is not None else default_eps(method, denoiser.differentiable)
+    settings = for_denoiser(settings, denoiser)
 
     def tell(tile, halo):
         if tile:
             stderr(f"jaxden: {args.input}: tiles of {tile} px + {halo} px overlap")
 
     result, _ = sure_frame(
-        denoiser, frame, jax.random.PRNGKey(args.seed), num_probes=args.probes, method=method,
-        eps=eps, probe_batch=args.probe_batch, nonfinite=args.nonfinite, where=str(args.input),
-        tile=args.tile, limit=_memory_limit(args), progress=True, on_plan=tell,
-        probe_dist=args.probe_dist,
+        denoiser, frame, jax.random.PRNGKey(settings.seed), sure=settings,
+        nonfinite=args.nonfinite, where=str(args.input), tile=args.tile,
+        limit=_memory_limit(args), progress=True, on_plan=tell,
     )
     for name in ("denoised", "sure"):
         check_finite_result(getattr(result, name), f"the {name} image",
                             f"{args.input} and denoiser {args.denoiser}")
+    covariance = settings.covariance and frame.covariance is not None
     write_sure_exr(out, result, attributes={
-        "source": str(args.input), "denoiser": denoiser.name, "probes": args.probes,
-        "method": method, "eps": -1.0 if eps is None else float(eps), "seed": args.seed,
-        "covariance": int(frame.covariance is not None), "probe_dist": args.probe_dist,
+        "source": str(args.input), "denoiser": denoiser.name, "probes": settings.probes,
+        "method": settings.method, "eps": -1.0 if settings.eps is None else float(settings.eps),
+        "seed": settings.seed, "covariance": int(covariance), "probe_dist": settings.probe_dist,
     })
     mse = float(np.mean(np.asarray(result.sure)))
-    probes = ("from the colour covariance" if frame.covariance is not None
-              else "per channel: the file has no covariance.RG/GB/BR")
+    probes = ("from the colour covariance" if covariance
+              else "per channel: the file has no covariance.RG/GB/BR"
+              if frame.covariance is None else "per channel (--no-covariance)")
     print(f"wrote {out}: R,G,B = denoised by {denoiser.name}, sure.* = per-pixel SURE "
-          f"({args.probes} {args.probe_dist} probes {probes}, {method}); image SURE (MSE "
-          f"estimate) = {mse:.6g}")
+          f"({settings.probes} {settings.probe_dist} probes {probes}, {settings.method}); image "
+          f"SURE (MSE estimate) = {mse:.6g}")
     return 0
 
 
@@ -155,60 +156,29 @@ def _sure_from_buffers(args: argparse.Namespace, frame, denoiser, out: Path) -> 
 
 def read_buffers(args: argparse.Namespace, frame):
     """The colours of ``args.buffers`` as one (K, H, W, 3) float32 array, checked against
-    ``frame`` (``args.input`` as read), for ``jaxden sure`` and ``jaxden progressive`` alike.
-
-    Checks, each failure one FrameError (ConfigError for fewer than 2 files) naming the file:
-    at least 2 files, each of the input's size, equal spp where their headers state one, no
-    image given twice, and their mean equal to the input's colour
-    (:func:`jaxden.sure.buffers.check_sub_buffers`). Where the input's header lists the buffers
-    it was made from (:func:`jaxden.data.merge.read_buffer_list`), ``--buffers`` must name as many
-    files, each one's colour digest among the listed ones; they are read by the convention
-    they were merged with (``jaxden merge --from``).
+    ``frame`` (``args.input`` as read), for ``jaxden sure`` and ``jaxden progressive`` alike,
+    by :func:`jaxden.sure.buffers.check_sub_buffers` (each failure one FrameError naming the
+    files): at least 2, each of the input's size, none given twice, equal spp where their
+    headers state one, and their mean equal to the input's colour; where the input's header
+    lists the buffers it was made from (:func:`jaxden.data.merge.read_buffer_list`), exactly
+    those, read by the convention they were merged with (``jaxden merge --from``).
     """
     import numpy as np
 
-    from jaxden.data.merge import colour_digest, read_buffer_list
+    from jaxden.data.merge import read_buffer_list
     from jaxden.io.exr import read_frame
     from jaxden.sure.buffers import check_sub_buffers
 
-    paths = list(args.buffers)
-    if len(paths) < 2:
-        raise ConfigError(f"--buffers needs at least 2 files, got {len(paths)}")
+    paths = [str(path) for path in args.buffers]
     listed = read_buffer_list(args.input)
-    if listed is not None and len(listed.digests) != len(paths):
-        raise FrameError(f"--buffers names {len(paths)} files, but {args.input} was made from "
-                         f"{len(listed.digests)} buffers ({', '.join(listed.files)}): pass "
-                         f"exactly those")
     reading = {} if listed is None else {"convention": listed.convention,
                                          "layer": listed.layer}
-    colours, counts, seen = [], {}, {}
-    for path in paths:
-        buffer = read_frame(path, require=("color",), nonfinite=args.nonfinite, keep=("color",),
-                            **reading)
-        if np.shape(buffer.color) != np.shape(frame.color):
-            raise FrameError(f"{path}: shape {np.shape(buffer.color)[:-1]}, but {args.input} "
-                             f"is {np.shape(frame.color)[:-1]}")
-        digest = colour_digest(buffer.color)
-        if digest in seen:
-            raise FrameError(f"--buffers: {seen[digest]} and {path} are the same image; the "
-                             f"buffers must be independent renders (other seeds)")
-        seen[digest] = path
-        if listed is not None and digest not in listed.digests:
-            raise FrameError(f"--buffers: {path} is not one of the {len(listed.digests)} buffers "
-                             f"{args.input} was made from ({', '.join(listed.files)}): its "
-                             f"colour matches none of their sha256 digests")
-        if buffer.spp is not None:
-            counts.setdefault(float(buffer.spp), path)
-        colours.append(np.asarray(buffer.color, np.float32))
-    if len(counts) > 1:
-        raise FrameError(f"--buffers: the sub-buffers must have equal spp, but their headers "
-                         f"say {', '.join(f'{c:g} ({p})' for c, p in sorted(counts.items()))}")
-    colours = np.stack(colours)
-    try:
-        check_sub_buffers(frame.color, colours)
-    except FrameError as error:
-        raise FrameError(f"{args.input} with --buffers {' '.join(map(str, paths))}: "
-                         f"{error}") from None
+    buffers = [read_frame(path, require=("color",), nonfinite=args.nonfinite, keep=("color",),
+                          **reading) for path in paths]
+    colours = np.stack([np.asarray(buffer.color, np.float32) for buffer in buffers])
+    check_sub_buffers(frame.color, colours, where="--buffers", names=paths,
+                      spp=[None if b.spp is None else float(b.spp) for b in buffers],
+                      made_from=listed, frame_name=str(args.input))
     return colours
 
 
@@ -235,30 +205,23 @@ def _memory_limit(args: argparse.Namespace) -> int | None:
                                                               "--memory-limit")
 
 
-def _plan_options(args: argparse.Namespace, probes: int, config) -> dict:
-    return dict(num_probes=probes, method=args.method, eps=args.eps,
-                probe_batch=args.probe_batch, probe_dist=args.probe_dist,
-                tstat=None if args.no_tstat else config.tstat,
-                nonfinite=args.nonfinite, swap_average=args.swap_average, tile=args.tile,
-                limit=_memory_limit(args))
-
-
 def cmd_progressive(args: argparse.Namespace) -> int:
     """``jaxden progressive IN.exr --denoiser NAME|CKPT --mixer CKPT --out OUT.exr``."""
+    import warnings
+
     import jax
     import numpy as np
 
     from jaxden.denoise.registry import load_denoiser
     from jaxden.fileio import all_or_nothing
     from jaxden.io.exr import write_channels, write_image
-    from jaxden.progressive.mixer import load_mixer
+    from jaxden.progressive.mixer_checkpoints import load_mixer
+    from jaxden.progressive.pipeline import MixerDenoiserWarning, warn_if_other_denoiser
     from jaxden.progressive.tiled import progressive_frame
 
     out, alpha_out = exr_outputs(("--out", args.out), ("--alpha", args.alpha),
                                  inputs=(args.input, *(args.buffers or ())),
                                  overwrite_input=args.overwrite_input)
-    from jaxden.progressive.pipeline import TWINS
-
     if args.mixer is None:
         from jaxden.denoise.registry import split_spec
         from jaxden.progressive.pipeline import SHIPPED_MIXERS, load_shipped_mixer
@@ -275,24 +238,24 @@ def cmd_progressive(args: argparse.Namespace) -> int:
         params, config = shipped  # a twin's with its SURE settings (TWIN_SURE)
     else:
         params, config = load_mixer(args.mixer)
+    settings = sure_settings(args).over(config.sure)  # an unset option: the mixer's
     denoiser = load_denoiser(args.denoiser)
     frame = read_input_frame(args, "jaxden progressive", denoiser,
-                             covariance=config.sure_covariance and not args.buffers)
+                             covariance=settings.covariance and not args.buffers)
     feature_notice(frame, denoiser, args.input)
     buffers = read_buffers(args, frame) if args.buffers else None
     if buffers is None:
         buffers_notice(args.input)
-    if (config.kind == "network" and config.denoiser != denoiser.name
-            and TWINS.get(denoiser.name) != config.denoiser
-            and Path(config.denoiser).name != Path(args.denoiser).name):
-        stderr(f"jaxden: note: the mixer was trained on the output of denoiser "
-                f"{config.denoiser!r}; mixing {denoiser.name!r} instead")
-    if config.sure_covariance and frame.covariance is None and buffers is None:
+    with warnings.catch_warnings():  # said here in one line; the library then stays quiet
+        warnings.simplefilter("ignore", MixerDenoiserWarning)
+        note = warn_if_other_denoiser(config, denoiser, args.denoiser)
+    if note is not None:
+        stderr(f"jaxden: note: {note}")
+    if settings.covariance and frame.covariance is None and buffers is None:
         stderr(f"jaxden: note: the mixer was trained on SURE from the colour covariance, but "
                f"{args.input} has none (channels covariance.RG/GB/BR): SURE falls back to the "
                f"per-channel form, which underestimates the error of a denoiser that mixes "
                f"channels")
-    probes = args.probes or config.sure_probes
     keep = ("z", "alpha_prime", "alpha") if alpha_out is not None else ("z",)
 
     def tell(plan):
@@ -300,14 +263,15 @@ def cmd_progressive(args: argparse.Namespace) -> int:
             stderr(f"jaxden: {args.input}: {plan.describe(*np.shape(frame.color)[-3:-1])}")
 
     outputs, _ = progressive_frame(
-        frame, denoiser, params, config, jax.random.PRNGKey(args.seed),
-        **_plan_options(args, probes, config), keep=keep, progress=True, on_plan=tell,
-        buffers=buffers)
+        frame, denoiser, params, config, jax.random.PRNGKey(settings.seed), sure=settings,
+        tstat=None if args.no_tstat else config.tstat, nonfinite=args.nonfinite,
+        swap_average=args.swap_average, tile=args.tile, limit=_memory_limit(args), keep=keep,
+        progress=True, on_plan=tell, buffers=buffers)
     z = outputs["z"]
     swap_average = config.swap_average if args.swap_average is None else args.swap_average
     attributes = {"source": str(args.input), "denoiser": denoiser.name, "mixer": str(args.mixer),
-                  "probes": probes, "probe_dist": args.probe_dist or config.sure_probe_dist,
-                  "seed": args.seed, "tstat": int(not args.no_tstat),
+                  "probes": settings.probes, "probe_dist": settings.probe_dist,
+                  "seed": settings.seed, "tstat": int(not args.no_tstat),
                   "swap_average": int(swap_average)}
     message = f"wrote {out} (progressive denoising: {denoiser.name} + mixer {args.mixer}"
     if buffers is None:
@@ -370,9 +334,9 @@ def add_commands(sub) -> None:
                    help="K >= 2 independent sub-buffer renders (equal spp) whose mean is IN, "
                         "e.g. the renders `jaxden merge` made IN from (then exactly those): "
                         "SURE is their sub-buffer SURE (K + 1 whole-frame denoiser calls, no "
-                        "probes: --probes, --method, --eps, --probe-batch and --seed do not "
-                        "apply), fed to the mixer and the t-statistic as probe SURE is; the "
-                        "header records method=buffers")
+                        "probes: the SURE options --probes ... --seed do not apply), fed to "
+                        "the mixer and the t-statistic as probe SURE is; the header records "
+                        "method=buffers")
     p.add_argument("--no-tstat", action="store_true",
                    help="skip the t-statistic scaling (the paper's 'w/o t-test' ablation)")
     p.add_argument("--swap-average", action=argparse.BooleanOptionalAction, default=None,

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import math
 
-from jaxden.cli.options import PROBE_DISTS_CLI
+from jaxden.cli.options import add_sure_options, sure_settings
 
 DESCRIPTION = """\
 Measure one thing on a held-out set and write OUT.json (per-crop rows, per-spp summary,
@@ -52,14 +52,14 @@ def _spp(values) -> tuple[int, ...] | None:
 #: Each evaluator's options from the parsed arguments.
 _OPTIONS = {
     "pd": lambda a: {"denoiser": a.denoiser, "mixer": a.mixer, "split": a.split,
-                     "seed": a.seed, "probes": a.probes, "probe_dist": a.probe_dist,
-                     "spp": _spp(a.spp), "swap_average": a.swap_average, "tstat": tuple(a.tstat),
+                     "sure": sure_settings(a), "spp": _spp(a.spp),
+                     "swap_average": a.swap_average, "tstat": tuple(a.tstat),
                      "logit_bound": a.logit_bound, "mixer_set": tuple(a.mixer_set)},
     "oracle": lambda a: {"denoiser": a.denoiser, "split": a.split, "report": a.report},
-    "sure": lambda a: {"denoisers": tuple(a.denoiser), "split": a.split, "seed": a.seed,
-                       "probes": a.probes, "probe_dist": a.probe_dist, "spp": _spp(a.spp)},
+    "sure": lambda a: {"denoisers": tuple(a.denoiser), "split": a.split,
+                       "sure": sure_settings(a), "spp": _spp(a.spp)},
     "sure-buffers": lambda a: {"denoisers": tuple(a.denoiser), "split": a.split,
-                               "seed": a.seed, "probes": a.probes, "spp": _spp(a.spp),
+                               "sure": sure_settings(a), "spp": _spp(a.spp),
                                "buffers": a.buffers, "renders": a.renders},
     "denoise": lambda a: {"denoiser": a.denoiser, "split": a.split,
                           "spp": _spp(a.spp) or (1,), "include_input": a.include_input},
@@ -108,15 +108,8 @@ def add_commands(sub) -> None:
                            default="oidn" if name == "oracle" else None,
                            help="oidn, a shipped name or a checkpoint folder"
                                 + (" (default oidn)" if name == "oracle" else ""))
-        if name in ("pd", "sure", "sure-buffers"):
-            e.add_argument("--seed", type=int, default=0, help="seed of the SURE probes")
-            e.add_argument("--probes", type=int, default=None,
-                           help="SURE probes per image (default: pd, the mixer's training "
-                                "probes; sure / sure-buffers, 4)")
-        if name in ("pd", "sure"):
-            e.add_argument("--probe-dist", choices=PROBE_DISTS_CLI, default=None,
-                           help="SURE probe distribution, normal or rademacher (default: pd, "
-                                "the mixer's sure_probe_dist; sure, normal)")
+        if name in ("pd", "sure", "sure-buffers"):  # item i's probes: fold_in(seed, i)
+            add_sure_options(e, inherit="the mixer's" if name == "pd" else None)
         if name in ("pd", "sure", "sure-buffers", "denoise"):
             e.add_argument("--spp", type=int, nargs="+", default=None,
                            help="only these input spp levels (default: all; denoise: 1)")

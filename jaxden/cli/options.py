@@ -1,5 +1,6 @@
 """Option types and helpers shared by the command groups: sizes, counts, channel maps, the
-checked .exr outputs, the SURE input options, and reading an input frame for SURE."""
+checked .exr outputs, the SURE options (made from :class:`jaxden.sure.SureSettings`: one flag
+a field, read back as one value), and reading an input frame for SURE."""
 
 from __future__ import annotations
 
@@ -118,9 +119,8 @@ def channel_map(args: argparse.Namespace) -> dict[str, tuple[str, ...]] | None:
 
 
 def feature_notice(frame, denoiser, path) -> None:
-    """On stderr: OIDN is about to run without albedo or normal. On jaxden's test crops that
-    raises its error by 4 % (RMSE) and 13 % (relMSE) on average over 2..1024 spp, up to 10 % and
-    25 % at 16-64 spp (experiments/results/oidn/oidn-no-features.md), and a mixer trained on OIDN
+    """On stderr: OIDN is about to run without albedo or normal, which raises its error
+    (measured: experiments/results/oidn/oidn-no-features.md), and a mixer trained on OIDN
     with features then sees inputs unlike its training data."""
     if denoiser.name.partition("+")[0] != "oidn":  # also oidn+emission-separate
         return
@@ -238,37 +238,76 @@ def stderr(message: str) -> None:
     print(message, file=sys.stderr)
 
 
-#: ``jaxden.sure.PROBE_DISTS``, named here so that parsing a command does not import JAX
-#: (tests/test_sure_probe_dist.py checks the two agree).
-PROBE_DISTS_CLI = ("normal", "rademacher")
+def add_sure_options(parser: argparse.ArgumentParser, *, inherit: str | None = None) -> None:
+    """One flag per option of :class:`jaxden.sure.SureSettings` (``--probes``, ``--method``,
+    ``--eps``, ``--fd-scheme``, ``--probe-batch``, ``--probe-dist``, ``--covariance`` /
+    ``--no-covariance``, ``--seed``), made from its fields: the type, choices, range and help
+    are the field's, and every flag is unset unless given (read them back with
+    :func:`sure_settings`). ``inherit``: what an unset flag takes, for the help (e.g. "the
+    mixer's"; None: the option's default)."""
+    import dataclasses
+    import typing
+
+    from jaxden.sure.settings import SureSettings
+
+    hints = typing.get_type_hints(SureSettings)
+    for field in dataclasses.fields(SureSettings):
+        spec = field.metadata["sure"]
+        kind = next(a for a in typing.get_args(hints[field.name]) if a is not type(None))
+        default = spec["default_text"] or spec["default"]
+        text = f"{spec['help']}; default: {inherit or default}"
+        flag = "--" + field.name.replace("_", "-")
+        if typing.get_origin(kind) is typing.Literal:
+            parser.add_argument(flag, choices=typing.get_args(kind), default=None, help=text)
+        elif kind is bool:
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=None,
+                                help=text)
+        else:
+            parser.add_argument(flag, type=_sure_value(field.name, kind), default=None,
+                                metavar=spec["metavar"] or field.name.upper(), help=text)
+
+
+def _sure_value(name: str, kind: type):
+    """An argparse type: the text as ``kind``, checked by SureSettings' own validation."""
+
+    def parse(text: str):
+        from jaxden.sure.settings import SureSettings
+
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"expected {'a whole number' if kind is int else 'a number'}, got {text!r}"
+            ) from None
+        try:
+            return getattr(SureSettings(**{name: value}), name)
+        except ConfigError as error:
+            raise argparse.ArgumentTypeError(str(error)) from None
+
+    parse.__name__ = kind.__name__
+    return parse
+
+
+def sure_settings(args: argparse.Namespace):
+    """The :class:`jaxden.sure.SureSettings` of the flags of :func:`add_sure_options`: the
+    given ones set, the rest unset (``.over(base)`` fills them: the mixer's, or
+    ``.resolved()`` the defaults)."""
+    import dataclasses
+
+    from jaxden.sure.settings import SureSettings
+
+    return SureSettings(**{f.name: getattr(args, f.name, None)
+                           for f in dataclasses.fields(SureSettings)})
 
 
 def sure_input_options(parser: argparse.ArgumentParser, *, probes_from_mixer: bool = False) -> None:
     """The input and SURE options of ``jaxden sure`` and ``jaxden progressive``; with
-    ``probes_from_mixer`` ``--probes`` defaults to None (the mixer's training probes)."""
+    ``probes_from_mixer`` an unset SURE option is the mixer's (its training settings)."""
     parser.add_argument("input", help="input EXR: colour and the variance of the pixel mean")
     parser.add_argument("--denoiser", required=True,
                         help="oidn, a shipped model name, a checkpoint folder or a .msgpack file; "
                              "add :emission=separate to keep the emission out of the filter")
-    parser.add_argument("--probes", type=positive_int, default=None if probes_from_mixer else 4,
-                        help="SURE probes K (default: as many as the mixer was trained with, "
-                             "its sure_probes)" if probes_from_mixer else
-                        "SURE probes K (default 4)")
-    parser.add_argument("--method", choices=("auto", "jvp", "fd"), default="auto",
-                        help="SURE divergence: jvp (JAX denoisers, oidn-jax included), fd (finite "
-                             "differences; the only choice for the C++ OIDN), auto (default)")
-    parser.add_argument("--eps", type=positive_float, default=None,
-                        help="finite-difference step (default: 1e-2 for OIDN, 1e-3 for JAX fd)")
-    parser.add_argument("--probe-dist", choices=PROBE_DISTS_CLI,
-                        default=None if probes_from_mixer else "normal",
-                        help="SURE probe distribution: normal, or rademacher (random signs: no "
-                             "diagonal term in the probe noise, much less noisy per pixel at "
-                             "high spp); default: "
-                             + ("the mixer's sure_probe_dist" if probes_from_mixer
-                                else "normal"))
-    parser.add_argument("--seed", type=int, default=0, help="seed of the SURE probes")
-    parser.add_argument("--probe-batch", type=positive_int, default=None,
-                        help="probes per jvp pass (1 bounds the memory for big images)")
+    add_sure_options(parser, inherit="the mixer's" if probes_from_mixer else None)
     add_channels_option(parser)
     add_convention_options(parser)
     parser.add_argument("--variance-channels", type=_channel_names, default=None,

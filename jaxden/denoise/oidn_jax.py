@@ -79,7 +79,8 @@ def pu_inverse(x):
 def pu_norm() -> float:
     """pu_forward(HDR_MAX), OIDN's normalisation of the PU curve; computed on first use, not
     at import (that would start JAX's backend before ``jax.distributed`` may initialise)."""
-    return float(pu_forward(np.float32(HDR_MAX)))
+    with jax.ensure_compile_time_eval():  # also when first called inside a trace
+        return float(pu_forward(np.float32(HDR_MAX)))
 
 
 @dataclasses.dataclass(frozen=True)

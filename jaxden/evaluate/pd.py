@@ -28,9 +28,11 @@ from typing import Any
 import numpy as np
 
 from jaxden.data.crops import iter_crops
+from jaxden.errors import ConfigError
 from jaxden.evaluate.evaluator import Evaluator
 from jaxden.evaluate.oracle import ORACLE_BLOCK, oracle_mix, true_error
 from jaxden.evaluate.shared import by_spp, crop_count, denoiser_label, progress_bar
+from jaxden.sure.settings import UNSET, SureSettings
 
 PD_METHODS = ("mc", "denoiser", "mixed", "pd", "pd_pc", "pd_shared", "pd_true_sure", "oracle")
 #: The methods whose ratios to the denoiser the summaries report (the oracles included).
@@ -70,9 +72,9 @@ def noise_margin(image, x, variance, reference) -> float:
 
 
 def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
-                         seed: int = 0, num_probes: int | None = None,
+                         sure: SureSettings | None = None,
                          spp: tuple[int, ...] | None = None,
-                         progress: bool = False) -> list[dict[str, Any]]:
+                         progress: bool = False, **options) -> list[dict[str, Any]]:
     """One row per (crop, spp): errors of MC, the denoiser, the mixer without the t-test, PD,
     PD with the per-channel t-statistic (``pd_pc``: the mixer's config with
     ``tstat.per_channel = True``, same alpha) and with the shared one (``pd_shared``: the
@@ -85,31 +87,34 @@ def evaluate_progressive(dataset_dir, denoiser, mixer, *, split: str = "test",
     (means) and ``swap_gap`` (mean |alpha(x, y) - (1 - alpha(y, x))|).
 
     ``denoiser``: a spec or :class:`jaxden.denoise.Denoiser`; ``mixer``: a spec for
-    :func:`jaxden.progressive.load_mixer` or a ``(params, config)`` pair. SURE probes of item
-    ``i`` come from ``fold_in(PRNGKey(seed), i)``; ``num_probes`` None: the mixer's
-    ``sure_probes`` (what it was trained with).
+    :func:`jaxden.progressive.load_mixer` or a ``(params, config)`` pair. ``sure``: the
+    :class:`~jaxden.sure.settings.SureSettings`, unset fields the mixer's (what it was trained
+    with; the older keywords ``options``, ``seed=`` and ``num_probes=``, override it where
+    given). SURE probes of item ``i`` come from ``fold_in(PRNGKey(sure.seed), i)``.
     """
     import jax
 
     from jaxden.denoise.registry import load_denoiser
     from jaxden.progressive.heads import mix
-    from jaxden.progressive.mixer import load_mixer, swap_symmetry
+    from jaxden.progressive.mixer_checkpoints import load_mixer
+    from jaxden.progressive.network import swap_symmetry
     from jaxden.progressive.pipeline import mix_given_sure, progressive_denoise
     from jaxden.progressive.tstat import consistent_mix
+    from jaxden.sure.settings import resolve_settings
 
     model = load_denoiser(denoiser) if isinstance(denoiser, str) else denoiser
     params, config = load_mixer(mixer) if isinstance(mixer, (str, Path)) else mixer
+    settings = resolve_settings(sure, config.sure, **options)
     per_channel = dataclasses.replace(config.tstat, per_channel=True)
     shared = dataclasses.replace(config.tstat, per_channel=False)
-    base = jax.random.PRNGKey(seed)
+    base = jax.random.PRNGKey(settings.seed)
     rows, index = [], 0
     crops = iter_crops(dataset_dir, split, spp)
     for crop, reference, inputs in progress_bar(crops, crop_count(dataset_dir, split), progress,
                                                 "PD report"):
         for level, frame in inputs:
             z, alpha_prime, extras = progressive_denoise(
-                frame, model, params, config, jax.random.fold_in(base, index),
-                num_probes=num_probes)
+                frame, model, params, config, jax.random.fold_in(base, index), sure=settings)
             index += 1
             alpha_pc, alpha_shared = (
                 consistent_mix(frame.color, extras["denoised"], extras["alpha"],
@@ -253,18 +258,17 @@ def markdown_progressive(summary: dict[str, Any], denoiser: str = "OIDN") -> str
 class PDOptions:
     """What a PD result depends on besides the data. ``denoiser``: a spec (empty: the mixer's
     own base denoiser); ``mixer``: a spec for :func:`jaxden.progressive.load_mixer`;
-    ``probes``: SURE probes per image (None: the mixer's training probes); ``probe_dist``:
-    their distribution, ``normal`` or ``rademacher`` (None: the mixer's); ``spp``: only these
-    input spp levels (None: all). Inference overrides of the mixer's config:
-    ``swap_average``, ``tstat`` (KEY=VALUE words of its TStatConfig), ``logit_bound`` (0.0:
-    no bound) and ``mixer_set`` (KEY=VALUE words of its MixerConfig, applied last)."""
+    ``sure``: the :class:`~jaxden.sure.settings.SureSettings` of its SURE (probes, their
+    distribution, the probes' seed, ...; unset fields: the mixer's, what it was trained
+    with); ``spp``: only these input spp levels (None: all). Inference overrides of the
+    mixer's config: ``swap_average``, ``tstat`` (KEY=VALUE words of its TStatConfig),
+    ``logit_bound`` (0.0: no bound) and ``mixer_set`` (KEY=VALUE words of its MixerConfig,
+    applied last)."""
 
     denoiser: str = ""
     mixer: str = "oidn-pd"
     split: str = "test"
-    seed: int = 0
-    probes: int | None = None
-    probe_dist: str | None = None
+    sure: SureSettings = UNSET
     spp: tuple[int, ...] | None = None
     swap_average: bool | None = None
     tstat: tuple[str, ...] = ()
@@ -273,11 +277,12 @@ class PDOptions:
 
 
 def resolve_mixer(options: PDOptions):
-    """``(params, config)`` of the options' mixer with their inference overrides applied
-    (ConfigError naming a bad key or value). Read afresh at each call: a sweep evaluates the
-    checkpoint its run has just written."""
+    """``(params, config)`` of the options' mixer with their inference overrides applied, its
+    ``sure`` the options' over the mixer's (ConfigError naming a bad key or value). Read
+    afresh at each call: a sweep evaluates the checkpoint its run has just written."""
     from jaxden.config import load_config
-    from jaxden.progressive.mixer import MixerConfig, load_mixer
+    from jaxden.progressive.mixer_checkpoints import load_mixer
+    from jaxden.progressive.mixer_config import MixerConfig
     from jaxden.progressive.tstat import TStatConfig
 
     params, config = load_mixer(options.mixer)
@@ -288,8 +293,7 @@ def resolve_mixer(options: PDOptions):
             config, tstat=load_config(config.tstat, TStatConfig, overrides=list(options.tstat)))
     if options.logit_bound is not None:
         config = dataclasses.replace(config, logit_bound=options.logit_bound or None)
-    if options.probe_dist is not None:
-        config = dataclasses.replace(config, sure_probe_dist=options.probe_dist)
+    config = dataclasses.replace(config, sure=options.sure.over(config.sure))
     if options.mixer_set:
         config = load_config(config, MixerConfig, overrides=list(options.mixer_set))
     return params, config
@@ -298,8 +302,7 @@ def resolve_mixer(options: PDOptions):
 def _run(data, options: PDOptions, *, progress: bool = False) -> list[dict[str, Any]]:
     params, config = resolve_mixer(options)
     return evaluate_progressive(data, options.denoiser or config.denoiser, (params, config),
-                                split=options.split, seed=options.seed,
-                                num_probes=options.probes, spp=options.spp, progress=progress)
+                                split=options.split, spp=options.spp, progress=progress)
 
 
 def _provenance(options: PDOptions) -> dict:
@@ -314,8 +317,8 @@ def _provenance(options: PDOptions) -> dict:
             "closed_form_stops": config.closed_form_stops,
             "tstat": config_to_dict(config.tstat), "mixer_config": config_to_dict(config),
             "spp": None if options.spp is None else list(options.spp),
-            "probes": options.probes or config.sure_probes,
-            "probe_dist": config.sure_probe_dist}
+            "seed": config.sure.seed, "probes": config.sure.probes,
+            "probe_dist": config.sure.probe_dist}
 
 
 #: What a PD result must share with a new run to stand for it (``--keep-current``).
@@ -336,17 +339,44 @@ def result_is_current(out: Path, source: dict) -> bool:
     for entry in (made, now):  # weights by their content, wherever the file lies
         if isinstance(entry.get("mixer"), dict):
             entry["mixer"] = {k: entry["mixer"].get(k) for k in ("spec", "sha256")}
+        entry["mixer_config"] = _as_today(entry.get("mixer_config"))
     same_data = all(made.get("dataset", {}).get(k) == now["dataset"][k]
                     for k in ("manifest_sha256", "split"))
     return (same_data and all(made.get(k) == now.get(k) for k in SAME_RUN)
             and all(f"{m}_rmse" in columns for m in PD_METHODS))
 
 
+def _as_today(mixer_config):
+    """A recorded mixer config in today's form (older flat SURE keys moved, today's defaults
+    filled in), so that a result from before is still current; as recorded if it no longer
+    loads."""
+    from jaxden.config import config_to_dict, load_config
+    from jaxden.progressive.mixer_config import MixerConfig, upgrade_mixer_config
+
+    try:
+        return config_to_dict(load_config(upgrade_mixer_config(mixer_config), MixerConfig))
+    except (ConfigError, TypeError, ValueError):
+        return mixer_config
+
+
 def _sweep_options(run_dir, table: dict) -> PDOptions:
     spp = table.get("spp")
     return PDOptions(denoiser=table.get("denoiser") or "", mixer=str(run_dir),
-                     split=table["split"], seed=table["seed"], probes=table["probes"],
+                     split=table["split"],
+                     sure=SureSettings(probes=table["probes"], seed=table["seed"]),
                      spp=None if spp is None else tuple(spp))
+
+
+def _sweep_columns(summary: dict) -> dict[str, float]:
+    """A sweep summary's columns of one PD evaluation: PD / denoiser (RMSE, relMSE), the same
+    mixer without the t-test / denoiser (RMSE, when measured) and PD / MC at the top spp."""
+    head = summary["headline"]
+    columns = {"PD/den RMSE": head["pd_over_denoiser"]["rmse"],
+               "PD/den relMSE": head["pd_over_denoiser"]["relmse"]}
+    if "mixed_over_denoiser" in head:
+        columns["no-t/den RMSE"] = head["mixed_over_denoiser"]["rmse"]
+    columns[f"PD/MC RMSE@{summary['max_spp']}"] = head["pd_over_mc_at_max_spp"]["rmse"]
+    return columns
 
 
 EVALUATOR = Evaluator(
@@ -359,7 +389,10 @@ EVALUATOR = Evaluator(
         fields["summary"], denoiser_label(provenance["denoiser"])),
     provenance=_provenance,
     sweep_options=_sweep_options,
+    sweep_settings=(("spp", tuple[int, ...] | None, None), ("split", str, "test"),
+                    ("probes", int, 4), ("seed", int, 0), ("denoiser", str, "")),
     sweep_key="pd",
+    sweep_columns=_sweep_columns,
     trains="mixer",
     is_current=result_is_current,
 )

@@ -19,6 +19,7 @@ import numpy as np
 from jaxden.data.crops import iter_crops
 from jaxden.evaluate.evaluator import Evaluator
 from jaxden.evaluate.shared import by_spp, crop_count, progress_bar
+from jaxden.sure.settings import UNSET, SureSettings
 
 #: Crop-bootstrap resamples of :func:`ratio_interval`.
 BOOTSTRAP_RESAMPLES = 2000
@@ -27,40 +28,43 @@ BOOTSTRAP_RESAMPLES = 2000
 MEDIAN_CROP_TOLERANCE, MIN_SPP = 0.05, 64
 
 
-def sure_accuracy(dataset_dir, denoiser, *, split: str = "test", seed: int = 0,
-                  num_probes: int = 4, method: str = "auto", spp: tuple[int, ...] | None = None,
-                  progress: bool = False, probe_dist: str = "normal") -> list[dict[str, Any]]:
+def sure_accuracy(dataset_dir, denoiser, *, split: str = "test",
+                  sure: SureSettings | None = None, spp: tuple[int, ...] | None = None,
+                  progress: bool = False, **options) -> list[dict[str, Any]]:
     """One row per (crop, spp): ``sure`` (image mean of the per-pixel SURE of the denoiser's
     output), ``mse_nc`` (its noise-corrected true MSE against the reference), ``mse_raw``
     (uncorrected), ``reference_var`` (mean variance of the reference's pixel mean), and the
     same for the input: ``input_var`` (the mean variance of its pixel mean, the unbiased
     estimate of its MSE) and ``input_mse_nc`` (its noise-corrected true MSE). On frames with
-    a colour covariance ``sure`` draws its probes from it and ``sure_diag`` is the paper's
-    per-channel form on the same normals (:mod:`jaxden.sure.stein`). ``probe_dist``:
-    ``normal`` or ``rademacher`` probes."""
+    a colour covariance (and ``sure.covariance`` on) ``sure`` draws its probes from it and
+    ``sure_diag`` is the paper's per-channel form on the same normals
+    (:mod:`jaxden.sure.stein`). ``sure``: the :class:`~jaxden.sure.settings.SureSettings`
+    (None: the defaults; the older keywords ``options``, ``seed=``, ``num_probes=``,
+    ``method=``, ``probe_dist=``, override it where given); item ``i``'s probes come from
+    ``fold_in(PRNGKey(sure.seed), i)``."""
     import jax
 
     from jaxden import metrics
     from jaxden.denoise.registry import load_denoiser
     from jaxden.sure.denoiser import denoise_with_sure
+    from jaxden.sure.settings import resolve_settings
 
+    settings = resolve_settings(sure, **options)
     model = load_denoiser(denoiser) if isinstance(denoiser, str) else denoiser
-    base = jax.random.PRNGKey(seed)
+    base = jax.random.PRNGKey(settings.seed)
     rows, index = [], 0
     crops = iter_crops(dataset_dir, split, spp)
     for crop, reference, inputs in progress_bar(crops, crop_count(dataset_dir, split), progress,
                                                 f"SURE accuracy ({model.name})"):
         for level, frame in inputs:
             key = jax.random.fold_in(base, index)
-            result, _ = denoise_with_sure(model, frame, key, num_probes=num_probes,
-                                          method=method, probe_dist=probe_dist)
+            result, _ = denoise_with_sure(model, frame, key, sure=settings)
             index += 1
             y = np.asarray(result.denoised, np.float32)
             extra = {}
-            if frame.covariance is not None:
-                diag, _ = denoise_with_sure(model, frame.replace(covariance=None), key,
-                                            num_probes=num_probes, method=method,
-                                            probe_dist=probe_dist)
+            if frame.covariance is not None and settings.covariance:
+                diag, _ = denoise_with_sure(model, frame, key,
+                                            sure=settings.replace(covariance=False))
                 extra["sure_diag"] = float(np.mean(np.asarray(diag.sure)))
             rows.append({
                 "crop": crop.id, "scene": crop.scene, "spp": level, **extra,
@@ -165,24 +169,20 @@ def markdown_checks(checks: dict) -> str:
 @dataclasses.dataclass(frozen=True)
 class SureOptions:
     """``denoisers``: specs (``oidn``, a shipped name, a checkpoint folder), each measured on
-    the same probes; ``probes``: per image (None: 4); ``probe_dist``: their distribution
-    (None: normal); ``spp``: only these levels."""
+    the same probes; ``sure``: the :class:`~jaxden.sure.settings.SureSettings` (unset fields:
+    the defaults, 4 normal probes with seed 0, ...); ``spp``: only these levels."""
 
     denoisers: tuple[str, ...] = ("oidn",)
     split: str = "test"
-    seed: int = 0
-    probes: int | None = None
-    probe_dist: str | None = None
+    sure: SureSettings = UNSET
     spp: tuple[int, ...] | None = None
 
 
 def _run(data, options: SureOptions, *, progress: bool = False) -> dict[str, list]:
     from jaxden.paths import portable
 
-    return {portable(spec): sure_accuracy(data, spec, split=options.split, seed=options.seed,
-                                          num_probes=options.probes or 4, spp=options.spp,
-                                          progress=progress,
-                                          probe_dist=options.probe_dist or "normal")
+    return {portable(spec): sure_accuracy(data, spec, split=options.split, sure=options.sure,
+                                          spp=options.spp, progress=progress)
             for spec in options.denoisers}
 
 
@@ -198,7 +198,9 @@ def _summarize(rows: dict, provenance: dict) -> dict:
 def _provenance(options: SureOptions) -> dict:
     from jaxden.evaluate.shared import weights_identity
 
-    return {"denoisers": [weights_identity(spec) for spec in options.denoisers]}
+    settings = options.sure.resolved()
+    return {"denoisers": [weights_identity(spec) for spec in options.denoisers],
+            "seed": settings.seed, "probes": settings.probes, "sure": settings.given()}
 
 
 EVALUATOR = Evaluator(

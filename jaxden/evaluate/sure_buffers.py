@@ -15,15 +15,15 @@ from jaxden.errors import ConfigError, DatasetError
 from jaxden.evaluate.evaluator import Evaluator
 from jaxden.evaluate.shared import crop_count, progress_bar
 from jaxden.evaluate.sure import BOOTSTRAP_RESAMPLES, summarize_sure
+from jaxden.sure.settings import UNSET, SureSettings
 
 BUFFER_SEED_BASE = 800_000
 
 
 def sure_accuracy_buffers(dataset_dir, denoisers, *, buffers: int = 16, renders: int = 1,
-                          split: str = "test",
-                          seed: int = 0, num_probes: int = 4, method: str = "auto",
+                          split: str = "test", sure: SureSettings | None = None,
                           spp: tuple[int, ...] | None = None, render_fn=None,
-                          progress: bool = False) -> dict[str, list[dict[str, Any]]]:
+                          progress: bool = False, **options) -> dict[str, list[dict[str, Any]]]:
     """Stein SURE and sub-buffer SURE of each denoiser on the same fresh renders.
 
     For every crop of ``split``, spp level (levels divisible by ``buffers`` into >= 2 spp
@@ -32,7 +32,10 @@ def sure_accuracy_buffers(dataset_dir, denoisers, *, buffers: int = 16, renders:
     buffers * r + k`` (refused if one collides with the dataset's seeds for that crop),
     combines them (:func:`jaxden.sure.combine_buffers`: the same image as one render of all
     the samples) and computes, for each denoiser, ``sure`` (probes:
-    :func:`jaxden.sure.denoise_with_sure`, key ``fold_in(PRNGKey(seed), index)``),
+    :func:`jaxden.sure.denoise_with_sure` under ``sure``, the
+    :class:`~jaxden.sure.settings.SureSettings`, None: the defaults, the older keywords
+    ``options`` (``seed=``, ``num_probes=``, ``method=``) over it; key
+    ``fold_in(PRNGKey(sure.seed), index)``),
     ``sure_buffers`` (:func:`jaxden.sure.sure_buffers`) and the noise-corrected true MSE of
     the output against the dataset's reference. ``render_fn(scene, spp, seed, size, crop)``
     defaults to the dataset builder's renderer.
@@ -49,6 +52,7 @@ def sure_accuracy_buffers(dataset_dir, denoisers, *, buffers: int = 16, renders:
     from jaxden.denoise.registry import load_denoiser
     from jaxden.sure.buffers import combine_buffers, merge_buffer_pairs, sure_buffers
     from jaxden.sure.denoiser import denoise_with_sure
+    from jaxden.sure.settings import resolve_settings
 
     if render_fn is None:
         from jaxden.render.scene_cache import render_cached
@@ -64,7 +68,8 @@ def sure_accuracy_buffers(dataset_dir, denoisers, *, buffers: int = 16, renders:
     models = [load_denoiser(d) if isinstance(d, str) else d for d in denoisers]
     manifest = load_manifest(dataset_dir)
     size = tuple(manifest.config["size"])
-    base = jax.random.PRNGKey(seed)
+    settings = resolve_settings(sure, **options)
+    base = jax.random.PRNGKey(settings.seed)
     rows: dict[str, list[dict[str, Any]]] = {m.name: [] for m in models}
     index = 0
     crops = iter_crops(dataset_dir, split, spp)
@@ -88,7 +93,7 @@ def sure_accuracy_buffers(dataset_dir, denoisers, *, buffers: int = 16, renders:
                 colours = np.stack([np.asarray(p.color, np.float64) for p in parts])
                 for model in models:
                     result, _ = denoise_with_sure(model, frame, jax.random.fold_in(base, index),
-                                                  num_probes=num_probes, method=method)
+                                                  sure=settings)
                     jk = sure_buffers(model, frame, colours)
                     rx = None
                     if buffers % 2 == 0 and buffers >= 4:  # Richardson in 1/K: 2 S_K - S_K/2
@@ -175,12 +180,12 @@ def markdown_buffers(summaries: dict, rows: dict, buffers: int, renders: int) ->
 @dataclasses.dataclass(frozen=True)
 class SureBuffersOptions:
     """``buffers``: independent sub-buffers per render (spp / buffers each); ``renders``:
-    independent renders per crop and spp; the rest as :class:`~jaxden.evaluate.sure.SureOptions`."""
+    independent renders per crop and spp; the rest (``sure``: the Stein SURE's settings) as
+    :class:`~jaxden.evaluate.sure.SureOptions`."""
 
     denoisers: tuple[str, ...] = ("oidn",)
     split: str = "test"
-    seed: int = 0
-    probes: int | None = None
+    sure: SureSettings = UNSET
     spp: tuple[int, ...] | None = None
     buffers: int = 16
     renders: int = 1
@@ -189,14 +194,15 @@ class SureBuffersOptions:
 def _run(data, options: SureBuffersOptions, *, progress: bool = False) -> dict[str, list]:
     return sure_accuracy_buffers(data, list(options.denoisers), buffers=options.buffers,
                                  renders=options.renders, split=options.split,
-                                 seed=options.seed, num_probes=options.probes or 4,
-                                 spp=options.spp, progress=progress)
+                                 sure=options.sure, spp=options.spp, progress=progress)
 
 
 def _provenance(options: SureBuffersOptions) -> dict:
     from jaxden.evaluate.shared import weights_identity
 
+    settings = options.sure.resolved()
     return {"denoisers": [weights_identity(spec) for spec in options.denoisers],
+            "seed": settings.seed, "probes": settings.probes, "sure": settings.given(),
             "buffers": options.buffers, "renders": options.renders,
             "render_seed_base": BUFFER_SEED_BASE}
 

@@ -22,9 +22,11 @@ Each item EXR holds, float32 (or half with ``half=True``), all (H, W) of the dat
 ``jaxden.denoiser``, ``jaxden.probes``, ``jaxden.method``, ``jaxden.eps``, ``jaxden.seed`` (the
 item's probe seed).
 
-Identity: a cache is for one dataset, one denoiser (name, config and a SHA-256 of its
-parameters) and one setting (probes, method, eps, finite-difference scheme, seed); a rerun
-with anything else into the same folder is a DatasetError that names the differences. Items
+Identity: a cache is for one dataset, one denoiser (:func:`denoiser_identity`) and one SURE
+setting (:func:`jaxden.progressive.cache_build.cache_settings` of its
+:class:`~jaxden.sure.settings.SureSettings`: probes, method, eps, finite-difference scheme,
+seed, and the covariance and probe distribution where not the defaults); a rerun with
+anything else into the same folder is a DatasetError that names the differences. Items
 with spp = 1 have no variance and are skipped (SURE needs it; the mixer loader refuses them).
 
 Resuming: every EXR is written atomically and the manifest is saved every few seconds and at
@@ -38,8 +40,7 @@ Probes: item ``i`` uses ``key_i = PRNGKey(item_seed(seed, i))`` and the probes
 black boxes (the same probes handed to :func:`jaxden.sure.sure_blackbox`), so a cached map
 equals a direct call with that key.
 
-Finite-difference step (``eps=None``): :func:`jaxden.sure.denoiser.default_eps`, where the
-choice is measured.
+Finite-difference step (``eps`` unset): :func:`jaxden.sure.settings.default_eps`.
 """
 
 from __future__ import annotations
@@ -56,6 +57,7 @@ import numpy as np
 from jaxden.errors import DatasetError, ExrError, FrameError
 from jaxden.fileio import atomic_write_text
 from jaxden.sure.denoiser import resolve_denoiser
+from jaxden.sure.settings import SureSettings
 
 CACHE_MANIFEST = "sure-cache.json"
 CACHE_FORMAT = "jaxden-sure-cache"
@@ -162,11 +164,14 @@ def item_seed(seed: int, item_id: str) -> int:
     return derive_seed(int(seed), "sure", item_id)
 
 
-def default_cache_dir(dataset_dir, denoiser, covariance: bool = False,
-                      probe_dist: str = "normal") -> Path:
-    """``DATASET/derived/<name>`` (black boxes) or ``DATASET/derived/<name>-<params hash>``,
-    with ``-cov`` for SURE from the colour covariance and ``-rademacher`` for Rademacher
-    probes (the forms of one denoiser side by side, as a study of them needs)."""
+def default_cache_dir(dataset_dir, denoiser, sure: SureSettings | None = None) -> Path:
+    """``DATASET/derived/<name>`` (black boxes) or ``DATASET/derived/<name>-<params hash>``
+    (:func:`denoiser_slug`), with ``-cov`` for SURE from the colour covariance and
+    ``-rademacher`` for Rademacher probes under the SURE settings ``sure`` (None: a mixer's
+    defaults): the forms of one denoiser side by side, as a study of them needs; the plain
+    form keeps the plain name."""
+    covariance = sure is not None and bool(sure.covariance)
+    probe_dist = "normal" if sure is None or sure.probe_dist is None else sure.probe_dist
     slug = denoiser_slug(resolve_denoiser(denoiser))
     slug += "-cov" if covariance else ""
     slug += "" if probe_dist == "normal" else f"-{probe_dist}"

@@ -12,7 +12,7 @@ from typing import Any
 
 import jax
 
-from jaxden.errors import ConfigError, DatasetError, ExrError
+from jaxden.errors import DatasetError, ExrError
 from jaxden.fileio import folder_lock
 from jaxden.progressive.cache import (
     CACHE_FORMAT,
@@ -32,8 +32,8 @@ from jaxden.progressive.cache import (
     save_cache_manifest,
     write_sure_exr,
 )
-from jaxden.sure.denoiser import default_eps, denoise_with_sure, resolve_denoiser, resolve_method
-from jaxden.sure.stein import check_probe_dist
+from jaxden.sure.denoiser import denoise_with_sure, for_denoiser, resolve_denoiser
+from jaxden.sure.settings import SureSettings, resolve_settings
 
 
 def _lock(directory: Path):
@@ -68,22 +68,39 @@ def _item_state(path: Path, record: dict | None, item, cache_key: str) -> tuple[
     }
 
 
-def build_sure_cache(
-    dataset_dir,
-    denoiser_spec,
-    out_dir=None,
-    *,
-    num_probes: int = 4,
-    method: str = "auto",
-    eps: float | None = None,
-    seed: int = 0,
-    fd_scheme: str = "forward",
-    probe_batch: int | None = None,
-    half: bool = False,
-    progress: bool = True,
-    covariance: bool = False,
-    probe_dist: str = "normal",
-) -> SureCache:
+#: Fields of the SURE settings that do not change a cache's maps (probe_batch: memory only;
+#: the chunks sum the same probes), left out of its identity.
+NOT_IN_IDENTITY = ("probe_batch",)
+
+
+def cache_settings(settings: SureSettings, denoiser, half: bool = False) -> dict[str, Any]:
+    """The ``settings`` entry of a SURE cache's identity: the resolved SURE settings for
+    ``denoiser`` (:func:`jaxden.sure.denoiser.for_denoiser`) in the cache's keys
+    (``num_probes``, ``method``, ``eps``, ``fd_scheme`` (None for jvp), ``seed``, ``half``),
+    plus every other field that changes the maps where it is not a mixer's default
+    (``covariance``, ``probe_dist``, and an option added later): absent when off, so caches
+    built before a field existed keep their key."""
+    from jaxden.progressive.mixer_config import MIXER_SURE
+
+    settings = for_denoiser(resolve_settings(settings, MIXER_SURE), denoiser)
+    identity: dict[str, Any] = {
+        "num_probes": settings.probes,
+        "method": settings.method,
+        "eps": settings.eps,
+        "fd_scheme": settings.fd_scheme if settings.method == "fd" else None,
+        "seed": settings.seed,
+        "half": bool(half),
+    }
+    named = ("probes", "method", "eps", "fd_scheme", "seed", *NOT_IN_IDENTITY)
+    for name, value in settings.given().items():
+        if name not in named and value != getattr(MIXER_SURE, name):
+            identity[name] = value
+    return identity
+
+
+def build_sure_cache(dataset_dir, denoiser_spec, out_dir=None, *,
+                     sure: SureSettings | None = None, half: bool = False,
+                     progress: bool = True, **options) -> SureCache:
     """Compute (or finish) the SURE cache of ``denoiser_spec`` over a built dataset.
 
     Args:
@@ -91,19 +108,16 @@ def build_sure_cache(
       denoiser_spec: ``"oidn"``, a checkpoint folder / .msgpack of a trained denoiser, or a
         :class:`jaxden.denoise.Denoiser`.
       out_dir: cache folder; default :func:`default_cache_dir` (``DATASET/derived/<name>``).
-      num_probes: K probes per item (4, as the authors).
-      method: ``auto`` (jvp for JAX denoisers, fd for black boxes), ``jvp`` or ``fd``.
-      eps: finite-difference step; None: :func:`default_eps` (1e-2 black box, 1e-3 JAX fd,
-        measured; the authors' 1e-4 is dominated by float32 round-off, module docstring).
-      seed: base seed; item i uses ``PRNGKey(item_seed(seed, i))``.
-      fd_scheme: ``forward`` (authors, K + 1 denoiser calls) or ``central`` (2K + 1).
-      probe_batch: probes per jvp pass; 1 bounds the memory to one jvp for big images.
+      sure: the :class:`~jaxden.sure.settings.SureSettings`; unset fields are a mixer's
+        (:data:`jaxden.progressive.mixer_config.MIXER_SURE`: 4 probes, ``auto``, the measured
+        step, seed 0, per channel). The older keywords ``options`` (``num_probes=``,
+        ``method=``, ``eps=``, ``seed=``, ``fd_scheme=``, ``probe_batch=``, ``covariance=``,
+        ``probe_dist=``) override it where given. Item i uses
+        ``PRNGKey(item_seed(seed, i))``; with ``covariance`` every item must carry a colour
+        covariance.
       half: store float16 channels (the authors' choice; float32 by default so the cache
         equals a direct computation bit for bit).
       progress: show a tqdm bar.
-      covariance: draw the probes from the colour covariance of items that have one
-        (``MixerConfig.sure_covariance``); off: the per-channel form, as before it existed.
-      probe_dist: ``normal`` or ``rademacher`` probes (:func:`jaxden.sure.stein.unit_probes`).
 
     Returns the opened :class:`SureCache`. Raises DatasetError when the dataset is incomplete,
     the folder holds a cache of another dataset / denoiser / setting (naming the
@@ -113,7 +127,9 @@ def build_sure_cache(
     from jaxden.config import config_diff
     from jaxden.data.layout import load_manifest, sha256_file
     from jaxden.io.exr import read_frame
+    from jaxden.progressive.mixer_config import MIXER_SURE
 
+    settings = resolve_settings(sure, MIXER_SURE, **options)
     dataset_dir = Path(dataset_dir)
     manifest = load_manifest(dataset_dir)
     if not manifest.complete:
@@ -122,37 +138,16 @@ def build_sure_cache(
             f"dataset {dataset_dir} is incomplete ({done} of {len(manifest.items)} files built): "
             f"finish it with `jaxden dataset build` before computing SURE"
         )
-    if not isinstance(num_probes, int) or isinstance(num_probes, bool) or num_probes < 1:
-        raise ConfigError(f"num_probes must be an integer >= 1, got {num_probes!r}")
-    if fd_scheme not in ("forward", "central"):
-        raise ConfigError(f"fd_scheme must be 'forward' or 'central', got {fd_scheme!r}")
-    check_probe_dist(probe_dist, "SURE cache")
     denoiser = resolve_denoiser(denoiser_spec)
-    method = resolve_method(method, denoiser)
-    if eps is None:
-        eps = default_eps(method, denoiser.differentiable)
-    elif method == "jvp":
-        eps = None  # not used; keep it out of the identity
-    settings = {
-        "num_probes": num_probes,
-        "method": method,
-        "eps": None if eps is None else float(eps),
-        "fd_scheme": fd_scheme if method == "fd" else None,
-        "seed": int(seed),
-        "half": bool(half),
-    }
-    if covariance:  # absent when off: caches built before the option keep their key
-        settings["covariance"] = True
-    if probe_dist != "normal":  # likewise
-        settings["probe_dist"] = probe_dist
+    settings = for_denoiser(settings, denoiser)
     identity = {
         "dataset": cache_dataset_identity(manifest),
         "denoiser": denoiser_identity(denoiser),
-        "settings": settings,
+        "settings": cache_settings(settings, denoiser, half),
     }
     cache_key = identity_key(identity)
     directory = (Path(out_dir) if out_dir is not None
-                 else default_cache_dir(dataset_dir, denoiser, covariance, probe_dist))
+                 else default_cache_dir(dataset_dir, denoiser, settings))
     if directory.exists() and not directory.is_dir():
         raise DatasetError(f"{directory} exists and is not a folder")
     directory.mkdir(parents=True, exist_ok=True)
@@ -227,26 +222,25 @@ def build_sure_cache(
             for item in pending:
                 start = time.perf_counter()
                 frame = read_frame(dataset_dir / item.path, require=("color", "variance"))
-                if not covariance:
-                    frame = frame.replace(covariance=None)
-                elif frame.covariance is None:
+                if settings.covariance and frame.covariance is None:
                     raise DatasetError(
                         f"{dataset_dir / item.path}: no colour covariance (channels "
                         f"covariance.RG/GB/BR), which SURE from the covariance needs "
-                        f"(sure_covariance = true); rebuild the dataset with this jaxden, "
-                        f"which records it, or turn sure_covariance off")
-                seed_i = item_seed(seed, item.id)
+                        f"(sure.covariance = true); rebuild the dataset with this jaxden, "
+                        f"which records it, or turn sure.covariance off")
+                seed_i = item_seed(settings.seed, item.id)
                 result, _ = denoise_with_sure(
-                    denoiser, frame, jax.random.PRNGKey(seed_i), num_probes=num_probes,
-                    method=method, eps=eps, fd_scheme=fd_scheme, probe_batch=probe_batch,
-                    where=str(dataset_dir / item.path), probe_dist=probe_dist,
+                    denoiser, frame, jax.random.PRNGKey(seed_i), sure=settings,
+                    where=str(dataset_dir / item.path),
                 )
                 path = directory / item.path
                 path.parent.mkdir(parents=True, exist_ok=True)
                 write_sure_exr(path, result, half=half, attributes={
                     "item": item.id, "cache_key": cache_key, "source_sha256": item.sha256,
-                    "denoiser": denoiser.name, "probes": num_probes, "method": method,
-                    "eps": -1.0 if eps is None else float(eps), "seed": seed_i, "spp": item.spp,
+                    "denoiser": denoiser.name, "probes": settings.probes,
+                    "method": settings.method,
+                    "eps": -1.0 if settings.eps is None else float(settings.eps),
+                    "seed": seed_i, "spp": item.spp,
                 })
                 records[item.id] = {
                     "path": item.path, "sha256": sha256_file(path), "bytes": path.stat().st_size,
@@ -293,30 +287,20 @@ def _runtime_info(denoiser, spec) -> dict[str, Any]:
 
 
 def open_training_cache(dataset_dir, config) -> SureCache:
-    """The SURE cache a :class:`jaxden.progressive.MixerConfig` asks for, built or finished
-    first when ``config.build_cache`` (a complete cache costs one checksum pass to confirm)."""
+    """The SURE cache a :class:`jaxden.progressive.MixerConfig` asks for (its ``denoiser``
+    and ``sure`` settings), built or finished first when ``config.build_cache`` (a complete
+    cache costs one checksum pass to confirm)."""
     denoiser = resolve_denoiser(config.denoiser)
     directory = (Path(config.cache) if config.cache
-                 else default_cache_dir(dataset_dir, denoiser, config.sure_covariance,
-                                        config.sure_probe_dist))
-    options = dict(num_probes=config.sure_probes, method=config.sure_method, eps=config.sure_eps,
-                   seed=config.sure_seed, covariance=config.sure_covariance,
-                   probe_dist=config.sure_probe_dist)
+                 else default_cache_dir(dataset_dir, denoiser, config.sure))
     if config.build_cache:
-        return build_sure_cache(dataset_dir, denoiser, directory, **options)
+        return build_sure_cache(dataset_dir, denoiser, directory, sure=config.sure)
     cache = SureCache(dataset_dir, directory)
-    method = resolve_method(config.sure_method, denoiser)
-    eps = config.sure_eps
-    if eps is None:
-        eps = default_eps(method, denoiser.differentiable)
-    wanted = {"denoiser": denoiser_identity(denoiser), "num_probes": config.sure_probes,
-              "method": method, "eps": None if method == "jvp" else eps, "seed": config.sure_seed,
-              "covariance": config.sure_covariance, "probe_dist": config.sure_probe_dist}
     settings = cache.identity.get("settings", {})
+    wanted = {"denoiser": denoiser_identity(denoiser),
+              **{k: v for k, v in cache_settings(config.sure, denoiser).items() if k != "half"}}
     stored = {"denoiser": cache.identity.get("denoiser"),
-              **{k: settings.get(k) for k in ("num_probes", "method", "eps", "seed")},
-              "covariance": settings.get("covariance", False),
-              "probe_dist": settings.get("probe_dist", "normal")}
+              **{k: v for k, v in settings.items() if k != "half"}}
     if stored != wanted:
         from jaxden.config import config_diff
 

@@ -1,5 +1,7 @@
 """The closed-form mixer: Eq. 9's per-pixel optimal alpha with the expectations replaced by local
-Gaussian means, optionally restricted to neighbours of similar brightness (range strata).
+Gaussian means, optionally restricted to neighbours of similar brightness (range strata):
+:func:`closed_form_alpha`. Its spec and config (``--mixer closed-form``) are
+:func:`jaxden.progressive.mixer_config.closed_form_mixer`.
 """
 
 from __future__ import annotations
@@ -11,6 +13,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxden.errors import ConfigError, FrameError
+from jaxden.progressive.checks import check_same
+
 
 def gaussian_taps(sigma: float) -> np.ndarray:
     radius = max(1, math.ceil(3.0 * sigma))
@@ -20,9 +25,9 @@ def gaussian_taps(sigma: float) -> np.ndarray:
 
 def blur_shifted(image, taps, axis: int):
     """Zero-padded correlation of (H, W, C) along ``axis`` with odd-length ``taps`` as a loop of
-    shifted, weighted adds: for the closed form's 73 taps (sigma 12) on 1280 x 720, 85x faster
-    than the depthwise convolution of :func:`_blur_1d` on XLA:CPU (22 ms against 1.9 s for
-    both axes, measured on the project machine), same result to float32 rounding."""
+    shifted, weighted adds: on XLA:CPU far faster than a depthwise convolution for the closed
+    form's wide kernels (measured: docs/history.md, "Defaults of the code"), the same result
+    to float32 rounding."""
     radius = taps.shape[0] // 2
     size = image.shape[axis]
     padding = [(0, 0)] * image.ndim
@@ -117,3 +122,46 @@ def closed_form_alpha_unchecked(x, y, var, sure, sigma: float, per_channel: bool
     # With strata, lax.map (not vmap) keeps the skipping of empty bins a real branch.
     alpha = jax.vmap(single)(flat) if stops is None else jax.lax.map(single, flat)
     return alpha.reshape(lead + alpha.shape[1:])
+
+
+def closed_form_alpha(x, y, var, sure, *, sigma: float = 12.0, per_channel: bool = False,
+                      stops: float | None = None):
+    """The paper's Eq. 9 with Gaussian local means: a mixer without a network (our addition).
+
+    For z = x + alpha (y - x), the alpha that minimises E[(z - mu)^2] is (paper Eq. 9)
+    ``alpha = (var - var E f'(x)) / E[(y - x)^2]``; with SURE = (y - x)^2 - var + 2 var f'(x)
+    its numerator is ``((y - x)^2 + var - SURE) / 2``. Per pixel these estimates are far too
+    noisy to use (paper Sec. 4.1; measured: docs/history.md, "Defaults of the code"), so both
+    numerator and denominator are replaced by local means, Gaussian weights of standard
+    deviation ``sigma`` pixels (truncated at 3 sigma, only in-image pixels), summed over the
+    colour channels unless ``per_channel``, and the ratio is clipped to [0, 1].
+
+    Properties: swap-symmetric by construction (exchanging (x, var) with (y, SURE) gives
+    1 - alpha before clipping); consistent on its own (as var -> 0 with y's bias fixed, the
+    numerator -> 0 and the denominator -> 2 bias^2, so alpha -> 0), and the t-statistic
+    scaling still applies on top in :func:`jaxden.progressive.progressive_denoise`. Where
+    y == x on a whole window alpha is 1 (any value gives the same z).
+
+    ``stops`` (None: off) makes the local means range-aware (our addition): only neighbours of
+    similar brightness count, through tent bins ``stops`` wide in log2 of the channel mean of
+    (x + y) / 2 (blurred by :data:`CLOSED_FORM_PROXY_SIGMA` px; see
+    :func:`_range_local_means`). Without it, a window holding an emitter or a bright
+    highlight is ruled by that spot's errors, which are orders of magnitude larger than those
+    of the dim surfaces around it, and its alpha is forced on them. The proxy is symmetric in
+    x and y, so swap symmetry and consistency hold as above.
+
+    Inputs (..., H, W, 3) as in :func:`jaxden.progressive.mixer_alpha`; returns alpha
+    (..., H, W, 3) in [0, 1]. Pure and jitted (``sigma``, ``per_channel`` and ``stops``
+    static). FrameError for missing ``sure`` or mismatched shapes, ConfigError for a width
+    that is not a finite number > 0.
+    """
+    for name, value in (("sigma", sigma), ("stops", stops)):
+        if value is not None and not (np.isfinite(value) and value > 0):
+            raise ConfigError(f"closed_form_alpha: {name} must be a finite number > 0, got "
+                              f"{value!r}")
+    if sure is None:
+        raise FrameError("closed_form_alpha: the closed form reads SURE: need 'sure'")
+    check_same("closed_form_alpha", x=x, y=y, var=var, sure=sure)
+    x, y, var, sure = (jnp.asarray(a, jnp.float32) for a in (x, y, var, sure))
+    return closed_form_alpha_unchecked(x, y, var, sure, float(sigma), bool(per_channel),
+                                       None if stops is None else float(stops))

@@ -5,12 +5,12 @@ on small bright lights and their glints.
 Why the t-statistic scaling alone does not. It tests the *mixed* image z = x + alpha (y - x)
 against x, pooled over an 11 x 11 window that also holds the window's noisiest pixel (M_p):
 1. t_z = alpha t_y, so a small alpha over a far-off y passes the test (|t_z| < c - 3/a) while
-   its error (alpha (y - x))^2 is t_z^2 times the variance of x: a lamp pixel at 1024 spp with
-   y 41 standard errors below x and alpha 0.067 has t_z 2.3 and 7x MC's error there;
+   its error (alpha (y - x))^2 is t_z^2 times the variance of x;
 2. next to a lamp the window's variance is ruled by the lamp's rim (pixels that some samples
-   hit, with 10^3..10^4 times the variance of the pixels around), so on the lamp's core,
-   whose variance is 0 at 8 spp, t is about 1.5 whatever y does.
-Both measured on the built-in small-lights scene (docs/departures.md).
+   hit, with orders of magnitude more variance than the pixels around), so on the lamp's
+   core, whose variance is 0 at low spp, t stays small whatever y does.
+Both measured on the built-in small-lights scene (docs/departures.md; docs/history.md,
+"Defaults of the code").
 
 What the guard does. For z, the mix is better than x in expectation exactly when
 ``alpha <= 2 (var - Cov[x, y]) / E[(y - x)^2]`` (the expected squared error of z is a quadratic
@@ -33,18 +33,19 @@ variance (a dark pixel none of whose few samples found light) its neighbours' va
 
 
 Noise strata. A Gaussian local mean of var is ruled by the window's noisiest pixels: beside a
-lamp, its rim (variance 10^5..10^6 at 4..16 spp) vouches for the dark pixel next to it
-(variance 10^-5) onto which the denoiser smeared the lamp, and for the lamp's core. The guard
+lamp, its rim (orders of magnitude noisier) vouches for the dark pixel next to it onto which
+the denoiser smeared the lamp, and for the lamp's core. The guard
 therefore also pools within noise strata (a bilateral grid along log2 of each pixel's standard
 deviation, tent bins as in the closed form's brightness strata), and its significance factor
 uses the larger chi of the two poolings (the cap keeps the spatial chi: the strata select
 pixels by their own noisy variance, which biases their chi^2 up, so they only decide where y
-is many standard errors off). Three safeguards against that selection, each measured on
-test-chain at 2..4 spp, where a 4-sample variance can fall 3-4 stops below its neighbours':
-the bins are at least GUARD_STRATA_SPREAD times the image's measured scatter of the level
-around its local mean wide; a pixel whose stratum holds less than GUARD_STRATA_SUPPORT of the
-window's weight keeps the spatial chi; pixels of zero variance belong to no stratum (at low spp
-that is a pixel none of whose samples found light, not one that is known exactly).
+is many standard errors off). Three safeguards against that selection (each measured on
+test-chain at 2..4 spp, where a variance of few samples can fall stops below its
+neighbours': docs/history.md, "Defaults of the code"): the bins are at least
+GUARD_STRATA_SPREAD times the image's measured scatter of the level around its local mean
+wide; a pixel whose stratum holds less than GUARD_STRATA_SUPPORT of the window's weight keeps
+the spatial chi; pixels of zero variance belong to no stratum (at low spp that is a pixel none
+of whose samples found light, not one that is known exactly).
 
 The variance is itself an estimate, with d degrees of freedom per pixel: d = n - 1 for the
 sample variance of a pixel's own n samples, d = K - 1 for the variance of a mean of K
@@ -85,8 +86,7 @@ from jaxden.progressive.closed_form import blur_2d, gaussian_taps, strata_local_
 GUARD_STRATA_RANGE = 16.0
 #: Noise strata are at least this many times the image's scatter of the level around its
 #: Gaussian local mean wide (so that neighbours are not sorted by the noise of their own
-#: variance estimates; measured on test-chain at 2 and 4 spp: 2 lets 4-sample variances that
-#: fell 3-4 stops below their neighbours' stand alone, 3 and 4 keep them pooled).
+#: variance estimates; measured: docs/history.md, "Defaults of the code").
 GUARD_STRATA_SPREAD = 3.0
 #: A pixel whose noise stratum holds less than this fraction of the window's weight keeps
 #: the spatial chi (a lone low variance among its neighbours is more likely luck than signal).

@@ -64,9 +64,8 @@ def _signed_log(v):
 #:   atan  the authors' arctan. Linear below ~1, so at the variances of renders of 64 spp
 #:         and more (about 1e-3 down to 1e-7 radiance^2 on our test crops) these inputs are ~0
 #:         next to the radiance inputs and the biases (the trained first-layer weights on them
-#:         are ~0.1), and the mixer cannot compare SURE with var there (measured: the
-#:         shipped atan mixer's alpha is ~0.45 at both 1024 and 4096 spp on a crop where
-#:         OIDN's SURE is 2.5x and 9x the render's variance).
+#:         are ~0.1), and the mixer cannot compare SURE with var there (measured:
+#:         docs/history.md, "Defaults of the code").
 #:   log   a signed log (LOG_FLOOR, LOG_SCALE): O(1) at every scale from 1e-7 to 1e4, and
 #:         differences of features are log-ratios (log SURE - log var). Our addition.
 INPUT_TRANSFORMS: dict[str, Callable] = {"atan": jnp.arctan, "log": _signed_log}

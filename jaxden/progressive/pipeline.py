@@ -1,20 +1,28 @@
 """progressive_denoise: denoise a frame, take SURE, mix and scale by the t-statistic; the shipped
-mixers.
+mixers, their denoisers' twins, and the warning when a mixer mixes another denoiser.
 """
 
 from __future__ import annotations
+
+import dataclasses
+import os
+import warnings
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxden.errors import ConfigError, FrameError
-from jaxden.frame import Frame
+from jaxden.errors import ConfigError, FrameError, JaxdenError
 from jaxden.progressive.checks import check_spp
 from jaxden.progressive.guard import guard_sample_count
 from jaxden.progressive.heads import mix_unchecked
-from jaxden.progressive.mixer import MixerConfig, inference_alpha, load_mixer
+from jaxden.progressive.mixer_checkpoints import load_mixer
+from jaxden.progressive.mixer_config import MixerConfig
+from jaxden.progressive.network import inference_alpha
 from jaxden.progressive.tstat import TStatConfig, consistent_alpha
+from jaxden.sure.denoiser import resolve_denoiser
+from jaxden.sure.settings import SureSettings, resolve_settings
 
 # ------------------------------------------------------------------------------ inference
 
@@ -28,14 +36,11 @@ def progressive_denoise(
     mixer_config: MixerConfig,
     key,
     *,
-    num_probes: int | None = None,
+    sure: SureSettings | None = None,
     tstat=_FROM_CONFIG,
-    method: str = "auto",
-    eps: float | None = None,
-    probe_batch: int | None = None,
     nonfinite: str = "error",
     swap_average: bool | None = None,
-    probe_dist: str | None = None,
+    **options,
 ):
     """The whole progressive-denoising pipeline on one frame (paper Fig. 6).
 
@@ -49,14 +54,15 @@ def progressive_denoise(
         them) with colour and ``variance`` (the variance of the pixel mean; required) plus
         the features the denoiser uses.
       denoiser: a :class:`jaxden.denoise.Denoiser` or a spec for
-        :func:`jaxden.denoise.load_denoiser` (``"oidn"``, a checkpoint folder, ...).
+        :func:`jaxden.denoise.load_denoiser` (``"oidn"``, a checkpoint folder, ...). One
+        other than the mixer's ``denoiser`` (and not its twin, :data:`TWINS`) is mixed with
+        a :class:`MixerDenoiserWarning`, once per process and pair.
       mixer_params, mixer_config: from :func:`load_mixer` (or :func:`mixer_init`).
       key: PRNG key of the SURE probes.
-      num_probes, method (``auto``/``jvp``/``fd``), eps (None: measured default),
-        probe_batch: SURE options (:func:`jaxden.sure.sure`); ``num_probes`` None: the
-        mixer's ``sure_probes``, the number it was trained with (its SURE input's noise).
-      probe_dist: ``normal`` or ``rademacher`` SURE probes; None: the mixer's
-        ``sure_probe_dist``.
+      sure: :class:`~jaxden.sure.settings.SureSettings`; its unset fields are the mixer's
+        (``mixer_config.sure``, the SURE it was trained with). The older keywords
+        ``options`` (``num_probes=``, ``method=``, ``eps=``, ``probe_batch=``,
+        ``probe_dist=``; None: not given) override it field by field.
       tstat: :class:`TStatConfig`; default the mixer config's; None skips the scaling
         (the paper's "w/o t-test" ablation).
       nonfinite: ``"error"`` or ``"zero"`` (the authors' repair of NaN / negative variance).
@@ -74,21 +80,17 @@ def progressive_denoise(
     """
     from jaxden.sure.denoiser import denoise_with_sure
 
+    settings = resolve_settings(sure, mixer_config.sure, **options)
     if tstat is _FROM_CONFIG:
         tstat = mixer_config.tstat
-    if num_probes is None:
-        num_probes = mixer_config.sure_probes
     if tstat is not None and not isinstance(tstat, TStatConfig):
         raise ConfigError(
             f"progressive_denoise: tstat must be a TStatConfig or None, got {tstat!r}"
         )
-    if not mixer_config.sure_covariance and isinstance(frame, Frame):
-        frame = frame.replace(covariance=None)  # the per-channel SURE the mixer learned
-    result, frame = denoise_with_sure(
-        denoiser, frame, key, num_probes=num_probes, method=method, eps=eps,
-        probe_batch=probe_batch, nonfinite=nonfinite, where="progressive_denoise",
-        probe_dist=probe_dist or mixer_config.sure_probe_dist,
-    )
+    spec, denoiser = denoiser, resolve_denoiser(denoiser)
+    warn_if_other_denoiser(mixer_config, denoiser, spec)
+    result, frame = denoise_with_sure(denoiser, frame, key, sure=settings, nonfinite=nonfinite,
+                                      where="progressive_denoise")
     y = jnp.asarray(result.denoised, jnp.float32)
     sure_map = jnp.asarray(result.sure, jnp.float32)
     z_prime, alpha_prime, alpha, mixed = mix_given_sure(
@@ -147,14 +149,59 @@ TWINS: dict[str, str] = {"oidn-jax": "oidn"}
 SHIPPED_MIXERS: dict[str, str] = {"oidn": "oidn-pd", "wskp-6": "wskp-6-pd"}
 SHIPPED_MIXERS.update({twin: SHIPPED_MIXERS[original] for twin, original in TWINS.items()})
 
-#: The SURE a twin feeds its original's shipped mixer, in place of the mixer's training
-#: settings: OIDN in JAX takes one Rademacher probe by ``jax.jvp``, which scores as
-#: ``oidn-pd``'s own four finite-difference probes of the C++ OIDN on both held-out sets (PD /
-#: OIDN RMSE 0.948 and 0.866 against 0.948 and 0.866; RMSE at 4096 spp 0.00524 against
-#: 0.00525; ``experiments/results/pd/pd-oidn-sure-forms.md``) for one jvp pass instead of
-#: four more OIDN calls (``bench-progressive.json``).
-TWIN_SURE: dict[str, dict] = {"oidn-jax": {"sure_probes": 1, "sure_method": "jvp",
-                                           "sure_probe_dist": "rademacher"}}
+#: The SURE a twin feeds its original's shipped mixer, over the mixer's training settings
+#: (:meth:`SureSettings.over`): OIDN in JAX takes one Rademacher probe by ``jax.jvp``, which
+#: scores as ``oidn-pd``'s own four finite-difference probes of the C++ OIDN on both held-out
+#: sets, for one jvp pass instead of four more OIDN calls (measured: docs/results.md, "OIDN
+#: in JAX with Intel's weights").
+TWIN_SURE: dict[str, SureSettings] = {
+    "oidn-jax": SureSettings(probes=1, method="jvp", probe_dist="rademacher")}
+
+
+class MixerDenoiserWarning(UserWarning):
+    """A trained mixer mixes the output of a denoiser other than the one it was trained on."""
+
+
+_WARNED: set[tuple[str, str]] = set()
+_SAME: dict[tuple, bool] = {}
+
+
+def _trained_on(trained: str, denoiser, spec) -> bool:
+    """Whether ``denoiser`` (given as ``spec``) is the mixer's ``trained`` one or its twin."""
+    if trained in (denoiser.name, TWINS.get(denoiser.name)):
+        return True
+    if isinstance(spec, (str, os.PathLike)) and Path(spec).name == Path(trained).name:
+        return True
+    memo = (trained, denoiser.name, id(denoiser.params))
+    if memo not in _SAME:  # shipped or trained weights: the same network and parameters?
+        from jaxden.progressive.cache import params_sha256
+
+        try:
+            original = resolve_denoiser(trained)
+        except JaxdenError:
+            _SAME[memo] = False
+        else:
+            _SAME[memo] = (original.name == denoiser.name
+                           and params_sha256(original.params) == params_sha256(denoiser.params))
+    return _SAME[memo]
+
+
+def warn_if_other_denoiser(mixer_config: MixerConfig, denoiser, spec=None) -> str | None:
+    """Warn (:class:`MixerDenoiserWarning`, once per process and pair) when a trained mixer
+    is applied to a denoiser other than its ``mixer_config.denoiser``: not that name, not its
+    twin (:data:`TWINS`), not the same network with the same parameters, and (``spec``: how
+    the caller named ``denoiser``) not a spec of the same name. Returns the message when it
+    warns, else None. The closed form was trained on nothing: never."""
+    if mixer_config.kind != "network" or _trained_on(mixer_config.denoiser, denoiser, spec):
+        return None
+    pair = (mixer_config.denoiser, denoiser.name)
+    if pair in _WARNED:
+        return None
+    _WARNED.add(pair)
+    message = (f"the mixer was trained on the output of denoiser {mixer_config.denoiser!r}; "
+               f"mixing {denoiser.name!r} instead")
+    warnings.warn(message, MixerDenoiserWarning, stacklevel=3)
+    return message
 
 
 def shipped_mixer_path(denoiser: str = "oidn"):
@@ -171,24 +218,26 @@ def shipped_mixer_path(denoiser: str = "oidn"):
 def load_shipped_mixer(denoiser: str = "oidn"):
     """``(params, config)`` of the mixer shipped for ``denoiser`` (:data:`SHIPPED_MIXERS`), a
     twin's with its SURE settings (:data:`TWIN_SURE`); None when none ships."""
-    import dataclasses
-
     path = shipped_mixer_path(denoiser)
     if path is None:
         return None
     params, config = load_mixer(str(path))
-    return params, dataclasses.replace(config, **TWIN_SURE.get(denoiser, {}))
+    twin = TWIN_SURE.get(denoiser)
+    if twin is not None:
+        config = dataclasses.replace(config, sure=twin.over(config.sure))
+    return params, config
 
 
 def shipped_progressive_denoiser(denoiser: str = "oidn", *, seed: int = 0,
-                                 num_probes: int | None = None):
+                                 num_probes: int | None = None,
+                                 sure: SureSettings | None = None):
     """PD(denoiser) with the mixer shipped in the package, or None when none ships.
 
     Returns a function ``frame -> (z_prime, alpha_prime)`` (NumPy float32, (H, W, 3) each):
     :func:`progressive_denoise` with the shipped mixer (``jaxden/weights/oidn-pd.msgpack`` for
     OIDN and OIDN in JAX; see its model card ``oidn-pd.md``; :func:`load_shipped_mixer`), its
-    t-statistic config, ``num_probes`` SURE probes (None: the mixer's, or the twin's
-    :data:`TWIN_SURE`) drawn from ``PRNGKey(seed)``.
+    t-statistic config and its SURE settings (the twin's, :data:`TWIN_SURE`) under ``sure``
+    (and ``num_probes``, where given), probes drawn from ``PRNGKey(seed)``.
     """
     shipped = load_shipped_mixer(denoiser)
     if shipped is None:
@@ -200,7 +249,7 @@ def shipped_progressive_denoiser(denoiser: str = "oidn", *, seed: int = 0,
     key = jax.random.PRNGKey(seed)
 
     def run(frame):
-        z, alpha, _ = progressive_denoise(frame, model, params, config, key,
+        z, alpha, _ = progressive_denoise(frame, model, params, config, key, sure=sure,
                                           num_probes=num_probes)
         return np.asarray(z), np.asarray(alpha)
 

@@ -23,7 +23,7 @@ whole-frame noise level: frames with it run whole.
 A JAX denoiser with a TileSpec runs the whole pipeline per tile (halo = the sum of the three
 fields). Black boxes (OIDN) and JAX denoisers without one run whole-frame for y and SURE
 (OIDN tiles large frames itself; the finite differences go one probe at a time,
-:func:`jaxden.sure.denoiser.sure_blackbox_streamed`), then the mixer and the t-statistic go
+:func:`jaxden.sure.stein.sure_blackbox_streamed`), then the mixer and the t-statistic go
 over tiles. With K sub-buffers of the frame (``buffers``), SURE is the sub-buffer SURE of
 :func:`jaxden.sure.sure_buffers` (K + 1 whole-frame denoiser calls, no probes) for every
 denoiser, and the mixer and the t-statistic go over tiles as for a black box.
@@ -47,10 +47,11 @@ from jaxden.errors import ConfigError
 from jaxden.frame import IMAGE_FIELDS, Frame
 from jaxden.limits import format_bytes, memory_limit
 from jaxden.progressive.closed_form import CLOSED_FORM_PROXY_SIGMA, gaussian_taps
-from jaxden.progressive.mixer import MixerConfig
+from jaxden.progressive.mixer_config import MixerConfig
 from jaxden.progressive.tstat import TStatConfig, tstat_sigma
-from jaxden.tiling import MemoryPlanError as MemoryPlanError  # re-exported
+from jaxden.sure.settings import SureSettings, resolve_settings
 from jaxden.tiling import (
+    MemoryPlanError,  # noqa: F401  (re-exported)
     Tile,
     TileProgram,
     largest_tile,
@@ -60,7 +61,7 @@ from jaxden.tiling import (
 )
 
 #: Bytes a pixel that the process holds besides the frame's arrays while a black box runs
-#: whole-frame (:func:`jaxden.sure.denoiser.sure_blackbox_streamed`): y, the float32 probe,
+#: whole-frame (:func:`jaxden.sure.stein.sure_blackbox_streamed`): y, the float32 probe,
 #: perturbed colour and output (48), the float64 sum (24) and OIDN's clipped copies of its
 #: colour, albedo and normal (36).
 BLACKBOX_BYTES_PER_PIXEL = 108
@@ -144,15 +145,14 @@ class Plan:
 
 # ------------------------------------------------------------------------------------ stages
 def _tile_all(denoiser_params, mixer_params, frame, key, origin, eps, sigma, *, apply,
-              mixer_config, tstat, swap_average, spp, variance_dof, num_probes, method,
-              probe_batch, frame_shape, keep, probe_dist):
+              mixer_config, tstat, swap_average, spp, variance_dof, settings, frame_shape,
+              keep):
     """Denoiser, SURE (the tile's window of the frame's probes), mixer, t-statistic: one tile."""
     from jaxden.progressive.pipeline import mix_given_sure
     from jaxden.sure.stein import sure
 
-    result = sure(apply, frame, key, num_probes, method, eps, params=denoiser_params,
-                  probe_batch=probe_batch, probe_window=(frame_shape, origin),
-                  probe_dist=probe_dist)
+    result = sure(apply, frame, key, eps=eps, settings=settings, params=denoiser_params,
+                  probe_window=(frame_shape, origin))
     z, alpha_prime, alpha, _ = mix_given_sure(
         frame.color, result.denoised, frame.variance, result.sure, mixer_params, mixer_config,
         tstat=tstat, swap_average=swap_average, spp=spp, sigma=sigma, variance_dof=variance_dof)
@@ -190,43 +190,39 @@ def tile_halo(denoiser, mixer_config: MixerConfig, tstat: TStatConfig | None,
 
 
 def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config: MixerConfig,
-                              key, *, num_probes: int, tstat: TStatConfig | None,
-                              method: str = "auto", eps: float | None = None,
-                              probe_batch: int | None = None, swap_average: bool | None = None,
+                              key, *, tstat: TStatConfig | None,
+                              sure: SureSettings | None = None,
+                              swap_average: bool | None = None,
                               keep: tuple[str, ...] = ("z", "alpha_prime", "alpha"),
                               tile: int | None = None, halo: int | None = None,
                               limit: int | None = None, progress: bool = False,
-                              plan_only: bool = False, on_plan=None, buffers=None,
-                              probe_dist: str | None = None):
+                              plan_only: bool = False, on_plan=None, buffers=None, **options):
     """:func:`jaxden.progressive.progressive_denoise` over tiles: the same outputs (to float
     rounding) in memory set by the tile (module docstring).
 
     ``frame``: one validated image (H, W, 3), NumPy (the caller validates it once, as
-    :func:`jaxden.sure.denoise_with_sure` does). ``keep``: which of :data:`OUTPUTS` to return.
-    ``tile``: the tile side (None: the largest that fits ``limit``, default
-    :func:`jaxden.limits.memory_limit`; 0: the whole frame as one tile). ``halo``: the overlap
-    (None: :func:`tile_halo`; smaller only to show the seams). ``progress``: a bar over tiles.
-    ``plan_only``: return ``(None, plan)`` without running; ``on_plan(plan)`` is called
-    before the work starts (the command line tells the plan). ``buffers``: (K, H, W, 3) colours
-    of K >= 2 independent sub-buffers whose mean is the frame's colour: SURE is then their
-    sub-buffer SURE (:func:`jaxden.sure.sure_buffers`; ``divergence`` its covariance term)
-    instead of probe SURE, with the denoiser on the whole frame and the mixer stage over tiles;
-    ``num_probes``, ``method``, ``eps``, ``probe_batch``, ``probe_dist`` and ``key`` then go
-    unused. ``probe_dist`` None: the mixer's ``sure_probe_dist``.
+    :func:`jaxden.sure.denoise_with_sure` does). ``sure``: the
+    :class:`~jaxden.sure.settings.SureSettings` (unset fields: the mixer's; the older keywords
+    ``options``, ``num_probes=`` and the rest, override it where given). ``keep``: which of
+    :data:`OUTPUTS` to return. ``tile``: the tile side (None: the largest that fits
+    ``limit``, default :func:`jaxden.limits.memory_limit`; 0: the whole frame as one tile).
+    ``halo``: the overlap (None: :func:`tile_halo`; smaller only to show the seams).
+    ``progress``: a bar over tiles. ``plan_only``: return ``(None, plan)`` without running;
+    ``on_plan(plan)`` is called before the work starts (the command line tells the plan).
+    ``buffers``: (K, H, W, 3) colours of K >= 2 independent sub-buffers whose mean is the
+    frame's colour: SURE is then their sub-buffer SURE (:func:`jaxden.sure.sure_buffers`;
+    ``divergence`` its covariance term) instead of probe SURE, with the denoiser on the whole
+    frame and the mixer stage over tiles; ``sure`` and ``key`` then go unused.
 
     Returns ``(outputs, plan)``: float32 NumPy arrays (H, W, 3) by name, and the :class:`Plan`.
     Raises MemoryPlanError when the frame's arrays, or its smallest tile, do not fit.
     """
     from jaxden.denoise.tiled import blackbox_memory, bound_apply, tile_inputs, window
     from jaxden.sure.buffers import sure_buffers
-    from jaxden.sure.denoiser import (
-        default_eps,
-        resolve_denoiser,
-        resolve_method,
-        sure_blackbox_streamed,
-    )
-    from jaxden.sure.stein import check_probe_dist
+    from jaxden.sure.denoiser import for_denoiser, resolve_denoiser
+    from jaxden.sure.stein import sure_blackbox_streamed, sure_input
 
+    settings = resolve_settings(sure, mixer_config.sure, **options)
     denoiser = resolve_denoiser(denoiser)
     unknown = sorted(set(keep) - set(OUTPUTS))
     if unknown:
@@ -248,15 +244,11 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
         raise ConfigError(
             f"progressive_denoise_tiled: denoiser '{denoiser.name}' declares no receptive "
             f"field (TileSpec): it runs on whole frames only")
-    if not mixer_config.sure_covariance:
-        frame = frame.replace(covariance=None)  # the per-channel SURE the mixer learned
+    frame = sure_input(frame, settings)  # without the covariance the mixer did not learn
     if swap_average is None:
         swap_average = mixer_config.swap_average
-    probe_dist = check_probe_dist(probe_dist or mixer_config.sure_probe_dist,
-                                  "progressive_denoise")
-    method = resolve_method(method, denoiser)
-    if eps is None:
-        eps = default_eps(method, denoiser.differentiable) or 1e-4
+    settings = for_denoiser(settings, denoiser)
+    eps = 1e-4 if settings.eps is None else settings.eps  # traced; jvp ignores it
     height, width = color.shape[:2]
     spp = None if frame.spp is None else float(np.asarray(frame.spp))
     variance_dof = (None if frame.variance_dof is None
@@ -282,9 +274,7 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
         run_tile = functools.partial(
             _tile_all, apply=apply, mixer_config=mixer_config, tstat=tstat,
             swap_average=bool(swap_average), spp=spp, variance_dof=variance_dof,
-            num_probes=int(num_probes), method=method,
-            probe_batch=probe_batch or int(num_probes), frame_shape=(height, width, 3),
-            keep=tuple(keep), probe_dist=probe_dist)
+            settings=settings, frame_shape=(height, width, 3), keep=tuple(keep))
 
         def tile_args(tile_: Tile, arrays):
             sub = window(frame, tile_)
@@ -327,8 +317,7 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
     if stage == "mixer":
         with blackbox_context:
             if buffers is None:
-                result = sure_blackbox_streamed(denoiser.function(), frame, key,
-                                                int(num_probes), eps, probe_dist)
+                result = sure_blackbox_streamed(denoiser.function(), frame, key, settings)
             else:
                 result = sure_buffers(denoiser, frame, buffers)
         arrays |= {"y": result.denoised, "sure": result.sure}
@@ -342,63 +331,61 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
 
 
 def progressive_frame(frame: Frame, denoiser, mixer_params, mixer_config: MixerConfig, key, *,
-                      num_probes: int | None = None, tstat="config", method: str = "auto",
-                      eps: float | None = None, probe_batch: int | None = None,
+                      sure: SureSettings | None = None, tstat="config",
                       swap_average: bool | None = None, nonfinite: str = "error",
                       keep: tuple[str, ...] = ("z", "alpha_prime", "alpha"),
                       tile: int | None = None, limit: int | None = None,
-                      progress: bool = False, on_plan=None, buffers=None,
-                      probe_dist: str | None = None):
+                      progress: bool = False, on_plan=None, buffers=None, **options):
     """Progressive denoising of one frame as the command line runs it: validated once, then
     over tiles when every stage allows (:func:`progressive_denoise_tiled`, planned from the
     memory limit), else whole (:func:`jaxden.progressive.progressive_denoise`: batched frames,
     the guard's noise strata, JAX denoisers without a receptive field, ``tile=0``).
 
+    ``sure``: the :class:`~jaxden.sure.settings.SureSettings`, unset fields the mixer's (the
+    older keywords ``options``, ``num_probes=`` and the rest, override it where given).
     ``tstat``: ``"config"`` (the mixer's), a :class:`TStatConfig` or None (no scaling).
-    ``probe_dist``: SURE's probes, ``normal`` or ``rademacher`` (None: the mixer's).
     ``buffers``: (K, H, W, 3) sub-buffer colours of the (one) frame: SURE from them
     (:func:`progressive_denoise_tiled`; whole-frame denoiser, the mixer stage over tiles, or
-    as one tile where something must run whole).
+    as one tile where something must run whole). A denoiser other than the mixer's is mixed
+    with a warning (:func:`jaxden.progressive.pipeline.warn_if_other_denoiser`).
     Returns ``(outputs, plan)``: float32 NumPy arrays by name (``keep``, from :data:`OUTPUTS`)
     and the :class:`Plan` (None when the frame ran whole through the untiled pipeline).
     """
-    from jaxden.progressive.pipeline import progressive_denoise
+    from jaxden.progressive.pipeline import progressive_denoise, warn_if_other_denoiser
     from jaxden.sure.denoiser import resolve_denoiser
-    from jaxden.sure.stein import require_variance
+    from jaxden.sure.stein import require_variance, sure_input
 
-    denoiser = resolve_denoiser(denoiser)
+    settings = resolve_settings(sure, mixer_config.sure, **options)
+    spec, denoiser = denoiser, resolve_denoiser(denoiser)
+    warn_if_other_denoiser(mixer_config, denoiser, spec)
     if isinstance(tstat, str):
         tstat = mixer_config.tstat
-    if num_probes is None:
-        num_probes = mixer_config.sure_probes
     require_variance(frame, "progressive_denoise", held_in="EXR channels variance.R/G/B")
     # Fields no stage reads (depth for OIDN, motion, position, ...) are dropped first: at
     # 7680 x 4320 each three-channel field is 400 MB.
     used = {"color", "variance", "covariance", *denoiser.fields_read()}
     frame = frame.replace(**{name: None for name in IMAGE_FIELDS if name not in used})
-    frame = frame.numpy().validated(where="progressive_denoise", nonfinite=nonfinite)
+    frame = sure_input(frame, settings).numpy().validated(where="progressive_denoise",
+                                                          nonfinite=nonfinite)
     denoiser.check_frame(frame)
+    common = {"sure": settings, "swap_average": swap_average, "keep": keep, "limit": limit,
+              "progress": progress, "on_plan": on_plan}
     if buffers is not None:
         if np.ndim(frame.color) != 3:
             raise ConfigError(f"progressive_denoise: sub-buffer SURE takes one image (H, W, 3), "
                               f"got {np.shape(frame.color)}")
         whole = tile == 0 or whole_frame_reason(denoiser, tstat) is not None
-        return progressive_denoise_tiled(
-            frame, denoiser, mixer_params, mixer_config, key, num_probes=num_probes,
-            tstat=tstat, swap_average=swap_average, keep=keep, tile=0 if whole else tile,
-            limit=limit, progress=progress, on_plan=on_plan, buffers=buffers)
+        return progressive_denoise_tiled(frame, denoiser, mixer_params, mixer_config, key,
+                                         tstat=tstat, tile=0 if whole else tile,
+                                         buffers=buffers, **common)
     tileable = (np.ndim(frame.color) == 3 and whole_frame_reason(denoiser, tstat) is None
                 and (not denoiser.differentiable or denoiser.tile_spec() is not None))
     if tile != 0 and tileable:
-        return progressive_denoise_tiled(
-            frame, denoiser, mixer_params, mixer_config, key, num_probes=num_probes,
-            tstat=tstat, method=method, eps=eps, probe_batch=probe_batch,
-            swap_average=swap_average, keep=keep, tile=tile, limit=limit, progress=progress,
-            on_plan=on_plan, probe_dist=probe_dist)
+        return progressive_denoise_tiled(frame, denoiser, mixer_params, mixer_config, key,
+                                         tstat=tstat, tile=tile, **common)
     z, alpha_prime, extras = progressive_denoise(
-        frame, denoiser, mixer_params, mixer_config, key, num_probes=num_probes, tstat=tstat,
-        method=method, eps=eps, probe_batch=probe_batch, nonfinite=nonfinite,
-        swap_average=swap_average, probe_dist=probe_dist)
+        frame, denoiser, mixer_params, mixer_config, key, sure=settings, tstat=tstat,
+        nonfinite=nonfinite, swap_average=swap_average)
     everything = {"z": z, "alpha_prime": alpha_prime, "alpha": extras["alpha"],
                   "denoised": extras["denoised"], "sure": extras["sure"],
                   "divergence": extras["divergence"]}

@@ -4,7 +4,6 @@ render, without Stein's Gaussian assumption and without derivatives.
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Callable
 from typing import Any
 
@@ -15,14 +14,14 @@ import numpy as np
 from jaxden.data.merge import combine_buffers  # noqa: F401  (the sure package's API)
 from jaxden.errors import FrameError
 from jaxden.frame import Frame, NonFinitePolicy
-from jaxden.sure.stein import SureResult, _check_output, _checked_frame, sure_from_parts
+from jaxden.sure.stein import SureResult, check_output, checked_frame, sure_from_parts
 
 # ------------------------------------------------------------- sub-buffer (jackknife) SURE
 #
 # Why: Stein's identity Cov(x_i, y_i) = var_i E[dy_i/dx_i] needs Gaussian noise of known
 # variance. Monte Carlo pixel means are heavy-tailed (fireflies) and their variance is
 # estimated from the same samples, so through a strongly nonlinear denoiser (OIDN) the
-# divergence term can be off by 2x either way (docs/results.md; experiments/sure_stein.py at commit 72ae049).
+# divergence term can be off by 2x either way (measured: docs/results.md, "Sub-buffer SURE").
 #
 # With the N samples of each pixel split into K equal, independent sub-buffers x_1..x_K
 # (x the mean of the x_k; x_-k the mean of all but x_k, independent of x_k):
@@ -37,10 +36,9 @@ from jaxden.sure.stein import SureResult, _check_output, _checked_frame, sure_fr
 #
 # is unbiased for any linear F and any noise distribution (property test), and for a
 # nonlinear F its bias is the nonlinear part of that correction, which shrinks as K grows
-# (measured on OIDN: K = 4 / 8 / 16 recover 83 / 91 / 97 % of the empirical covariance on a
-# firefly-heavy crop where the Stein term gets ~50 %). It needs no derivative and no probes,
-# K + 1 denoiser calls, and a renderer that keeps sub-buffers (or K renders with different
-# seeds at N / K spp each). For the identity it equals the batch-means variance estimate
+# (measured on OIDN: docs/history.md, "Defaults of the code"). It needs no derivative and no
+# probes, K + 1 denoiser calls, and a renderer that keeps sub-buffers (or K renders with
+# different seeds at N / K spp each). For the identity it equals the batch-means variance estimate
 # sum_k (x_k - x)^2 / (K (K - 1)) exactly.
 
 
@@ -52,34 +50,62 @@ def merge_buffer_pairs(buffers) -> np.ndarray:
     return 0.5 * (xk[0::2] + xk[1::2])
 
 
-def check_sub_buffers(color, buffers, *, rtol: float = 2e-3,
-                      where: str = "sure_buffers") -> np.ndarray:
-    """The (K, ..., H, W, 3) sub-buffer colours ``buffers`` as float64, checked against the
-    frame colour ``color`` (..., H, W, 3) they are to be the mean of: the shape, K >= 2, finite
-    values, no two identical (a buffer given twice is not independent: the covariance would be
-    wrong), and their mean equal to ``color`` to ``rtol`` of its largest value (see
-    :func:`sure_buffers`). Raises FrameError prefixed with ``where``."""
-    xk = np.asarray(buffers, dtype=np.float64)
+def check_sub_buffers(color, buffers, *, rtol: float = 2e-3, where: str = "sure_buffers",
+                      names=None, spp=None, made_from=None,
+                      frame_name: str = "the frame") -> np.ndarray:
+    """The (K, ..., H, W, 3) sub-buffer colours ``buffers`` as float64, checked as the set of
+    independent renders whose mean is the frame colour ``color`` (..., H, W, 3), in this order:
+    K >= 2; as many as the frame records it was made from (``made_from``, a
+    :class:`jaxden.data.merge.BufferList`, None: no record); each of the colour's shape; no
+    image given twice (a buffer given twice is not independent: the covariance would be
+    wrong); each among the recorded ones (by :func:`jaxden.data.merge.colour_digest`); all
+    finite; equal sample counts where ``spp`` (one per buffer, None where unknown) says; and
+    their mean equal to ``color`` to ``rtol`` of its largest value (see :func:`sure_buffers`).
+
+    ``names``: how the messages name each buffer (e.g. its file; default "sub-buffer k"),
+    ``frame_name`` the frame (e.g. its file). Raises FrameError prefixed with ``where`` (the
+    parameter or function that took the buffers)."""
+    from jaxden.data.merge import colour_digest
+
     x = np.asarray(color, dtype=np.float64)
-    if xk.ndim != x.ndim + 1 or xk.shape[1:] != x.shape:
-        raise FrameError(f"{where}: buffers have shape {xk.shape}, expected (K, *{x.shape})")
-    k = xk.shape[0]
+    k = len(buffers)
+    labels = [f"sub-buffer {i}" for i in range(k)] if names is None else [str(n) for n in names]
     if k < 2:
         raise FrameError(f"{where}: need K >= 2 sub-buffers, got {k}")
+    if made_from is not None and len(made_from.digests) != k:
+        raise FrameError(f"{where} names {k} files, but {frame_name} was made from "
+                         f"{len(made_from.digests)} buffers ({', '.join(made_from.files)}): "
+                         f"pass exactly those")
+    seen: dict[str, int] = {}
+    for i in range(k):
+        shape = np.shape(buffers[i])
+        if shape != x.shape:
+            raise FrameError(f"{where}: {labels[i]} has shape {shape}, but {frame_name} has "
+                             f"{x.shape}")
+        digest = colour_digest(buffers[i])
+        if digest in seen:
+            pair = (f"sub-buffers {seen[digest]} and {i}" if names is None
+                    else f"{labels[seen[digest]]} and {labels[i]}")
+            raise FrameError(f"{where}: {pair} are identical (the same image); the buffers "
+                             f"must be independent renders (other seeds)")
+        seen[digest] = i
+        if made_from is not None and digest not in made_from.digests:
+            raise FrameError(f"{where}: {labels[i]} is not one of the {len(made_from.digests)} "
+                             f"buffers {frame_name} was made from ({', '.join(made_from.files)}):"
+                             f" its colour matches none of their sha256 digests")
+    xk = np.stack([np.asarray(b, dtype=np.float64) for b in buffers])
     if not np.all(np.isfinite(xk)):
         raise FrameError(f"{where}: the sub-buffers have NaN or infinite values")
-    first_seen: dict[bytes, int] = {}
-    for i in range(k):
-        digest = hashlib.sha1(np.ascontiguousarray(xk[i]).tobytes()).digest()
-        if digest in first_seen:
-            raise FrameError(f"{where}: sub-buffers {first_seen[digest]} and {i} are "
-                             f"identical; the buffers must be independent renders (other seeds)")
-        first_seen[digest] = i
+    counts = {float(n): i for i, n in enumerate(spp or ()) if n is not None}
+    if len(counts) > 1:
+        said = (f"{sorted(counts)}" if names is None else
+                ", ".join(f"{c:g} ({labels[i]})" for c, i in sorted(counts.items())))
+        raise FrameError(f"{where}: the sub-buffers must have equal spp, got {said}")
     scale = max(float(np.max(np.abs(x))), 1e-12)
     gap = float(np.max(np.abs(xk.mean(axis=0) - x)))
     if gap > rtol * scale:
-        raise FrameError(f"{where}: the frame's colour is not the mean of the {k} buffers "
-                         f"(max difference {gap:.3g}, colour scale {scale:.3g})")
+        raise FrameError(f"{where}: the colour of {frame_name} is not the mean of the {k} "
+                         f"buffers (max difference {gap:.3g}, colour scale {scale:.3g})")
     return xk
 
 
@@ -99,35 +125,29 @@ def sure_buffers(denoise: Callable[[Frame], Any], frame: Frame, buffers,
         ``rtol`` of the colour's largest value: the default 2e-3 allows files stored as
         half floats, relative rounding 4.9e-4), else FrameError. The leave-one-out means
         come from the buffers, y and (y - x)^2 from the frame's colour.
-
-    Returns:
       extrapolate: Richardson extrapolation in 1/K: the covariance from the K buffers and
         from K/2 merged pairs (:func:`merge_buffer_pairs`), combined as 2 cov_K - cov_K/2,
-        which cancels the O(1/K) bias of nonlinear denoisers (K even; K/2 more calls).
-        Measured on a saturating denoiser under firefly noise at 32 spp: bias -1.9 / -0.95 /
-        -0.51 % at K = 4 / 8 / 16, +0.05 / -0.07 % extrapolated from (8, 4) / (16, 8), with
-        the same standard error (0.45 %, 1600 draws); Stein's: -8.3 %.
+        which cancels the O(1/K) bias of nonlinear denoisers (K even; K/2 more calls; measured:
+        docs/history.md, "Defaults of the code").
 
     Returns:
       :class:`SureResult` (float32 NumPy) whose ``divergence_term`` is the sub-buffer
       covariance estimate (see the derivation above this function), ``sure = residual_sq -
       variance + 2 * divergence_term``.
     """
-    frame = _checked_frame(frame.numpy() if isinstance(frame, Frame) else frame, "sure_buffers",
+    frame = checked_frame(frame.numpy() if isinstance(frame, Frame) else frame, "sure_buffers",
                            nonfinite)
+    spp = None
     if isinstance(buffers, (list, tuple)) and buffers and isinstance(buffers[0], Frame):
-        counts = {float(b.spp) for b in buffers if b.spp is not None}
-        if len(counts) > 1:
-            raise FrameError(f"sure_buffers: the sub-buffers must have equal spp, got "
-                             f"{sorted(counts)}")
+        spp = [None if b.spp is None else float(b.spp) for b in buffers]
         buffers = [np.asarray(b.color) for b in buffers]
-    xk = check_sub_buffers(frame.color, buffers, rtol=rtol)
+    xk = check_sub_buffers(frame.color, buffers, rtol=rtol, spp=spp)
     x = np.asarray(frame.color, dtype=np.float64)
     k = xk.shape[0]
 
     def call(color: np.ndarray) -> np.ndarray:
         out = np.asarray(denoise(frame.replace(color=color.astype(np.float32))), np.float64)
-        _check_output(out.shape, x.shape, "sure_buffers")
+        check_output(out.shape, x.shape, "sure_buffers")
         return out
 
     if extrapolate and (k % 2 or k < 4):
@@ -171,7 +191,7 @@ def sure_buffers_jax(denoise_fn: Callable, frame: Frame, buffers) -> SureResult:
                          f"*{x.shape})")
     k = xk.shape[0]
     y = denoise_fn(frame)
-    _check_output(jnp.shape(y), x.shape, "sure_buffers_jax")
+    check_output(jnp.shape(y), x.shape, "sure_buffers_jax")
     rest = (k * jnp.mean(xk, axis=0) - xk) / (k - 1)
     y_rest = jax.lax.map(lambda colour: denoise_fn(frame.replace(color=colour)), rest)
     covariance = (k - 1) / k**2 * jnp.sum((xk - rest) * (y - y_rest), axis=0)

@@ -14,8 +14,9 @@ differentiable, ``E|d F_i / d x_i| < inf``), ``E[y_i e_i] = var_i E[d y_i / d x_
     E[(y_i - mu_i)^2] = E[ (y_i - x_i)^2 - var_i + 2 var_i d y_i / d x_i ]      (per pixel/channel)
 
 The summand is the per-pixel SURE; summed over pixels and channels it is d times the paper's
-Eq. 1 (d = 3 H W) with diagonal Sigma. The paper writes the last term as ``2 sigma^2 f'(x)``; here it is
-``divergence_term = var_i * J_ii`` with ``J = dF/dx`` the Jacobian w.r.t. the colour only.
+Eq. 1 (d = 3 H W) with diagonal Sigma. The paper writes the last term as ``2 sigma^2 f'(x)``;
+here it is ``divergence_term = var_i * J_ii`` with ``J = dF/dx`` the Jacobian w.r.t. the colour
+only.
 
 Probe estimator of ``var_i J_ii`` (Ramani et al. 2008, the paper's Eq. 2)
 ------------------------------------------------------------------------
@@ -43,8 +44,7 @@ unbiased, but ``r_i^2 = 1`` removes the diagonal term of the probe variance::
 
 (the ``2 var_i^2 J_ii^2 / K`` of normal probes is gone), never more than the normal probes'
 and far less where the output follows its own pixel (``J_ii`` large), as a denoiser does at
-high spp: one Rademacher probe through OIDN is less noisy per pixel than four normal ones
-from 256 spp on (``experiments/results/sure/sure-probe-noise.md``). The signs are those of
+high spp (measured: experiments/results/sure/sure-probe-noise.md). The signs are those of
 the normal draws (``r = +1`` where ``n >= 0``), so tiles, chunks and black boxes see the
 same probes for the same key. With a colour covariance the probes are ``L r`` (unbiased,
 ``E[L r r^T L^T] = Sigma``), and the diagonal term shrinks without vanishing.
@@ -52,17 +52,16 @@ same probes for the same key. With a colour covariance the probes are ``L r`` (u
 Correlated colour channels (``Frame.covariance``)
 ------------------------------------------------
 R, G and B of one Monte Carlo sample come from one path, so the noise of a pixel mean is
-correlated across channels (a median correlation of 0.85-0.99 per crop on jaxden's procedural
-test scenes). With ``e ~ N(0, Sigma)`` per pixel, Sigma the 3 x 3 covariance of the mean,
+correlated across channels (strongly on jaxden's test scenes: docs/history.md, "Defaults of
+the code"). With ``e ~ N(0, Sigma)`` per pixel, Sigma the 3 x 3 covariance of the mean,
 Stein's lemma gives ``E[(y - x) . e] = tr(Sigma E[J]) - tr(Sigma)``, and the per-channel
 split of the same derivation is ``E[(y_i - mu_i)^2] = E[(y_i - x_i)^2 - var_i + 2 (J
 Sigma)_ii]``. Probes ``b = L n`` with ``L L^T = Sigma`` (:func:`colour_factor`) give
 ``E_b[b_i (J b)_i] = (J Sigma)_ii``, so the estimator above is unchanged but for the probes.
 The diagonal form misses ``sum_{j != i} J_ij Sigma_ji``: nothing for a denoiser that filters
 each channel on its own, but a network that mixes channels (a U-Net) is underestimated where
-the cross-channel derivatives are positive (measured: the median crop's SURE of a U-Net at
-64 spp is 0.45 of the true MSE with the diagonal and 0.97 with the covariance,
-``docs/results.md``). A frame with ``covariance`` uses it; one without keeps the diagonal.
+the cross-channel derivatives are positive (measured: docs/results.md, "SURE by
+``jax.jvp``"). A frame with ``covariance`` uses it; one without keeps the diagonal.
 
 Assumptions, and where they fail: x Gaussian (Monte Carlo means are only asymptotically
 Gaussian); R, G, B independent unless the frame carries ``covariance`` (the paper, Sec. 3.2,
@@ -96,12 +95,11 @@ per-probe error (less probe variance), not a smaller bias. Both add round-off of
 relative to ``J b``: in float32 with the authors' ``eps = 1e-4``, ``|F| ~ 1`` and
 ``|b| = sqrt(var) ~ 1e-2`` (high spp) that bound is ~10%; bright pixels are worse.
 
-Round-off in float32 (measured, tests/test_sure_properties.py): on an 8 x 8 tanh net with
-x in [0, 2] and var in [1e-3, 0.1], the relative L2 error of the forward difference vs the
-exact jvp is 3.5e-3 at eps = 1e-2, 7e-4 at 1e-3 (best), 5e-3 at 1e-4 (authors' default) and
-5e-2 at 1e-5; in float64 it falls as eps (central: eps^2) down to 1e-6. Use ``"jvp"`` where
-the denoiser is differentiable. (Using the realised perturbation fl(x + eps b) - x as the
-probe was tried: no measurable gain, since rounding of the outputs dominates; not kept.)
+Round-off in float32 makes the forward difference's error against the exact jvp smallest at
+a step near 1e-3, not at the authors' 1e-4 (measured: docs/history.md, "Defaults of the
+code"). Use ``"jvp"`` where the denoiser is differentiable. (Using the realised perturbation
+fl(x + eps b) - x as the probe was tried: no measurable gain, since rounding of the outputs
+dominates; not kept.)
 
 ``sure_buffers`` replaces the probe divergence by a covariance estimate from K independent
 sub-buffers of the render (no Gaussian assumption, no derivative; see the derivation above
@@ -114,9 +112,8 @@ inputs) for non-JAX denoisers such as OIDN through ``pyoidn``.
 from __future__ import annotations
 
 import functools
-import math
 from collections.abc import Callable
-from typing import Any, Literal, NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -124,13 +121,32 @@ import numpy as np
 
 from jaxden.errors import ConfigError, FrameError
 from jaxden.frame import Frame, NonFinitePolicy
-
-Method = Literal["jvp", "fd"]
-FdScheme = Literal["forward", "central"]
-ProbeDist = Literal["normal", "rademacher"]
-PROBE_DISTS = ("normal", "rademacher")
+from jaxden.sure.probes import (  # draw_probes, window_normal: jaxden.sure.stein's API too
+    colour_factor,
+    colour_probes,
+    draw_probe,
+    draw_probes,  # noqa: F401
+    probe_normals,
+    unit_probes,
+    window_normal,  # noqa: F401
+    window_normals,
+)
+from jaxden.sure.settings import (  # PROBE_DISTS, ProbeDist: jaxden.sure.stein's API too
+    PROBE_DISTS,  # noqa: F401
+    FdScheme,
+    Method,
+    ProbeDist,
+    SureSettings,
+    default_eps,
+    resolve_settings,
+)
 
 _UNSET = object()
+
+#: The authors' finite-difference step: what an unset ``eps`` is for :func:`sure` and
+#: :func:`sure_blackbox` called directly (a denoiser's SURE, :func:`jaxden.sure.denoise_with_sure`,
+#: takes the measured :func:`jaxden.sure.settings.default_eps`).
+AUTHORS_EPS = 1e-4
 
 
 class SureResult(NamedTuple):
@@ -166,31 +182,6 @@ def _is_concrete(*arrays) -> bool:
     return not any(isinstance(a, jax.core.Tracer) for a in arrays)
 
 
-def _is_positive_int(value) -> bool:
-    return isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 1
-
-
-def _check_options(num_probes, method, eps, fd_scheme, probe_batch) -> int:
-    """Validate the options; return the effective probe batch."""
-    if not _is_positive_int(num_probes):
-        raise ConfigError(f"sure: num_probes must be an integer >= 1, got {num_probes!r}")
-    if method not in ("jvp", "fd"):
-        raise ConfigError(f"sure: method must be 'jvp' or 'fd', got {method!r}")
-    if fd_scheme not in ("forward", "central"):
-        raise ConfigError(f"sure: fd_scheme must be 'forward' or 'central', got {fd_scheme!r}")
-    if isinstance(eps, jax.core.Tracer):
-        if np.shape(eps) != ():
-            raise ConfigError(f"sure: eps must be a scalar, got shape {np.shape(eps)}")
-    elif (not isinstance(eps, (int, float, np.floating)) or isinstance(eps, bool)
-          or not math.isfinite(eps) or eps <= 0):
-        raise ConfigError(f"sure: eps must be a finite float > 0, got {eps!r}")
-    if probe_batch is None:
-        return int(num_probes)
-    if not _is_positive_int(probe_batch):
-        raise ConfigError(f"sure: probe_batch must be None or an integer >= 1, got {probe_batch!r}")
-    return int(min(probe_batch, num_probes))
-
-
 def require_variance(frame, where: str, held_in: str = "Frame.variance") -> None:
     """FrameError unless ``frame`` is a Frame with the variance of the pixel mean, which SURE
     needs; ``held_in`` names where the caller's user keeps it (a Frame field, EXR channels)."""
@@ -203,7 +194,15 @@ def require_variance(frame, where: str, held_in: str = "Frame.variance") -> None
         )
 
 
-def _checked_frame(frame, where: str, nonfinite: NonFinitePolicy) -> Frame:
+def sure_input(frame: Frame, settings: SureSettings) -> Frame:
+    """The frame SURE reads under ``settings``: without its colour covariance when
+    ``settings.covariance`` is off (the per-channel form), else as given."""
+    if settings.covariance is False and getattr(frame, "covariance", None) is not None:
+        return frame.replace(covariance=None)
+    return frame
+
+
+def checked_frame(frame, where: str, nonfinite: NonFinitePolicy) -> Frame:
     """Structural checks always; value checks (NaN, negative variance) on concrete arrays."""
     require_variance(frame, where)
     leaves = jax.tree_util.tree_leaves(frame)
@@ -223,133 +222,13 @@ def _checked_frame(frame, where: str, nonfinite: NonFinitePolicy) -> Frame:
     return frame
 
 
-def _check_output(out_shape, color_shape, where: str) -> None:
+def check_output(out_shape, color_shape, where: str) -> None:
+    """FrameError unless a denoiser's output shape is the colour's."""
     if tuple(out_shape) != tuple(color_shape):
         raise FrameError(
             f"{where}: the denoiser returned shape {tuple(out_shape)}, expected the colour's "
             f"shape {tuple(color_shape)}"
         )
-
-
-# ---------------------------------------------------------------------------------- probes
-
-
-def _probe_normal(key, shape, dtype):
-    # Drawn flat and reshaped: the same values as normal(key, shape) (counter-based threefry
-    # indexes the flat array), but XLA:CPU compiles the flat draw several times faster.
-    return jax.random.normal(key, (math.prod(shape),), dtype).reshape(shape)
-
-
-def check_probe_dist(dist, where: str = "sure") -> str:
-    """``dist`` if it names a probe distribution (:data:`PROBE_DISTS`), else ConfigError."""
-    if dist not in PROBE_DISTS:
-        raise ConfigError(f"{where}: the probe distribution must be one of "
-                          f"{', '.join(PROBE_DISTS)}, got {dist!r}")
-    return dist
-
-
-def unit_probes(normals, dist: ProbeDist, xp=jnp):
-    """Standard normal draws as probes of ``dist`` (zero mean, identity covariance): the
-    normals themselves, or their signs (+1 where ``n >= 0``, -1 elsewhere: never 0)."""
-    if dist == "normal":
-        return normals
-    return xp.where(normals >= 0, 1.0, -1.0).astype(normals.dtype)
-
-
-def _normals(keys, shape, dtype, dist: ProbeDist = "normal"):
-    # lax.map, not vmap: a sequential draw per key equals the unbatched draw for every key
-    # implementation (vmap of rbg keys does not), so probe k is the same at any probe_batch.
-    return jax.lax.map(lambda k: unit_probes(_probe_normal(k, shape, dtype), dist), keys)
-
-
-def window_normal(key, frame_shape, origin, shape):
-    """The (rows, cols, C) window at ``origin`` (row, column; traced) of
-    ``_probe_normal(key, frame_shape, float32)`` for a frame of ``frame_shape`` (H, W, C),
-    computed without drawing the rest: with JAX's partitionable threefry (the default) the
-    value at flat index i is threefry2x32(key, (0, i)), turned into a normal as
-    ``jax.random.normal`` does (a uniform in (-1, 1) from the top 23 bits, then
-    sqrt(2) erfinv). Equal bit for bit to the slice of the whole draw (tested), so a tile's
-    SURE probes are the whole frame's."""
-    from jax.extend.random import threefry2x32_p
-
-    height, width, channels = frame_shape
-    if height * width * channels >= 2**32:
-        raise FrameError(f"SURE probes over tiles: a {height}x{width} frame is too large "
-                         f"(2^32 values at most)")
-    origin = jnp.asarray(origin, jnp.uint32)
-    rows = origin[0] + jnp.arange(shape[0], dtype=jnp.uint32)
-    cols = origin[1] + jnp.arange(shape[1], dtype=jnp.uint32)
-    chans = jnp.arange(channels, dtype=jnp.uint32)
-    low = (rows[:, None, None] * jnp.uint32(width) + cols[None, :, None]) * jnp.uint32(
-        channels) + chans[None, None, :]
-    data = jax.random.key_data(key) if jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key) \
-        else key
-    bits1, bits2 = threefry2x32_p.bind(jnp.broadcast_to(data[0], low.shape),
-                                       jnp.broadcast_to(data[1], low.shape),
-                                       jnp.zeros_like(low), low)
-    mantissa = jax.lax.shift_right_logical(bits1 ^ bits2, jnp.uint32(32 - 23))
-    one = jnp.uint32(np.array(1.0, np.float32).view(np.uint32))
-    floats = jax.lax.bitcast_convert_type(mantissa | one, jnp.float32) - jnp.float32(1.0)
-    low_value = np.nextafter(np.float32(-1.0), np.float32(0.0), dtype=np.float32)
-    uniform = jnp.maximum(low_value, floats * (np.float32(1.0) - low_value) + low_value)
-    return np.float32(np.sqrt(2.0)) * jax.lax.erf_inv(uniform)
-
-
-def window_normals(keys, frame_shape, origin, shape, dist: ProbeDist = "normal"):
-    """:func:`window_normal` for each of ``keys`` (K, ...), as probes of ``dist``
-    (:func:`unit_probes`): (K, rows, cols, C)."""
-    return jax.lax.map(
-        lambda k: unit_probes(window_normal(k, frame_shape, origin, shape), dist), keys)
-
-
-def colour_factor(variance, covariance, xp=jnp):
-    """Per pixel, the lower-triangular L with L L^T = Sigma, the 3 x 3 covariance of the pixel
-    mean (``variance`` on the diagonal, ``covariance`` = (R, G), (G, B), (B, R) off it), as
-    its six entries (l00, l10, l11, l20, l21, l22), each (..., H, W).
-
-    A closed-form Cholesky that tolerates singular and round-off-indefinite Sigma: a zero
-    pivot zeroes its column (a channel without variance gets no noise) and negative Schur
-    complements are clipped at 0. With zero covariance L = diag(sqrt(var)), so the probes
-    ``L n`` equal ``sqrt(var) * n`` exactly. ``xp``: ``jnp`` (traced) or ``np`` (float64)."""
-    v = xp.maximum(variance, 0.0)
-    c_rg, c_gb, c_br = covariance[..., 0], covariance[..., 1], covariance[..., 2]
-
-    def over(a, pivot):
-        return xp.where(pivot > 0, a / xp.where(pivot > 0, pivot, 1.0), 0.0)
-
-    l00 = xp.sqrt(v[..., 0])
-    l10, l20 = over(c_rg, l00), over(c_br, l00)
-    l11 = xp.sqrt(xp.maximum(v[..., 1] - l10 * l10, 0.0))
-    l21 = over(c_gb - l20 * l10, l11)
-    l22 = xp.sqrt(xp.maximum(v[..., 2] - l20 * l20 - l21 * l21, 0.0))
-    return l00, l10, l11, l20, l21, l22
-
-
-def colour_probes(normals, factor, xp=jnp):
-    """``L n`` per pixel for standard normals (..., H, W, 3) and :func:`colour_factor`'s L."""
-    l00, l10, l11, l20, l21, l22 = factor
-    n0, n1, n2 = normals[..., 0], normals[..., 1], normals[..., 2]
-    return xp.stack([l00 * n0, l10 * n0 + l11 * n1, l20 * n0 + l21 * n1 + l22 * n2], axis=-1)
-
-
-def draw_probes(key, variance, num_probes: int, covariance=None,
-                dist: ProbeDist = "normal") -> jax.Array:
-    """The probes ``sure(..., key, num_probes)`` uses: shape (num_probes, *variance.shape).
-
-    ``b_k = sqrt(var) * n_k`` with ``n_k = normal(split(key, num_probes)[k])``, so the draw of
-    probe k does not depend on the chunking (``probe_batch``), for any key implementation
-    (threefry, rbg). With ``covariance`` (``Frame.covariance``) ``b_k = L n_k``, L the
-    per-pixel Cholesky factor of the colour covariance (:func:`colour_factor`): the same
-    ``n_k``, so zero covariance gives the same probes. ``dist="rademacher"``: ``n_k``
-    replaced by its signs (:func:`unit_probes`). Exposed so that tests and experiments can
-    reproduce the exact probes (common random numbers).
-    """
-    variance = jnp.asarray(variance)
-    keys = jax.random.split(key, num_probes)
-    normals = _normals(keys, variance.shape, variance.dtype, check_probe_dist(dist))
-    if covariance is None:
-        return jnp.sqrt(variance) * normals
-    return colour_probes(normals, colour_factor(variance, jnp.asarray(covariance, variance.dtype)))
 
 
 # ---------------------------------------------------------------------------------- core
@@ -377,7 +256,7 @@ def _sure_core(denoise_fn, params, frame, key, eps, *, has_params, num_probes, m
         out = denoise_fn(params, perturbed) if has_params else denoise_fn(perturbed)
         return jnp.asarray(out, dtype=x.dtype)
 
-    _check_output(jax.eval_shape(f, x).shape, x.shape, "sure")
+    check_output(jax.eval_shape(f, x).shape, x.shape, "sure")
 
     # Per-probe keys, padded to whole chunks; padded probes get weight 0.
     num_chunks = -(-num_probes // probe_batch)
@@ -390,7 +269,7 @@ def _sure_core(denoise_fn, params, frame, key, eps, *, has_params, num_probes, m
 
     def probes_of(chunk_keys):
         if probe_frame is None:
-            return scale_normals(_normals(chunk_keys, x.shape, x.dtype, probe_dist))
+            return scale_normals(probe_normals(chunk_keys, x.shape, x.dtype, probe_dist))
         return scale_normals(window_normals(chunk_keys, probe_frame, probe_origin,
                                             x.shape[-3:-1], probe_dist).astype(x.dtype))
 
@@ -438,16 +317,17 @@ def sure(
     denoise_fn: Callable,
     frame: Frame,
     key: jax.Array,
-    num_probes: int = 4,
-    method: Method = "jvp",
-    eps: float = 1e-4,
+    num_probes: int | None = None,
+    method: Method | None = None,
+    eps: float | None = None,
     *,
+    settings: SureSettings | None = None,
     params: Any = _UNSET,
-    fd_scheme: FdScheme = "forward",
+    fd_scheme: FdScheme | None = None,
     probe_batch: int | None = None,
     nonfinite: NonFinitePolicy = "error",
     probe_window: tuple | None = None,
-    probe_dist: ProbeDist = "normal",
+    probe_dist: ProbeDist | None = None,
 ) -> SureResult:
     """Per-pixel Monte Carlo SURE of a JAX denoiser (see the module docstring for the math).
 
@@ -461,23 +341,28 @@ def sure(
         (required). Other features are passed through unchanged and are not perturbed.
         Leading batch dimensions are allowed if the denoiser accepts them.
       key: PRNG key for the probes (see :func:`draw_probes`).
-      num_probes: K, probes averaged per pixel (the authors use 1 or 4).
-      method: ``"jvp"`` (exact J b by forward-mode AD) or ``"fd"`` (finite differences).
-      eps: finite-difference step, relative to the probe (x + eps b); ignored for ``"jvp"``.
-        Traced (a new value does not recompile; a tracer is accepted, unchecked).
-      params: optional pytree passed as the denoiser's first argument; traced, so new values
-        do not recompile.
+      settings: the :class:`~jaxden.sure.settings.SureSettings` (None: the defaults). The
+        keywords below, where given (not None), override it field by field (the older form,
+        ``sure(fn, frame, key, 4, "jvp")``, still works):
+      num_probes: K, probes averaged per pixel (default 4; the authors use 1 or 4).
+      method: ``"jvp"`` (exact J b by forward-mode AD; also what ``"auto"``, the default,
+        means here) or ``"fd"`` (finite differences).
+      eps: finite-difference step, relative to the probe (x + eps b); ignored for ``"jvp"``;
+        unset: 1e-4 (the authors'). May be a traced scalar (a new value does not recompile;
+        a tracer is accepted, unchecked).
       fd_scheme: ``"forward"`` (authors, K + 1 evaluations) or ``"central"`` (2K + 1).
       probe_batch: probes evaluated at once (default: all K). Peak memory scales with it;
         ``probe_batch=1`` makes K = 4 on 1280 x 720 cost one jvp's memory.
+      probe_dist: ``"normal"`` or ``"rademacher"`` (the signs of the same draws: no diagonal
+        term in the probe variance; see the module docstring).
+      params: optional pytree passed as the denoiser's first argument; traced, so new values
+        do not recompile.
       nonfinite: ``Frame.validated`` policy for concrete frames: ``"error"`` raises on NaN/inf
         or negative variance; ``"zero"`` applies the authors' repair (NaN -> 0, clip >= 0).
       probe_window: ``((H, W, C), (row, col))``: ``frame`` is the window at (row, col) of an
         (H, W, C) frame (one image), and its probes are that window of the whole frame's
         (:func:`window_normal`; ``row``/``col`` may be traced), so SURE over tiles equals
         SURE of the whole frame.
-      probe_dist: ``"normal"`` or ``"rademacher"`` (the signs of the same draws: no diagonal
-        term in the probe variance; see the module docstring).
 
     Returns:
       :class:`SureResult` with fields of shape (..., H, W, 3) in the colour's dtype.
@@ -487,11 +372,21 @@ def sure(
         of the wrong shape. ConfigError: invalid options.
 
     Frames holding tracers (``sure`` called inside the caller's ``jit``/``vmap``) get shape
-    checks only: values cannot be inspected there.
+    checks only: values cannot be inspected there. ``settings.seed`` is not used: ``key`` is
+    the probes' key.
     """
-    batch = _check_options(num_probes, method, eps, fd_scheme, probe_batch)
-    check_probe_dist(probe_dist)
-    frame = _checked_frame(frame, "sure", nonfinite)
+    traced_eps = eps if isinstance(eps, jax.core.Tracer) else None
+    if traced_eps is not None and np.shape(traced_eps) != ():
+        raise ConfigError(f"sure: eps must be a scalar, got shape {np.shape(traced_eps)}")
+    settings = resolve_settings(settings, num_probes=num_probes, method=method,
+                                eps=None if traced_eps is not None else eps,
+                                fd_scheme=fd_scheme, probe_batch=probe_batch,
+                                probe_dist=probe_dist)
+    if traced_eps is not None:
+        eps = traced_eps
+    else:
+        eps = AUTHORS_EPS if settings.eps is None else settings.eps
+    frame = checked_frame(sure_input(frame, settings), "sure", nonfinite)
     has_params = params is not _UNSET
     frame = jax.tree_util.tree_map(jnp.asarray, frame)
     return _sure_core(
@@ -499,15 +394,15 @@ def sure(
         params if has_params else None,
         frame,
         key,
-        eps if isinstance(eps, jax.core.Tracer) else float(eps),
+        eps,
         has_params=has_params,
-        num_probes=int(num_probes),
-        method=method,
-        fd_scheme=fd_scheme,
-        probe_batch=batch,
+        num_probes=settings.probes,
+        method="jvp" if settings.method == "auto" else settings.method,
+        fd_scheme=settings.fd_scheme,
+        probe_batch=min(settings.probe_batch or settings.probes, settings.probes),
         probe_frame=None if probe_window is None else tuple(int(n) for n in probe_window[0]),
         probe_origin=None if probe_window is None else jnp.asarray(probe_window[1], jnp.int32),
-        probe_dist=probe_dist,
+        probe_dist=settings.probe_dist,
     )
 
 
@@ -518,13 +413,14 @@ def sure_blackbox(
     denoise_np: Callable[[Frame], Any],
     frame: Frame,
     rng: int | np.random.Generator | None = 0,
-    num_probes: int = 4,
-    eps: float = 1e-4,
+    num_probes: int | None = None,
+    eps: float | None = None,
     *,
-    fd_scheme: FdScheme = "forward",
+    settings: SureSettings | None = None,
+    fd_scheme: FdScheme | None = None,
     probes: np.ndarray | None = None,
     nonfinite: NonFinitePolicy = "error",
-    probe_dist: ProbeDist = "normal",
+    probe_dist: ProbeDist | None = None,
 ) -> SureResult:
     """Finite-difference SURE of a black-box (NumPy in, NumPy out) denoiser, e.g. OIDN.
 
@@ -535,10 +431,11 @@ def sure_blackbox(
 
     Args:
       rng: seed or ``np.random.Generator`` for the probes b_k = sqrt(var) * N(0, 1) (or the
-        signs of those normals, ``probe_dist="rademacher"``).
+        signs of those normals, ``probe_dist="rademacher"``); ``settings.seed`` is not used.
       probes: optional (K, ..., H, W, 3) probes to use instead of drawing them (for common
         random numbers with :func:`draw_probes` / :func:`sure`); overrides ``num_probes``.
-      Other arguments as in :func:`sure`.
+      settings and the other keywords as in :func:`sure` (``method`` is ``fd``: ``auto`` means
+        it here, ``jvp`` is refused).
 
     Returns:
       :class:`SureResult` of float32 NumPy arrays.
@@ -546,17 +443,20 @@ def sure_blackbox(
     if probes is not None:
         probes = np.asarray(probes, dtype=np.float64)
         num_probes = int(probes.shape[0]) if probes.ndim >= 1 else 0
-    _check_options(num_probes, "fd", eps, fd_scheme, None)
-    check_probe_dist(probe_dist, "sure_blackbox")
-    frame = _checked_frame(frame.numpy() if isinstance(frame, Frame) else frame, "sure_blackbox",
-                           nonfinite)
+    settings = resolve_settings(settings, num_probes=num_probes, eps=eps, fd_scheme=fd_scheme,
+                                probe_dist=probe_dist)
+    _black_box_method(settings, "sure_blackbox")
+    num_probes, fd_scheme = settings.probes, settings.fd_scheme
+    eps = AUTHORS_EPS if settings.eps is None else settings.eps
+    frame = checked_frame(sure_input(frame.numpy() if isinstance(frame, Frame) else frame,
+                                     settings), "sure_blackbox", nonfinite)
     x32 = np.asarray(frame.color, dtype=np.float32)
     x = x32.astype(np.float64)
     var = np.asarray(frame.variance, dtype=np.float64)
     if probes is None:
         generator = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
-        normals = unit_probes(generator.standard_normal((num_probes,) + x.shape), probe_dist,
-                              xp=np)
+        normals = unit_probes(generator.standard_normal((num_probes,) + x.shape),
+                              settings.probe_dist, xp=np)
         if frame.covariance is None:
             probes = np.sqrt(var) * normals
         else:
@@ -569,7 +469,7 @@ def sure_blackbox(
 
     def call(color32: np.ndarray) -> np.ndarray:
         out = np.asarray(denoise_np(frame.replace(color=color32)), dtype=np.float64)
-        _check_output(out.shape, x.shape, "sure_blackbox")
+        check_output(out.shape, x.shape, "sure_blackbox")
         return out
 
     y = call(x32)
@@ -590,3 +490,72 @@ def sure_blackbox(
         denoised=y,
     )
     return SureResult(*(np.asarray(a, dtype=np.float32) for a in result))
+
+
+def _black_box_method(settings: SureSettings, where: str) -> None:
+    if settings.method == "jvp":
+        raise ConfigError(f"{where}: a black box has no derivatives: SURE needs method 'fd' "
+                          f"(or 'auto')")
+
+
+#: Rows per band of the float64 arithmetic in :func:`sure_blackbox_streamed` (memory only).
+_BAND_ROWS = 256
+
+
+def sure_blackbox_streamed(denoise_np, frame: Frame, key, settings: SureSettings | None = None,
+                           **options) -> SureResult:
+    """Forward-difference SURE of a black box, one probe at a time: the values of
+    :func:`sure_blackbox` with the probes of :func:`draw_probes` for ``key`` (the same
+    float64 arithmetic, per pixel), in a fraction of its memory. That form holds K probes and
+    every intermediate in float64 (about 60 + 24 K bytes a pixel); this one holds one float32
+    probe, the denoiser's output and a float64 sum (about 50 bytes a pixel beyond the frame),
+    and does the float64 arithmetic in bands of rows. ``frame``: validated, one image or a
+    batch (bands run over rows). ``settings`` (and the older keywords ``options``) as in
+    :func:`sure`; the scheme is ``forward``; an unset ``eps`` is the measured black-box step
+    (:func:`jaxden.sure.settings.default_eps`)."""
+    settings = resolve_settings(settings, **options)
+    _black_box_method(settings, "sure_blackbox")
+    if settings.fd_scheme != "forward":
+        raise ConfigError("sure_blackbox_streamed: only the forward scheme runs one probe at a "
+                          "time (sure_blackbox takes central)")
+    num_probes = settings.probes
+    eps = default_eps("fd", False) if settings.eps is None else settings.eps
+    frame = sure_input(frame, settings)
+    x32 = np.asarray(frame.color, np.float32)
+    var32 = np.asarray(frame.variance, np.float32)
+    covariance = None if frame.covariance is None else np.asarray(frame.covariance, np.float32)
+    rows = x32.shape[-3]
+    bands = [(..., slice(r, min(r + _BAND_ROWS, rows)), slice(None), slice(None))
+             for r in range(0, rows, _BAND_ROWS)]
+
+    def call(color32: np.ndarray) -> np.ndarray:
+        out = np.asarray(denoise_np(frame.replace(color=color32)), np.float32)
+        check_output(out.shape, x32.shape, "sure_blackbox")
+        return out
+
+    y32 = call(x32)
+    total = np.zeros(x32.shape, np.float64)
+    plus = np.empty_like(x32)
+    for probe_key in jax.random.split(key, num_probes):
+        b32 = np.asarray(draw_probe(probe_key, var32, covariance, settings.probe_dist),
+                         np.float32)
+        for band in bands:
+            plus[band] = (x32[band].astype(np.float64) + eps * b32[band].astype(np.float64))
+        out32 = call(plus)
+        for band in bands:
+            jb = (out32[band].astype(np.float64) - y32[band]) / eps
+            total[band] += b32[band] * jb
+        del b32, out32
+    del plus
+    divergence = np.empty_like(x32)
+    residual_sq = np.empty_like(x32)
+    for band in bands:
+        divergence[band] = total[band] / num_probes
+        residual_sq[band] = np.square(y32[band].astype(np.float64) - x32[band])
+    sure_map = total.astype(np.float32)  # reused as the float32 SURE (the float64 sum goes)
+    for band in bands:
+        sure_map[band] = (np.square(y32[band].astype(np.float64) - x32[band]) - var32[band]
+                          + 2.0 * (total[band] / num_probes))
+    del total
+    return SureResult(sure=sure_map, residual_sq=residual_sq, divergence_term=divergence,
+                      denoised=y32)

@@ -2,7 +2,7 @@
 with its jvp (or finite differences) over tiles overlapping by that field; each tile's probes
 are its window of the whole frame's (:func:`jaxden.sure.stein.window_normal`), so the result
 equals the whole frame's to float rounding. Black boxes run whole-frame, one probe at a time
-(:func:`jaxden.sure.denoiser.sure_blackbox_streamed`)."""
+(:func:`jaxden.sure.stein.sure_blackbox_streamed`)."""
 
 from __future__ import annotations
 
@@ -13,61 +13,50 @@ import numpy as np
 
 from jaxden.frame import IMAGE_FIELDS, Frame
 from jaxden.limits import memory_limit
+from jaxden.sure.settings import SureSettings, resolve_settings
 from jaxden.tiling import TileProgram, largest_tile, run_tiles, tile_budget, tile_grid
 
 FIELDS = ("sure", "residual_sq", "divergence_term", "denoised")
 
 
-def _tile_sure(params, frame, key, origin, eps, *, apply, num_probes, method, probe_batch,
-               frame_shape, probe_dist):
+def _tile_sure(params, frame, key, origin, eps, *, apply, settings, frame_shape):
     from jaxden.sure.stein import sure
 
-    result = sure(apply, frame, key, num_probes, method, eps, params=params,
-                  probe_batch=probe_batch, probe_window=(frame_shape, origin),
-                  probe_dist=probe_dist)
+    result = sure(apply, frame, key, eps=eps, settings=settings, params=params,
+                  probe_window=(frame_shape, origin))
     return result._asdict()
 
 
-def sure_frame(denoiser, frame: Frame, key, *, num_probes: int = 4, method: str = "auto",
-               eps: float | None = None, probe_batch: int | None = None,
+def sure_frame(denoiser, frame: Frame, key, *, sure: SureSettings | None = None,
                nonfinite: str = "error", where: str = "sure", tile: int | None = None,
-               limit: int | None = None, progress: bool = False, on_plan=None,
-               probe_dist: str = "normal"):
-    """:func:`jaxden.sure.denoise_with_sure` of one frame, over tiles when the denoiser is a
-    JAX denoiser with a receptive field (``tile``: the side, None: the largest that fits
-    ``limit``, 0: whole). Returns ``(SureResult of NumPy float32, tile)`` (tile 0: whole)."""
+               limit: int | None = None, progress: bool = False, on_plan=None, **options):
+    """:func:`jaxden.sure.denoise_with_sure` of one frame (``sure`` and the older keywords
+    ``options`` as there), over tiles when the denoiser is a JAX denoiser with a receptive
+    field (``tile``: the side, None: the largest that fits ``limit``, 0: whole). Returns
+    ``(SureResult of NumPy float32, tile)`` (tile 0: whole)."""
     from jaxden.denoise.tiled import blackbox_memory, bound_apply, tile_inputs, window
-    from jaxden.sure.denoiser import (
-        default_eps,
-        denoise_with_sure,
-        resolve_denoiser,
-        resolve_method,
-    )
-    from jaxden.sure.stein import SureResult, check_probe_dist, require_variance
+    from jaxden.sure.denoiser import denoise_with_sure, for_denoiser, resolve_denoiser
+    from jaxden.sure.stein import SureResult, require_variance, sure_input
 
-    check_probe_dist(probe_dist, where)
+    settings = resolve_settings(sure, **options)
     denoiser = resolve_denoiser(denoiser)
     spec = denoiser.tile_spec() if denoiser.differentiable else None
     if tile == 0 or spec is None or np.ndim(frame.color) != 3:
         with blackbox_memory(denoiser, frame, limit)[0]:
-            result, _ = denoise_with_sure(denoiser, frame, key, num_probes=num_probes,
-                                          method=method, eps=eps, probe_batch=probe_batch,
-                                          nonfinite=nonfinite, where=where,
-                                          probe_dist=probe_dist)
+            result, _ = denoise_with_sure(denoiser, frame, key, sure=settings,
+                                          nonfinite=nonfinite, where=where)
         return SureResult(*(np.asarray(a, np.float32) for a in result)), 0
     require_variance(frame, where, held_in="EXR channels variance.R/G/B")
     used = {"color", "variance", "covariance", *denoiser.fields_read()}
     frame = frame.replace(**{name: None for name in IMAGE_FIELDS if name not in used})
-    frame = frame.numpy().validated(where=where, nonfinite=nonfinite)
+    frame = sure_input(frame, settings).numpy().validated(where=where, nonfinite=nonfinite)
     denoiser.check_frame(frame)
-    method = resolve_method(method, denoiser)
-    eps = (default_eps(method, denoiser.differentiable) or 1e-4) if eps is None else eps
+    settings = for_denoiser(settings, denoiser)
+    eps = 1e-4 if settings.eps is None else settings.eps  # traced; jvp ignores it
     height, width = np.shape(frame.color)[:2]
     params, apply = tile_inputs(denoiser, frame)
     run = functools.partial(_tile_sure, apply=bound_apply(apply, denoiser.config),
-                            num_probes=int(num_probes), method=method,
-                            probe_batch=probe_batch or int(num_probes),
-                            frame_shape=(height, width, 3), probe_dist=probe_dist)
+                            settings=settings, frame_shape=(height, width, 3))
 
     def args_for(t):
         origin = np.asarray([t.src[0][0], t.src[1][0]], np.int32)

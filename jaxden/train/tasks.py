@@ -21,15 +21,9 @@ import numpy as np
 
 from jaxden.errors import ConfigError, FrameError
 from jaxden.progressive.inputs import swap_inputs
-from jaxden.progressive.mixer import (
-    CLOSED_FORM_SPEC,
-    MIXER_KIND,
-    MIXER_MODEL,
-    MixerConfig,
-    mixer_apply,
-    mixer_init,
-    mixer_meta,
-)
+from jaxden.progressive.mixer_checkpoints import MIXER_KIND, MIXER_MODEL, mixer_meta
+from jaxden.progressive.mixer_config import CLOSED_FORM_SPEC, MixerConfig
+from jaxden.progressive.network import mixer_apply, mixer_init
 from jaxden.registry import Registry
 from jaxden.train.task import Task
 
@@ -247,9 +241,9 @@ def mixer_task(train_config):
     )
 
 
-#: The MixerConfig fields that decide its SURE cache (with the dataset).
-_CACHE_FIELDS = ("denoiser", "cache", "sure_probes", "sure_method", "sure_eps", "sure_seed",
-                 "sure_covariance", "sure_probe_dist", "build_cache")
+#: The MixerConfig fields that decide its SURE cache (with the dataset): the SURE
+#: settings as one value.
+_CACHE_FIELDS = ("denoiser", "cache", "sure", "build_cache")
 
 
 def mixer_shared_data(train_config, config: MixerConfig) -> SharedData | None:
@@ -260,7 +254,9 @@ def mixer_shared_data(train_config, config: MixerConfig) -> SharedData | None:
     if not dataset or config.kind != "network":
         return None
     key = json.dumps([str(Path(dataset).absolute()),
-                      *(getattr(config, name) for name in _CACHE_FIELDS)], default=str)
+                      *(getattr(config, name) for name in _CACHE_FIELDS)],
+                     default=lambda value: (dataclasses.asdict(value)  # the SURE settings
+                                            if dataclasses.is_dataclass(value) else str(value)))
 
     def prepare() -> None:
         from jaxden.progressive.cache_build import open_training_cache
