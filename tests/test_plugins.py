@@ -166,6 +166,35 @@ def test_changing_the_code_changes_the_sure_cache_key():
     assert keys[0] == keys[1] != keys[2]
 
 
+def test_a_sure_cache_is_recomputed_when_the_denoisers_code_changes(outside, capsys):
+    """The mixer's SURE cache of a denoiser (same name, no weights) built with one code is
+    recomputed, in place, once the code computes something else; a documentation edit
+    keeps it."""
+    from jaxden.progressive.cache_build import build_sure_cache
+    from jaxden.sure import SureSettings
+
+    first = "def smooth(frame):\n    return 0.5 * frame.color\n"
+    documented = 'def smooth(frame):\n    """Halves."""\n    return 0.5 * frame.color\n'
+    changed = "def smooth(frame):\n    return 0.6 * frame.color\n"
+    folder = outside / "tiny" / "derived" / "user-smooth-test"
+    settings = SureSettings(probes=1)
+
+    def build(source):
+        cache = build_sure_cache(outside / "tiny", _function_from_source(source), folder,
+                                 sure=settings, progress=False)
+        return {item: cache.read(item)["denoised"].copy() for item in sorted(cache.records)}
+
+    before = build(first)
+    assert before and "recomputing" not in capsys.readouterr().err
+    assert all(np.array_equal(before[k], v) for k, v in build(documented).items())
+    assert "recomputing" not in capsys.readouterr().err
+    after = build(changed)
+    assert "the denoiser's code changed since this SURE cache was built; recomputing it" in (
+        capsys.readouterr().err)
+    item = next(iter(before))
+    np.testing.assert_allclose(after[item], before[item] * 1.2, rtol=1e-5)
+
+
 def test_a_black_box_is_keyed_by_its_source_without_its_comments():
     from jaxden.denoise.identity import code_text_sha256
 
@@ -194,7 +223,7 @@ def test_an_outside_module_works_through_every_command(outside, clean_env, capsy
     assert main(["evaluate", "pd", "--data", "tiny", "--split", "val", "--spp", "8",
                  "--denoiser", "lab-xbilateral", "--mixer", "closed-form",
                  "--out", "ev-pd"]) == 0
-    frame = next((outside / "tiny").rglob("spp00008.exr"))
+    frame = next(p for p in (outside / "tiny").rglob("spp00008.exr") if "derived" not in p.parts)
     assert main(["sure", str(frame), "--plugin", plugin, "--denoiser", "lab-xbilateral",
                  "--out", "s.exr"]) == 0
     assert main(["progressive", str(frame), "--plugin", plugin, "--denoiser",
@@ -223,13 +252,31 @@ def test_a_function_is_a_denoiser_everywhere(key):
     color = rng.uniform(0, 1, (24, 24, 3)).astype(np.float32)
     frame = Frame(color=color, variance=np.full_like(color, 0.01), spp=np.float32(16))
 
-    def blur(frame):
-        shifted = [jax.numpy.roll(frame.color, s, axis=(-3, -2))
-                   for s in ((0, 0), (0, 1), (1, 0), (0, -1), (-1, 0))]
-        return sum(shifted) / 5
+    def blur(frame):  # a 5-tap cross, edges clamped: receptive field 1 pixel
+        padded = jax.numpy.pad(frame.color, ((1, 1), (1, 1), (0, 0)), mode="edge")
+        height, width = frame.color.shape[:2]
+        taps = ((1, 1), (1, 2), (2, 1), (1, 0), (0, 1))
+        return sum(padded[dy:dy + height, dx:dx + width] for dy, dx in taps) / 5
 
     den = Denoiser.from_function(blur, radius=1)
     assert den.name == "blur"
     direct = sure(blur, frame, key, num_probes=2, method="jvp")
     wrapped = sure(den.function(), frame, key, num_probes=2, method="jvp")
     np.testing.assert_array_equal(np.asarray(direct.sure), np.asarray(wrapped.sure))
+
+    from jaxden.progressive import closed_form_mixer, progressive_denoise, progressive_frame
+
+    params, config = closed_form_mixer()
+    z, _, extras = progressive_denoise(frame, blur, params, config, key)
+    np.testing.assert_allclose(np.asarray(extras["denoised"]), np.asarray(blur(frame)),
+                               rtol=1e-6)
+    whole = progressive_frame(frame, den, params, config, key, tile=0)[0]["z"]
+    np.testing.assert_allclose(whole, np.asarray(z), rtol=1e-5, atol=1e-6)
+    # SURE over 8 x 8 tiles (each reading its window grown by the declared radius, its probes
+    # the window of the whole frame's) equals SURE of the whole frame
+    from jaxden.sure import sure_frame
+
+    full, _ = sure_frame(den, frame, key, tile=0, num_probes=2)
+    tiles, side = sure_frame(den, frame, key, tile=8, num_probes=2)
+    assert side == 8
+    np.testing.assert_allclose(tiles.sure, full.sure, rtol=1e-5, atol=1e-7)

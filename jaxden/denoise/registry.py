@@ -24,9 +24,11 @@ of trainable models (:func:`jaxden.train.tasks.trainables`).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import os
+import weakref
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -270,6 +272,9 @@ def _bound_apply(fn, with_params: bool):
     return apply
 
 
+_FUNCTION_DENOISERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
 def as_denoiser(denoiser, where: str = "denoiser") -> Denoiser:
     """A :class:`Denoiser` from what a user passes: a Denoiser, a spec for
     :func:`load_denoiser` (a name, a checkpoint path, with options), or a plain function
@@ -280,7 +285,14 @@ def as_denoiser(denoiser, where: str = "denoiser") -> Denoiser:
     if isinstance(denoiser, (str, os.PathLike)):
         return load_denoiser(denoiser)
     if callable(denoiser):
-        return Denoiser.from_function(denoiser)
+        try:  # one Denoiser per function, so that its compiled forms are reused
+            return _FUNCTION_DENOISERS[denoiser]
+        except (KeyError, TypeError):
+            pass
+        wrapped = Denoiser.from_function(denoiser)
+        with contextlib.suppress(TypeError):  # not weak-referenceable: no reuse
+            _FUNCTION_DENOISERS[denoiser] = wrapped
+        return wrapped
     raise ConfigError(f"{where} must be a name, a checkpoint path, a Denoiser or a function "
                       f"frame -> image, got {type(denoiser).__name__}")
 

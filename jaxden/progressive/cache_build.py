@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -159,6 +160,14 @@ def build_sure_cache(dataset_dir, denoiser_spec, out_dir=None, *,
         stored = load_cache_manifest(directory)
         if stored is not None:
             differences = config_diff(stored.get("identity", {}), identity)
+            if differences and all(d.startswith("denoiser.code_sha256:") for d in differences):
+                # Same denoiser, weights and settings, other code: what the old code computed
+                # is not this denoiser's output. Recompute in place: without the records,
+                # each file is judged by its header's cache key, the old code's.
+                print(f"jaxden: note: {directory}: the denoiser's code changed since this SURE "
+                      f"cache was built; recomputing it", file=sys.stderr)
+                differences = []
+                stored = {**stored, "items": {}}
             if differences:
                 raise DatasetError(
                     f"{directory / CACHE_MANIFEST} holds a SURE cache of another dataset, "

@@ -10,7 +10,6 @@ docs/history.md, "Defaults of the code").
 from __future__ import annotations
 
 import functools
-import os
 
 from jaxden.errors import ConfigError
 from jaxden.frame import Frame
@@ -25,16 +24,11 @@ from jaxden.sure.settings import (  # FD_EPS_*, default_eps: jaxden.sure.denoise
 
 # ------------------------------------------------------------------------------- denoisers
 def resolve_denoiser(denoiser):
-    """A :class:`jaxden.denoise.Denoiser` from a Denoiser or a spec for ``load_denoiser``."""
-    from jaxden.denoise.registry import Denoiser, load_denoiser
+    """A :class:`jaxden.denoise.Denoiser` from a Denoiser, a spec for ``load_denoiser`` or a
+    plain JAX function ``frame -> image`` (:func:`jaxden.denoise.registry.as_denoiser`)."""
+    from jaxden.denoise.registry import as_denoiser
 
-    if isinstance(denoiser, Denoiser):
-        return denoiser
-    if isinstance(denoiser, (str, os.PathLike)):
-        return load_denoiser(denoiser)
-    raise ConfigError(
-        f"denoiser must be a name, a checkpoint path or a Denoiser, got {type(denoiser).__name__}"
-    )
+    return as_denoiser(denoiser)
 
 
 def resolve_method(method: str, denoiser) -> str:
