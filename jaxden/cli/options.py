@@ -119,9 +119,15 @@ def channel_map(args: argparse.Namespace) -> dict[str, tuple[str, ...]] | None:
 
 
 def feature_notice(frame, denoiser, path) -> None:
-    """On stderr: OIDN is about to run without albedo or normal, which raises its error
-    (measured: experiments/results/oidn/oidn-no-features.md), and a mixer trained on OIDN
-    with features then sees inputs unlike its training data."""
+    """On stderr: a model is about to run on features made otherwise than those it was
+    trained on (:mod:`jaxden.data.features`: the file's header against the checkpoint's
+    record), or OIDN without albedo or normal, which raises its error (measured:
+    experiments/results/oidn/oidn-no-features.md), and a mixer trained on OIDN with features
+    then sees inputs unlike its training data."""
+    from jaxden.data.features import warn_frame_features
+
+    warn_frame_features(getattr(denoiser, "trained_features", None), path,
+                        model=denoiser.name, fields=denoiser.fields_read())
     if denoiser.name.partition("+")[0] != "oidn":  # also oidn+emission-separate
         return
     lacking = [field for field in ("albedo", "normal") if getattr(frame, field) is None]
