@@ -208,8 +208,9 @@ def test_a_black_box_is_keyed_by_its_source_without_its_comments():
 def test_an_outside_module_works_through_every_command(outside, clean_env, capsys,
                                                        monkeypatch):
     """train (config plugins), evaluate denoise (--plugin), evaluate pd (JAXDEN_PLUGINS),
-    sure and progressive (--plugin), and a two-run sweep on the local executor, whose
-    spawned workers import the plugin themselves."""
+    sure and progressive (--plugin), a mixer of the plugin's network trained on the plugin
+    denoiser and run by progressive, and a two-run sweep on the local executor, whose spawned
+    workers import the plugin themselves."""
     monkeypatch.chdir(outside)
     plugin = str(outside / "lab_denoisers.py")
     assert main(["train", "train.toml", "--workdir", "run"]) == 0
@@ -228,6 +229,15 @@ def test_an_outside_module_works_through_every_command(outside, clean_env, capsy
                  "--out", "s.exr"]) == 0
     assert main(["progressive", str(frame), "--plugin", plugin, "--denoiser",
                  "lab-xbilateral", "--mixer", "closed-form", "--out", "p.exr"]) == 0
+    # a mixer of the plugin's network, trained on the plugin denoiser's SURE cache
+    (outside / "mixer.toml").write_text(
+        f'plugins = ["{plugin}"]\nmodel = "mixer"\neval_every = 2\ncheckpoint_every = 2\n'
+        '[model_config]\ndenoiser = "lab-xbilateral"\nnetwork = "lab-mixnet"\n'
+        '[model_config.sure]\nprobes = 1\n'
+        '[data]\ndataset = "tiny"\ncrop_size = 16\nbatch_size = 2\n[optim]\nsteps = 2\n')
+    assert main(["train", "mixer.toml", "--workdir", "mixer-run"]) == 0
+    assert main(["progressive", str(frame), "--plugin", plugin, "--denoiser", "lab-xbilateral",
+                 "--mixer", "mixer-run", "--out", "p-mixer.exr"]) == 0
     (outside / "sweep.toml").write_text(f'base = "train.toml"\nplugins = ["{plugin}"]\n'
                                         "[axes]\nseed = [0, 1]\n")
     monkeypatch.delenv(plugins.ENV)

@@ -47,6 +47,9 @@ class MixerConfig:
         addition, 3 outputs: a logit-space correction of the closed-form alpha with this
         config's ``closed_form_sigma`` / ``closed_form_per_channel``; an untrained network
         starts at the closed form). See :data:`~jaxden.progressive.heads.ALPHA_HEADS`.
+      network: the registered mixer network (:func:`jaxden.progressive.network.
+        register_mixer_network`): ``"pdnet"``, the paper's, or a plugin's; every other field
+        (inputs, head, SURE, training, t-statistic) applies to it unchanged.
       width: hidden channels (48). centred_head: start alpha near 0.5 (see
         :func:`jaxden.progressive.network.head_bias`; our choice, the paper does not say).
       init_output_scale: factor on the initial output-layer kernel (0.1: no alpha of the
@@ -113,6 +116,7 @@ class MixerConfig:
 
     features: tuple[str, ...] = MIXER_FEATURES
     kind: Literal["network", "closed_form"] = "network"
+    network: str = "pdnet"
     closed_form_sigma: float = bounded(12.0, low=0, low_open=True, high=256, unit='pixels')
     closed_form_per_channel: bool = False
     closed_form_stops: float | None = bounded(None, low=0.0625, high=64,
@@ -153,6 +157,10 @@ class MixerConfig:
             )
         if not self.denoiser:
             raise ConfigError("MixerConfig.denoiser: name the denoiser whose output is mixed")
+        if self.kind == "network":
+            from jaxden.progressive.network import get_mixer_network
+
+            get_mixer_network(self.network)  # a ConfigError naming the registered ones
         # a trained base under "$JAXDEN_HOME/runs/..." or "~/...", as data.dataset allows
         for name in ("denoiser", "cache"):
             object.__setattr__(self, name, expand_path(getattr(self, name)))

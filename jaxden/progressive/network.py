@@ -34,20 +34,23 @@ Choices the paper leaves open (recorded here, and options where they are researc
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
+from collections.abc import Callable
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxden.errors import FrameError
+from jaxden.errors import ConfigError, FrameError
 from jaxden.progressive.checks import check_same
 from jaxden.progressive.closed_form import closed_form_alpha_unchecked
 from jaxden.progressive.heads import closed_form_logit_alpha, f_act_unchecked, mix_unchecked
 from jaxden.progressive.inputs import mixer_inputs_unchecked
 from jaxden.progressive.mixer_config import MixerConfig
+from jaxden.registry import Registry
 
 
 def head_bias(out_channels: int, head: str) -> np.ndarray:
@@ -113,16 +116,70 @@ class PDNet(nn.Module):
         )(h)
 
 
+# ------------------------------------------------------------------ the mixer networks
+@dataclasses.dataclass(frozen=True)
+class MixerNetwork:
+    """A mixer network, by name (``MixerConfig.network``).
+
+    ``build(config) -> flax module`` mapping the mixer inputs (..., H, W,
+    ``config.in_channels``) to raw outputs (..., H, W, ``config.out_channels``), which the
+    config's head turns into alpha; ``radius``: the pixels each side that one output reads
+    (so frames can run over tiles). Everything around it (input features, head, SURE cache,
+    training task, checkpoints, t-statistic) is the mixer's own."""
+
+    name: str
+    build: Callable[[MixerConfig], nn.Module]
+    radius: int
+    description: str = ""
+
+
+#: Every mixer network by name: the paper's PDNet and those of plugins.
+MIXER_NETWORKS: Registry = Registry("mixer network")
+_REGISTER_PLUMBING = True  # registrations through this module belong to their caller
+
+
+def register_mixer_network(network: MixerNetwork, *, owner: str | None = None) -> MixerNetwork:
+    """Add a mixer network (then ``model_config.network = NAME`` in a mixer's config); a
+    name that jaxden or another module holds is refused in one line."""
+    from jaxden.registry import caller_module
+
+    if not isinstance(network, MixerNetwork) or not (
+            isinstance(network.radius, int) and network.radius >= 0):
+        raise ConfigError(f"register_mixer_network() takes a MixerNetwork with an int radius "
+                          f">= 0, got {network!r}")
+    return MIXER_NETWORKS.add(network.name, network, owner or caller_module())
+
+
+def get_mixer_network(name: str) -> MixerNetwork:
+    """The mixer network ``name`` (plugins named by ``JAXDEN_PLUGINS`` or entry points are
+    imported first); ConfigError naming the registered ones otherwise."""
+    if name not in MIXER_NETWORKS:
+        from jaxden.plugins import load_ambient
+
+        load_ambient()
+    if name not in MIXER_NETWORKS:
+        raise ConfigError(f"MixerConfig.network: unknown mixer network {name!r}; registered: "
+                          f"{', '.join(MIXER_NETWORKS)} (a network of your own: "
+                          f"register_mixer_network in a plugin module, docs/your-denoiser.md)")
+    return MIXER_NETWORKS[name]
+
+
+def _pdnet(config: MixerConfig) -> PDNet:
+    return PDNet(width=config.width, out_channels=config.out_channels, head=config.head,
+                 centred_head=config.centred_head)
+
+
+#: conv_in 5x5, two residual blocks of two 3x3 convolutions, conv_out 3x3
+PDNET_RADIUS = 2 + 2 * 2 + 1
+register_mixer_network(MixerNetwork("pdnet", _pdnet, PDNET_RADIUS,
+                                    "the paper's PDNet (Fig. 6)"), owner=__name__)
+
+
 # ------------------------------------------------------------------------------ the mixer
 
 def mixer_module(config: MixerConfig):
-    """The flax module (:class:`jaxden.progressive.network.PDNet`) for ``config``."""
-    return PDNet(
-        width=config.width,
-        out_channels=config.out_channels,
-        head=config.head,
-        centred_head=config.centred_head,
-    )
+    """The flax module of ``config.network`` (:class:`PDNet` by default) for ``config``."""
+    return get_mixer_network(config.network).build(config)
 
 
 _INIT_CHUNK = 1 << 16

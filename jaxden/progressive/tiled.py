@@ -90,7 +90,9 @@ def mixer_radius(config: MixerConfig) -> int:
     closed_form = closed_form_radius(config)
     if config.kind == "closed_form":
         return closed_form
-    network = 2 + 2 * 2 + 1  # conv_in 5x5, two residual blocks of two 3x3, conv_out 3x3
+    from jaxden.progressive.network import get_mixer_network
+
+    network = get_mixer_network(config.network).radius
     if "closed_form" in config.features:
         network += closed_form
     if config.head == "closed_form_logit":

@@ -1,14 +1,16 @@
 """An outside plugin for jaxden's tests: a cross-bilateral filter (a registered function), a
-small trainable convolutional denoiser (a registered model) and a loss. It lives outside the
+small trainable convolutional denoiser (a registered model), a loss and a mixer network. It lives outside the
 package and is never on sys.path: the tests name it by --plugin, JAXDEN_PLUGINS or a config's
 plugins."""
 
 import dataclasses
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
 from jaxden.denoise import Denoiser, DenoiserDef, register
+from jaxden.progressive.network import MixerNetwork, register_mixer_network
 from jaxden.train.losses import register_loss
 
 RADIUS = 2
@@ -69,3 +71,17 @@ def charbonnier(prediction, target):
 
 
 register_loss("lab-charbonnier", charbonnier)
+
+
+class LabMixNet(nn.Module):
+    """A one-layer mixer network: a 3 x 3 convolution of the mixer inputs."""
+
+    out_channels: int
+
+    @nn.compact
+    def __call__(self, x):
+        return nn.Conv(self.out_channels, (3, 3), padding="SAME", name="conv_out")(x)
+
+
+register_mixer_network(MixerNetwork("lab-mixnet", lambda config: LabMixNet(config.out_channels),
+                                    radius=1, description="one 3x3 convolution (test plugin)"))
