@@ -290,3 +290,50 @@ def test_a_function_is_a_denoiser_everywhere(key):
     tiles, side = sure_frame(den, frame, key, tile=8, num_probes=2)
     assert side == 8
     np.testing.assert_allclose(tiles.sure, full.sure, rtol=1e-5, atol=1e-7)
+
+
+RAY_DRIVER = r"""
+import json, shutil, sys
+from pathlib import Path
+
+from jaxden.cli import main
+from jaxden.config import load_config
+from jaxden.data.builder import build_dataset
+from jaxden.data.config import DatasetConfig
+from jaxden.render.synthetic import synthetic_render
+
+root, plugin, tiny = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3]
+shutil.copy(plugin, root / "lab_denoisers.py")
+build_dataset(load_config(tiny, DatasetConfig, ["crops_per_scene=2"]), root / "tiny",
+              executor="serial", render_fn=synthetic_render, progress=False)
+(root / "train.toml").write_text(
+    'model = "lab-tinyconv"\neval_every = 2\ncheckpoint_every = 2\n[data]\n'
+    f'dataset = "{root / "tiny"}"\ncrop_size = 32\nbatch_size = 2\n[optim]\nsteps = 2\n')
+(root / "sweep.toml").write_text(f'base = "train.toml"\nplugins = ["{root / "lab_denoisers.py"}"]'
+                                 '\n[axes]\nseed = [0, 1]\n')
+code = main(["sweep", str(root / "sweep.toml"), "--workdir", str(root / "sw"), "--executor", "ray",
+             "--ray-address", "local", "--workers", "2"])
+runs = sorted(p.parent.name for p in (root / "sw").glob("*/result.json"))
+print("REPORT " + json.dumps({"code": code, "runs": runs}))
+"""
+
+
+@pytest.mark.slow  # a private Ray on this machine, in a loopback-only namespace: ~1 min
+def test_a_two_run_sweep_on_ray_imports_the_plugin_in_its_workers(tmp_path):
+    import os
+
+    from test_distributed import FAST_COMPILE, loopback_namespace_reason, run_in_loopback
+
+    pytest.importorskip("ray", reason="Ray is not installed: pip install 'jaxden[ray]'")
+    if loopback_namespace_reason() is not None:
+        pytest.skip(str(loopback_namespace_reason()))
+    driver = tmp_path / "driver.py"
+    driver.write_text(RAY_DRIVER)
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXDEN_CPU_DEVICES": "1",
+           "XLA_FLAGS": FAST_COMPILE, "JAXDEN_CACHE_DIR": str(tmp_path / "cache")}
+    for name in ("RAY_ADDRESS", plugins.ENV, "PYTHONPATH"):
+        env.pop(name, None)
+    done = run_in_loopback(driver, str(tmp_path), str(PLUGIN), str(TINY), env=env, timeout=900)
+    assert "REPORT " in done.stdout, (done.stdout[-3000:], done.stderr[-5000:])
+    report = json.loads(done.stdout.split("REPORT ", 1)[1])
+    assert report == {"code": 0, "runs": ["seed=0", "seed=1"]}, done.stderr[-3000:]
