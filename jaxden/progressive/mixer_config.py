@@ -49,7 +49,8 @@ class MixerConfig:
         starts at the closed form). See :data:`~jaxden.progressive.heads.ALPHA_HEADS`.
       network: the registered mixer network (:func:`jaxden.progressive.network.
         register_mixer_network`): ``"pdnet"``, the paper's, or a plugin's; every other field
-        (inputs, head, SURE, training, t-statistic) applies to it unchanged.
+        (inputs, head, SURE, training, t-statistic) applies to it unchanged. Checked where
+        the network is built (a ConfigError naming the registered ones).
       width: hidden channels (48). centred_head: start alpha near 0.5 (see
         :func:`jaxden.progressive.network.head_bias`; our choice, the paper does not say).
       init_output_scale: factor on the initial output-layer kernel (0.1: no alpha of the
@@ -157,10 +158,6 @@ class MixerConfig:
             )
         if not self.denoiser:
             raise ConfigError("MixerConfig.denoiser: name the denoiser whose output is mixed")
-        if self.kind == "network":
-            from jaxden.progressive.network import get_mixer_network
-
-            get_mixer_network(self.network)  # a ConfigError naming the registered ones
         # a trained base under "$JAXDEN_HOME/runs/..." or "~/...", as data.dataset allows
         for name in ("denoiser", "cache"):
             object.__setattr__(self, name, expand_path(getattr(self, name)))

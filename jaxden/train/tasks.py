@@ -192,6 +192,10 @@ def mixer_task(train_config):
     from jaxden.progressive.cache_build import open_training_cache
 
     config = model_config(train_config)
+    if config.kind == "network":
+        from jaxden.progressive.network import get_mixer_network
+
+        get_mixer_network(config.network)  # before any data is read: a ConfigError
     if config.kind != "network":
         raise ConfigError(
             f"[model_config] of model 'mixer': kind = {config.kind!r} has no parameters to "
