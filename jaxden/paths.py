@@ -38,3 +38,32 @@ def portable(text: str) -> str:
     and paths recorded in results and model cards then work on any machine."""
     home = str(jaxden_home())
     return text.replace(home, "$JAXDEN_HOME") if home not in ("", "/") else text
+
+
+# ------------------------------------------------------------------------- shipped weights
+#: The weights shipped in the package, each ``NAME.msgpack`` beside its model card
+#: ``NAME.json`` (denoisers and mixers alike).
+WEIGHTS_DIR = Path(__file__).parent / "weights"
+
+
+def shipped_weights_file(name: str) -> Path | None:
+    """``jaxden/weights/NAME.msgpack`` when ``name`` ships (weights and card), else None."""
+    if not isinstance(name, str) or not name or "/" in name or os.sep in name:
+        return None
+    path = WEIGHTS_DIR / f"{name}.msgpack"
+    return path if path.is_file() and path.with_suffix(".json").is_file() else None
+
+
+def shipped_weights_names() -> list[str]:
+    """The names of every model shipped in ``jaxden/weights`` (denoisers and mixers)."""
+    return sorted(p.stem for p in WEIGHTS_DIR.glob("*.msgpack")
+                  if p.with_suffix(".json").is_file())
+
+
+def resolve_weights(spec) -> Path | None:
+    """The one lookup of a weights spec: an existing file or folder (a ``.msgpack`` file, a
+    checkpoint or training folder) as it is, else a shipped name's file, else None."""
+    path = Path(spec)
+    if path.exists():
+        return path
+    return shipped_weights_file(spec) if isinstance(spec, str) else None

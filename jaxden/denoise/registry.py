@@ -38,6 +38,7 @@ import jax
 from jaxden.denoise.emission import EMISSION_MODES, separated_apply
 from jaxden.errors import CheckpointError, ConfigError
 from jaxden.frame import Frame
+from jaxden.paths import WEIGHTS_DIR, resolve_weights, shipped_weights_file
 from jaxden.registry import Registry
 
 #: Options of a denoiser spec ``SPEC:KEY=VALUE,...`` -> their values (the first: the default).
@@ -88,7 +89,7 @@ def register(definition: DenoiserDef, *, owner: str | None = None) -> DenoiserDe
         raise ConfigError(f"register() takes a DenoiserDef (or use Denoiser.from_function), "
                           f"got {type(definition).__name__}")
     owner = owner or caller_module()
-    if (WEIGHTS_DIR / f"{definition.name}.msgpack").is_file():
+    if shipped_weights_file(definition.name) is not None:
         from jaxden.registry import PluginClashError
 
         raise PluginClashError(f"denoiser name {definition.name!r} from module '{owner}' "
@@ -403,7 +404,6 @@ def with_options(denoiser: Denoiser, emission: str = "filter", **options: str) -
                     denoiser.trained_features)
 
 
-WEIGHTS_DIR = Path(__file__).parent.parent / "weights"
 
 
 def load_denoiser(spec: str | os.PathLike) -> Denoiser:
@@ -427,10 +427,7 @@ def _load_base(spec: str | os.PathLike, options: dict[str, str] | None = None) -
     from jaxden.checkpoint import load_trained_params, read_checkpoint_meta
     from jaxden.config import load_config
 
-    path = Path(spec)
-    shipped = WEIGHTS_DIR / f"{spec}.msgpack"
-    if not path.exists() and isinstance(spec, str) and shipped.is_file():
-        path = shipped
+    path = resolve_weights(spec) or Path(spec)
     if not path.exists():
         if str(spec) not in REGISTRY:
             from jaxden.plugins import load_ambient

@@ -49,12 +49,10 @@ def weights_identity(spec: str) -> dict:
     """``{"spec", "file", "sha256"}`` of the weights file a denoiser or mixer spec names (a
     file, or a name shipped in jaxden/weights/), else ``{"spec"}`` (a registered black box,
     a run folder, a closed-form mixer)."""
-    from jaxden.denoise.registry import WEIGHTS_DIR
+    from jaxden.paths import resolve_weights
     from jaxden.provenance import file_sha256
 
-    path = Path(spec)
-    if not path.exists() and (WEIGHTS_DIR / f"{spec}.msgpack").is_file():
-        path = WEIGHTS_DIR / f"{spec}.msgpack"
-    if path.is_file():
+    path = resolve_weights(spec)
+    if path is not None and path.is_file():
         return {"spec": spec, "file": str(path), "sha256": file_sha256(path)}
     return {"spec": spec}

@@ -67,13 +67,9 @@ def load_mixer(spec, *, expect_features: tuple[str, ...] | None = None):
 
     if isinstance(spec, str) and spec.partition(":")[0] == CLOSED_FORM_SPEC:
         return closed_form_mixer(spec)
-    path = Path(spec)
-    if not path.exists() and isinstance(spec, str):
-        from jaxden.denoise.registry import WEIGHTS_DIR
+    from jaxden.paths import resolve_weights
 
-        shipped = WEIGHTS_DIR / f"{spec}.msgpack"
-        if shipped.is_file():
-            path = shipped
+    path = resolve_weights(spec) or Path(spec)
     if not path.exists():
         raise CheckpointError(
             f"mixer {spec}: no such checkpoint folder or weights file (train one with "

@@ -206,13 +206,10 @@ def warn_if_other_denoiser(mixer_config: MixerConfig, denoiser, spec=None) -> st
 
 def shipped_mixer_path(denoiser: str = "oidn"):
     """Path of the shipped mixer's .msgpack for ``denoiser``, or None if none ships."""
-    from jaxden.denoise.registry import WEIGHTS_DIR
+    from jaxden.paths import shipped_weights_file
 
     name = SHIPPED_MIXERS.get(denoiser)
-    if name is None:
-        return None
-    path = WEIGHTS_DIR / f"{name}.msgpack"
-    return path if path.is_file() and path.with_suffix(".json").is_file() else None
+    return None if name is None else shipped_weights_file(name)
 
 
 def load_shipped_mixer(denoiser: str = "oidn"):

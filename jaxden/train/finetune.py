@@ -64,14 +64,14 @@ class InitSource:
 
 def shipped_weights() -> list[str]:
     """The names of every model shipped in ``jaxden/weights`` (denoisers and mixers)."""
-    from jaxden.denoise.registry import WEIGHTS_DIR
+    from jaxden.paths import shipped_weights_names
 
-    return sorted(p.stem for p in WEIGHTS_DIR.glob("*.msgpack") if p.with_suffix(".json").is_file())
+    return shipped_weights_names()
 
 
 def locate(spec: str) -> Path:
     """The file or folder ``spec`` names (module docstring); ConfigError when there is none."""
-    from jaxden.denoise.registry import WEIGHTS_DIR
+    from jaxden.paths import shipped_weights_file
 
     path = Path(spec)
     if path.exists():
@@ -79,8 +79,8 @@ def locate(spec: str) -> Path:
             raise ConfigError(f"init = {spec!r}: expected a .msgpack weights file (its .json "
                               f"beside it), a training workdir or a shipped model's name")
         return path
-    shipped = WEIGHTS_DIR / f"{spec}.msgpack"
-    if "/" not in spec and shipped.is_file():
+    shipped = shipped_weights_file(spec)
+    if shipped is not None:
         return shipped
     raise ConfigError(f"init = {spec!r}: no such file or folder, and no shipped model of that "
                       f"name (shipped: {', '.join(shipped_weights())}); give a shipped model, a "
