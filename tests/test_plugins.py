@@ -37,7 +37,8 @@ TINY = ROOT / "experiments" / "configs" / "dataset-tiny.toml"
 @pytest.fixture
 def clean_env(monkeypatch):
     """JAXDEN_PLUGINS as a test found it, restored afterwards (loading writes to it)."""
-    monkeypatch.delenv(plugins.ENV, raising=False)
+    monkeypatch.setenv(plugins.ENV, "")  # recorded, so that teardown restores it ...
+    monkeypatch.delenv(plugins.ENV)  # ... even where it was unset
     monkeypatch.setenv("PYTHONPATH", "")
     return monkeypatch
 

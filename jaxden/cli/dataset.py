@@ -5,7 +5,13 @@ from __future__ import annotations
 
 import argparse
 
-from jaxden.cli.options import add_channels_option, channel_map, positive_float, positive_int
+from jaxden.cli.options import (
+    add_channels_option,
+    add_sure_options,
+    channel_map,
+    positive_int,
+    sure_settings,
+)
 from jaxden.cli.train import add_ray_address_option, check_ray_address
 
 
@@ -117,11 +123,9 @@ def cmd_sure_cache(args: argparse.Namespace) -> int:
     """``jaxden dataset sure-cache DIR --denoiser SPEC``."""
     from jaxden.progressive.cache_build import build_sure_cache
 
-    cache = build_sure_cache(
-        args.dir, args.denoiser, args.out, num_probes=args.probes, method=args.method,
-        eps=args.eps, seed=args.seed, fd_scheme=args.fd_scheme, probe_batch=args.probe_batch,
-        half=args.half, progress=not args.quiet, covariance=args.covariance,
-    )
+    # unset SURE flags: a mixer's settings (build_sure_cache's base), what training reads
+    cache = build_sure_cache(args.dir, args.denoiser, args.out, sure=sure_settings(args),
+                             half=args.half, progress=not args.quiet)
     settings = cache.identity.get("settings", {})
     print(f"SURE cache complete: {cache.directory} ({len(cache.records)} items; "
           f"{settings.get('num_probes')} probes, {settings.get('method')}, "
@@ -204,19 +208,21 @@ def add_commands(sub) -> None:
 
     c = dsub.add_parser(
         "sure-cache", help="denoise every dataset input once and cache it with its SURE map "
-                           "(resumable; what mixer training reads)")
+                           "(resumable; what mixer training reads)",
+        description="Denoise every input of a dataset once and cache it with its SURE map "
+                    "(resumable): what training a mixer reads. The SURE options left unset "
+                    "are a mixer's defaults (4 normal probes, method auto, the measured step, "
+                    "seed 0, per channel); a mixer reads the cache made with its own SURE "
+                    "settings ([model_config.sure] of its config). --covariance: SURE from "
+                    "the colour covariance (the dataset must record it), the cache of a mixer "
+                    "with [model_config.sure] covariance = true, in "
+                    "DIR/derived/<denoiser>-cov.")
     c.add_argument("dir", help="dataset folder")
     c.add_argument("--denoiser", required=True, help="oidn, a checkpoint folder or .msgpack")
-    c.add_argument("--out", default=None, help="cache folder (default: DIR/derived/<denoiser>)")
-    c.add_argument("--probes", type=positive_int, default=4)
-    c.add_argument("--method", choices=("auto", "jvp", "fd"), default="auto")
-    c.add_argument("--eps", type=positive_float, default=None)
-    c.add_argument("--fd-scheme", choices=("forward", "central"), default="forward")
-    c.add_argument("--seed", type=int, default=0)
-    c.add_argument("--probe-batch", type=positive_int, default=None)
+    c.add_argument("--out", default=None,
+                   help="cache folder (default: DIR/derived/<denoiser>, with -cov for "
+                        "--covariance and -rademacher for --probe-dist rademacher)")
+    add_sure_options(c, inherit="a mixer's")
     c.add_argument("--half", action="store_true", help="store float16 channels")
-    c.add_argument("--covariance", action="store_true",
-                   help="SURE from the colour covariance (the dataset must record it; a mixer "
-                        "with sure_covariance = true reads this cache, in DIR/derived/<denoiser>-cov)")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
     c.set_defaults(func=cmd_sure_cache)

@@ -16,6 +16,11 @@ is built from its options by name, by ``jaxden evaluate NAME`` and by a sweep's
 - ``denoise``, ``sequences`` (:mod:`~jaxden.evaluate.denoise`): a denoiser's PSNR, SSIM,
   relMSE, FLIP and noise-corrected RMSE per crop, or per frame with temporal accumulation.
 
+An evaluator of a user's own is one more :class:`~jaxden.evaluate.evaluator.Evaluator`
+passed to :func:`~jaxden.evaluate.registry.register_evaluator` in a plugin module
+(:mod:`jaxden.plugins`): ``jaxden evaluate NAME --plugin FILE`` runs it (one flag per field of
+its options dataclass) and, with ``sweep_options``, a sweep's ``[evaluate]`` table too.
+
 A result is OUT.json (summary, rows, provenance: :mod:`jaxden.provenance`) and OUT.md (its
 tables); "report" names only the HTML page of :mod:`jaxden.report`.
 """
@@ -52,7 +57,13 @@ from jaxden.evaluate.pd import (
     result_is_current,
     summarize_progressive,
 )
-from jaxden.evaluate.registry import EVALUATORS, evaluate_run, get_evaluator, make_options
+from jaxden.evaluate.registry import (
+    EVALUATORS,
+    evaluate_run,
+    get_evaluator,
+    make_options,
+    register_evaluator,
+)
 from jaxden.evaluate.shared import denoiser_label, weights_identity
 from jaxden.evaluate.sure import (
     SureOptions,
@@ -99,6 +110,7 @@ __all__ = [
     "oracle_alpha",
     "oracle_mix",
     "ratio_interval",
+    "register_evaluator",
     "resolve_mixer",
     "result_is_current",
     "summarize_progressive",

@@ -1,40 +1,114 @@
 """Evaluators by name, and the evaluation of a sweep's trained run by its ``[evaluate]`` table.
 
 The names are those of ``jaxden evaluate NAME`` and of the dataset lists in a sweep's
-``[evaluate]`` table (``pd = [...]``, ``denoise = [...]``, ``sequences = [...]``); a new
-evaluator is one more :class:`~jaxden.evaluate.evaluator.Evaluator` in :data:`EVALUATORS`.
+``[evaluate]`` table (``pd = [...]``, ``denoise = [...]``, ``sequences = [...]``). Every
+evaluator, jaxden's own and a plugin's (:mod:`jaxden.plugins`), is one
+:class:`~jaxden.evaluate.evaluator.Evaluator` added to :data:`EVALUATORS` by
+:func:`register_evaluator`; a name that jaxden or another module holds is refused in one line.
 The keys a sweep's ``[evaluate]`` table allows are those the registered evaluators declare
-(:func:`evaluate_table_class`), so an evaluator registered by a plugin runs in sweeps too.
+(:func:`evaluate_table_class`), so an evaluator registered by a plugin runs in sweeps too, and
+``jaxden evaluate NAME`` gives it a sub-command made from its options dataclass (one flag a
+field: :mod:`jaxden.cli.evaluate`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import typing
 from pathlib import Path
 from typing import Any
 
 from jaxden.errors import ConfigError
 from jaxden.evaluate import denoise, oracle, pd, sure, sure_buffers
 from jaxden.evaluate.evaluator import Evaluator
+from jaxden.registry import Registry
 
-EVALUATORS: dict[str, Evaluator] = {e.name: e for e in (
-    pd.EVALUATOR, oracle.EVALUATOR, sure.EVALUATOR, sure_buffers.EVALUATOR, denoise.DENOISE,
-    denoise.SEQUENCES)}
+#: Every evaluator by name: jaxden's own and those of plugins (:func:`register_evaluator`).
+EVALUATORS: Registry = Registry("evaluator")
+_REGISTER_PLUMBING = True  # registrations through this module belong to their caller
+
+#: Option names an evaluator's options dataclass may not use: the flags of ``jaxden evaluate
+#: NAME`` itself (``--data``, ``--out``, ``--from-json``, ``--keep-current``, ``--plugin``,
+#: ``--help``), which a field's flag would shadow.
+RESERVED_OPTIONS = ("data", "out", "from_json", "keep_current", "plugin", "help")
+
+
+def register_evaluator(evaluator: Evaluator, *, owner: str | None = None) -> Evaluator:
+    """Add ``evaluator`` under its name; ``owner``: the registering module (default: the
+    caller's). Then ``jaxden evaluate NAME`` runs it (a sub-command with one flag per field of
+    its ``options`` dataclass) and, when it has ``sweep_options``, a sweep's ``[evaluate]``
+    table lists datasets for it. A name that jaxden or another module holds is refused in one
+    line (:class:`jaxden.registry.PluginClashError`); so is an evaluator whose options are not
+    a dataclass, whose options' fields take the command's own flags
+    (:data:`RESERVED_OPTIONS`, and SureSettings' fields beside a SureSettings field), or that
+    runs in sweeps under a name that is not a Python identifier (the ``[evaluate]`` key)."""
+    from jaxden.registry import caller_module
+
+    if not isinstance(evaluator, Evaluator):
+        raise ConfigError(f"register_evaluator() takes a jaxden.evaluate.Evaluator, got "
+                          f"{type(evaluator).__name__}")
+    owner = owner or caller_module()
+    where = f"evaluator {evaluator.name!r} from module '{owner}'"
+    if not (isinstance(evaluator.options, type) and dataclasses.is_dataclass(evaluator.options)):
+        raise ConfigError(f"{where}: options must be a dataclass (the fields are its options), "
+                          f"got {evaluator.options!r}")
+    taken = _flag_clashes(evaluator.options)
+    if taken:
+        raise ConfigError(f"{where}: option(s) {', '.join(taken)} would shadow flags of "
+                          f"`jaxden evaluate {evaluator.name}` itself; rename them")
+    if evaluator.sweep_options is not None and not evaluator.name.isidentifier():
+        raise ConfigError(f"{where} runs in sweeps (it has sweep_options), so its name is an "
+                          f"[evaluate] key and must be a Python identifier (e.g. "
+                          f"{evaluator.name.replace('-', '_')!r})")
+    return EVALUATORS.add(evaluator.name, evaluator, owner)
+
+
+def _flag_clashes(options: type) -> list[str]:
+    """The fields of ``options`` whose flags are taken: :data:`RESERVED_OPTIONS`, and the
+    fields of SureSettings (their flags, ``--probes`` ...) beside a SureSettings field."""
+    from jaxden.sure.settings import SureSettings
+
+    fields = [f.name for f in dataclasses.fields(options)]
+    taken = [name for name in fields if name in RESERVED_OPTIONS]
+    try:
+        hints = typing.get_type_hints(options)
+    except Exception:  # noqa: BLE001 - unresolvable annotations: the CLI skips those fields
+        hints = {}
+    sure_fields = [name for name in fields if SureSettings in (
+        hints.get(name), *typing.get_args(hints.get(name)))]
+    if sure_fields:
+        flags = {f.name for f in dataclasses.fields(SureSettings)}
+        taken += [name for name in fields if name in flags]
+        if len(sure_fields) > 1:
+            taken += sure_fields[1:]
+    return taken
 
 
 def get_evaluator(name: str) -> Evaluator:
-    """The evaluator called ``name``; ConfigError listing the names if there is none."""
+    """The evaluator called ``name`` (plugins named by ``JAXDEN_PLUGINS`` or entry points are
+    imported first); ConfigError listing the names if there is none."""
+    if name not in EVALUATORS:
+        from jaxden.plugins import load_ambient
+
+        load_ambient()
     if name not in EVALUATORS:
         raise ConfigError(f"no evaluator named {name!r}; the evaluators: "
-                          f"{', '.join(EVALUATORS)}")
+                          f"{', '.join(EVALUATORS)} (an evaluator of your own: "
+                          f"jaxden.evaluate.register_evaluator in a plugin module named with "
+                          f"--plugin, JAXDEN_PLUGINS or plugins = [...], docs/your-denoiser.md)")
     return EVALUATORS[name]
+
+
+for _module, _evaluator in ((pd, pd.EVALUATOR), (oracle, oracle.EVALUATOR),
+                           (sure, sure.EVALUATOR), (sure_buffers, sure_buffers.EVALUATOR),
+                           (denoise, denoise.DENOISE), (denoise, denoise.SEQUENCES)):
+    register_evaluator(_evaluator, owner=_module.__name__)
+del _module, _evaluator
 
 
 def make_options(name: str, **options):
     """The options of evaluator ``name`` from keyword values (its options dataclass; an
     unknown key is a ConfigError naming it and the allowed ones)."""
-    import dataclasses
-
     evaluator = get_evaluator(name)
     fields = [f.name for f in dataclasses.fields(evaluator.options)]
     unknown = sorted(set(options) - set(fields))
@@ -76,9 +150,14 @@ def sweep_evaluators() -> list[Evaluator]:
 def evaluator_of_sweep_key(key: str) -> Evaluator:
     """The sweep evaluator whose entries in a run's ``result.json`` are ``KEY:<dataset>``;
     ConfigError when none is registered (a plugin's evaluator whose plugin is not loaded)."""
-    for evaluator in sweep_evaluators():
-        if evaluator.sweep_key == key:
-            return evaluator
+    for attempt in range(2):
+        for evaluator in sweep_evaluators():
+            if evaluator.sweep_key == key:
+                return evaluator
+        if attempt == 0:
+            from jaxden.plugins import load_ambient
+
+            load_ambient()
     raise ConfigError(f"no evaluator records sweep results as {key!r}:...; the evaluators "
                       f"that run in sweeps: {', '.join(e.name for e in sweep_evaluators())}")
 
