@@ -34,6 +34,15 @@ PLUGIN = ROOT / "tests" / "data" / "plugins" / "lab_denoisers.py"
 TINY = ROOT / "experiments" / "configs" / "dataset-tiny.toml"
 
 
+@pytest.fixture(autouse=True)
+def _forget_loaded_plugins():
+    """Other test files in this process must not see these tests' plugins in provenance."""
+    loaded = dict(plugins._LOADED)
+    yield
+    plugins._LOADED.clear()
+    plugins._LOADED.update(loaded)
+
+
 @pytest.fixture
 def clean_env(monkeypatch):
     """JAXDEN_PLUGINS as a test found it, restored afterwards (loading writes to it)."""
