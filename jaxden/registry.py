@@ -85,6 +85,16 @@ class Registry(dict):
         return (f"{self.what} name {name!r} from module '{owner}' clashes with {holder} "
                 f"{name!r}; register it under another name")
 
+    def find(self, name: str) -> Any:
+        """The entry ``name``; when it is missing, the plugins that ``JAXDEN_PLUGINS`` and
+        the installed entry points name are imported first (:func:`jaxden.plugins.
+        load_ambient`), so a spawned worker resolves them too. None if still missing."""
+        if name not in self:
+            from jaxden.plugins import load_ambient
+
+            load_ambient()
+        return self.get(name)
+
     def owner(self, name: str) -> str | None:
         """The module that registered ``name`` (None: not registered)."""
         return self.owners.get(name)

@@ -101,11 +101,7 @@ def register(definition: DenoiserDef, *, owner: str | None = None) -> DenoiserDe
 def get_definition(name: str) -> DenoiserDef:
     """The registered denoiser ``name`` (plugins named by ``JAXDEN_PLUGINS`` or entry points
     are imported first); ConfigError listing the names if there is none."""
-    if name not in REGISTRY:
-        from jaxden.plugins import load_ambient
-
-        load_ambient()
-    if name not in REGISTRY:
+    if REGISTRY.find(name) is None:
         raise ConfigError(
             f"unknown denoiser {name!r}; registered denoisers: {', '.join(sorted(REGISTRY))}"
             + ("" if REGISTRY.from_plugins() else
@@ -429,11 +425,7 @@ def _load_base(spec: str | os.PathLike, options: dict[str, str] | None = None) -
 
     path = resolve_weights(spec) or Path(spec)
     if not path.exists():
-        if str(spec) not in REGISTRY:
-            from jaxden.plugins import load_ambient
-
-            load_ambient()
-        if str(spec) not in REGISTRY:
+        if REGISTRY.find(str(spec)) is None:
             raise CheckpointError(_unknown_spec_message(str(spec)))
         definition = get_definition(str(spec))
         if definition.init is not None and not definition.pretrained:

@@ -87,11 +87,7 @@ def _flag_clashes(options: type) -> list[str]:
 def get_evaluator(name: str) -> Evaluator:
     """The evaluator called ``name`` (plugins named by ``JAXDEN_PLUGINS`` or entry points are
     imported first); ConfigError listing the names if there is none."""
-    if name not in EVALUATORS:
-        from jaxden.plugins import load_ambient
-
-        load_ambient()
-    if name not in EVALUATORS:
+    if EVALUATORS.find(name) is None:
         raise ConfigError(f"no evaluator named {name!r}; the evaluators: "
                           f"{', '.join(EVALUATORS)} (an evaluator of your own: "
                           f"jaxden.evaluate.register_evaluator in a plugin module named with "

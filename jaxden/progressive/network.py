@@ -153,11 +153,7 @@ def register_mixer_network(network: MixerNetwork, *, owner: str | None = None) -
 def get_mixer_network(name: str) -> MixerNetwork:
     """The mixer network ``name`` (plugins named by ``JAXDEN_PLUGINS`` or entry points are
     imported first); ConfigError naming the registered ones otherwise."""
-    if name not in MIXER_NETWORKS:
-        from jaxden.plugins import load_ambient
-
-        load_ambient()
-    if name not in MIXER_NETWORKS:
+    if MIXER_NETWORKS.find(name) is None:
         raise ConfigError(f"MixerConfig.network: unknown mixer network {name!r}; registered: "
                           f"{', '.join(MIXER_NETWORKS)} (a network of your own: "
                           f"register_mixer_network in a plugin module, docs/your-denoiser.md)")

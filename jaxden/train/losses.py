@@ -102,11 +102,7 @@ def register_loss(name: str, per_image: Callable, loss: Callable | None = None, 
 def get_loss(name: str, where: str = "loss") -> Callable:
     """The loss called ``name`` (plugins named by ``JAXDEN_PLUGINS`` or entry points are
     imported first); ConfigError naming the registered losses otherwise."""
-    if name not in LOSSES:
-        from jaxden.plugins import load_ambient
-
-        load_ambient()
-    if name not in LOSSES:
+    if LOSSES.find(name) is None:
         raise ConfigError(f"{where}: unknown loss {name!r}; the losses: {', '.join(LOSSES)} "
                           f"(a loss of your own: jaxden.train.losses.register_loss in a plugin "
                           f"module)")
