@@ -5,9 +5,18 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxden.train import losses
 from jaxden import metrics
 from jaxden.errors import FrameError
+from jaxden.train import losses
+
+
+def built_in_losses() -> dict:
+    """jaxden's own losses (a plugin's, registered by another test file in this process, are
+    not what these tests know the gradients of)."""
+    from jaxden.registry import is_built_in
+
+    return {name: loss for name, loss in losses.LOSSES.items()
+            if is_built_in(losses.LOSSES.owner(name))}
 
 
 @pytest.fixture
@@ -42,7 +51,7 @@ def test_gradients_analytic():
             - np.abs(x - y) * np.sign(x) / (np.abs(x) + np.abs(y) + 0.01) ** 2
         ) / n,
     }
-    for name, loss in losses.LOSSES.items():
+    for name, loss in built_in_losses().items():
         grad = jax.jit(jax.grad(loss))(X, Y)
         np.testing.assert_allclose(grad[0, :, 0], expected[name], rtol=1e-5, err_msg=name)
 
@@ -62,7 +71,7 @@ def test_losses_are_batch_means_of_metrics(rng):
 def test_zero_at_target_and_finite_gradient(rng):
     y = rng.random((4, 4, 3)).astype(np.float32)
     y[0, 0] = 0.0  # |x| and |x - y| at 0: the gradient must still be finite
-    for name, loss in losses.LOSSES.items():
+    for name, loss in built_in_losses().items():
         assert float(loss(y, y)) == 0.0, name
         grad = jax.grad(loss)(y, y)
         assert np.all(np.isfinite(grad)), name
