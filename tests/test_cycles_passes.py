@@ -93,6 +93,8 @@ def test_each_blender_5_pass_is_read_as_its_field(tmp_path, field, pass_, channe
     frame = read_frame(path, convention="cycles", require=(field,))
     stored, _ = read_channels(path)
     expected = np.stack([stored[n] for n in _layer(pass_, channels)], axis=-1)
+    if pass_ == "Denoising Albedo":  # the lamps' emission in it clipped (below)
+        expected = np.clip(expected, 0, 1)
     np.testing.assert_array_equal(getattr(frame, field), expected)
     assert float(frame.spp) == 4.0
 
@@ -136,18 +138,74 @@ def test_a_single_layer_exr_is_told_to_save_a_multilayer_one():
         resolve("cycles", ["ViewLayer.Emission.R", "ViewLayer.Emission.G"], {})
 
 
-def test_the_denoising_albedo_of_a_seen_emitter_holds_its_emission():
-    """What Blender writes on lamp pixels (for the method that reads the albedo): the
-    Denoising Albedo is the Emission pass plus the surface's own albedo (at most 1), up to the
-    emitter's strength; the Diffuse Color pass holds no emission."""
+def _stored(path, pass_: str) -> np.ndarray:
+    stored, _ = read_channels(path, _layer(pass_, "RGB"))
+    return np.stack([stored[n] for n in _layer(pass_, "RGB")], axis=-1)
+
+
+def test_the_denoising_albedo_of_a_seen_emitter_holds_its_emission(tmp_path, capsys):
+    """What Blender writes on lamp pixels: the Denoising Albedo is the Emission pass plus the
+    surface's own albedo (at most 1), up to the emitter's strength (on the one pixel left
+    above 1, (10, 10), the gold Suzanne mirrors a light, which no pass holds); the Diffuse
+    Color pass holds no emission. Read clipped to [0, 1], as OIDN reads it, whatever passes
+    the file has and whichever fields are kept; merged renders average the clipped albedos."""
+    raw, emission = _stored(PASSES, "Denoising Albedo"), _stored(PASSES, "Emission")
+    lamp = emission.max(axis=-1) > 0
+    assert lamp.any() and emission.max() > 100 and raw.max() > 100
+    surplus = raw - emission
+    assert surplus[lamp].min() >= 0 and surplus[lamp].max() <= 1
+    assert np.argwhere(surplus.max(axis=-1) > 1).tolist() == [[10, 10]]
+    assert _stored(PASSES, "Diffuse Color").max() <= 1
+    notes = []
+    frame = read_frame(PASSES, convention="cycles", on_note=notes.append)
+    np.testing.assert_array_equal(frame.albedo, np.clip(raw, 0, 1))
+    assert notes == [] and frame.albedo[lamp].min() > 0.99  # a lamp pixel is white
+    kept = read_frame(_copy(tmp_path, PASSES, drop=("Emission",)), convention="cycles",
+                      keep=("albedo",))
+    np.testing.assert_array_equal(kept.albedo, frame.albedo)
+    renders = [CYCLES / f"passes-seed{s}.exr" for s in (1, 2)]
+    out = tmp_path / "merged.exr"
+    code, lines, _ = run_cli(["merge", *renders, "--from", "cycles", "--out", out], capsys)
+    assert code == 0 and lines == [], lines
+    np.testing.assert_allclose(read_frame(out).albedo, (np.clip(raw, 0, 1) + np.clip(
+        _stored(renders[1], "Denoising Albedo"), 0, 1)) / 2, rtol=1e-6)
+
+
+def test_the_albedo_named_by_hand_is_read_alike():
+    """``--channels albedo=`` naming the Denoising Albedo clips it as the preset does; the
+    Diffuse Color holds no emission and is read as it is."""
+    albedo = _layer("Denoising Albedo", "RGB")
+    named = read_frame(PASSES, convention="cycles", channel_map={"albedo": albedo})
+    np.testing.assert_array_equal(named.albedo, read_frame(PASSES, convention="cycles").albedo)
+    diffuse = read_frame(PASSES, convention="cycles",
+                         channel_map={"albedo": _layer("Diffuse Color", "RGB")})
+    np.testing.assert_array_equal(diffuse.albedo, _stored(PASSES, "Diffuse Color"))
+
+
+def test_an_albedo_above_1_that_nothing_explains_is_one_warning(tmp_path, capsys, monkeypatch):
+    """A file in jaxden's channels whose albedo is Blender's raw Denoising Albedo (merged
+    before jaxden clipped it): kept as it is, one warning line, once a process."""
+    from jaxden.io import exr
+
+    monkeypatch.setattr(exr, "_warned", set())
     frame = read_frame(PASSES, convention="cycles")
-    stored, _ = read_channels(PASSES)
-    diffuse = np.stack([stored[n] for n in _layer("Diffuse Color", "RGB")], axis=-1)
-    lamp = frame.emission.max(axis=-1) > 0
-    assert lamp.any() and frame.emission.max() > 100
-    surplus = frame.albedo[lamp] - frame.emission[lamp]
-    assert surplus.min() >= 0 and surplus.max() <= 1
-    assert diffuse.max() <= 1
+    raw = _stored(PASSES, "Denoising Albedo")
+    path = tmp_path / "old.exr"
+    write_frame(path, frame.replace(albedo=raw))
+    capsys.readouterr()
+    np.testing.assert_array_equal(read_frame(path).albedo, raw)
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert lines == [(f"jaxden: warning: {path}: the albedo is above 1 on 3 pixel(s) (up to "
+                     f"200.8), but an albedo is a reflectance in [0, 1]: WSKP divides the colour "
+                     f"by it, which brightens or darkens those pixels, and OIDN clips it at 1. "
+                     f"Blender's Denoising Albedo holds the emission of the lamps it sees: read "
+                     f"Cycles renders with --from cycles (merge them again), which clips it")]
+    read_frame(path)
+    assert capsys.readouterr().err == ""
+    write_frame(tmp_path / "fine.exr", frame)  # an albedo in [0, 1]: nothing said
+    monkeypatch.setattr(exr, "_warned", set())
+    read_frame(tmp_path / "fine.exr")
+    assert capsys.readouterr().err == ""
 
 
 # --------------------------------------------------------------------- denoised renders

@@ -300,6 +300,31 @@ def test_separated_denoiser_is_D_of_the_rest_plus_the_emission(kind, request):
             < np.abs(plain - rest)[beside].mean())
 
 
+def test_the_separated_wskp6_keeps_a_cycles_lamp_at_its_value():
+    """Blender's Denoising Albedo holds the lamps' emission (up to 200 on the lamp pixels of
+    tests/data/cycles/passes-seed1.exr, 4 spp, a lamp of strength 400). Read by `--from
+    cycles` it is clipped to [0, 1], and WSKP-6:emission=separate gives the lamp pixels their
+    colour back within 2 %; fed the raw albedo, the separated filter's rest is multiplied by
+    the emission on remodulation and the lamp comes out 30 % too bright (jaxden issue 48)."""
+    from pathlib import Path
+
+    from jaxden.denoise import load_denoiser
+    from jaxden.io.exr import read_channels, read_frame
+
+    path = Path(__file__).parent / "data" / "cycles" / "passes-seed1.exr"
+    frame = read_frame(path, convention="cycles")
+    stored, _ = read_channels(path)
+    raw = np.stack([stored[f"ViewLayer.Denoising Albedo.{c}"] for c in "RGB"], axis=-1)
+    lamp = frame.emission.max(axis=-1) > 0
+    assert lamp.sum() == 2 and raw[lamp].max() > 100 and frame.albedo.max() <= 1
+    separated = load_denoiser("wskp-6:emission=separate")
+    colour = frame.color[lamp].mean()
+    read = float(np.asarray(separated(frame))[lamp].mean())
+    raw_out = float(np.asarray(separated(frame.replace(albedo=raw)))[lamp].mean())
+    assert abs(read / colour - 1) < 0.02
+    assert raw_out / colour > 1.25
+
+
 def test_the_rest_is_clamped_at_0_with_derivative_1_where_it_is_not():
     import jax
     import jax.numpy as jnp

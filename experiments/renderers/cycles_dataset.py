@@ -15,8 +15,10 @@ Written per view (``SRC/s<scene>v<view>/``, the import layout, docs/your-rendere
 mean), ``reference/b0..b3.exr`` (4 renders of --reference-spp / 4 samples; 256 spp by
 default, as the references WSKP-6 was trained against, experiments/configs/dataset-rt.toml).
 Every render has its own seed (CRC-32 of its file name and --seed). Multilayer EXR, 32-bit
-float, with the Combined, Depth and Denoising Albedo / Normal / Depth passes, which `--from
-cycles` reads as the colour and WSKP-6's features (colour, albedo, normal, depth). The
+float, with the Combined, Depth, Emission and Denoising Albedo / Normal / Depth passes, which
+`--from cycles` reads as the colour and WSKP-6's features (colour, albedo, normal, depth; the
+Emission pass takes the lamps' emission out of the Denoising Albedo and is kept as the
+frames' emission, for ``:emission=separate``). The
 defaults make 9 scenes of 2 views at 256 x 256: 12 views to train on (scenes 0-5), 2 to
 validate (scene 6) and 4 held out (scenes 7, 8).
 
@@ -220,6 +222,9 @@ def build_scene(scene_seed: int, width: int, height: int):
     scene.collection.objects.link(camera)
     scene.camera = camera
     store_denoising_passes(scene)
+    # The Denoising Albedo holds the emission of the bulbs it sees; --from cycles takes the
+    # Emission pass out of it (docs/renderers.md).
+    scene.view_layers[0].use_pass_emit = True
     return scene, (centre[0], centre[1], 0.5)
 
 

@@ -24,6 +24,15 @@ Decisions:
   (``emission == 0``) it *is* the variance of the rest; on and beside an emitter it
   overestimates it (it holds the emitter's hit-or-miss variance, Var(L) ~ Var(Le) there): the
   renderer does not record the moments of ``L - Le``, and such pixels are few.
+- **The albedo beside it is a reflectance.** The filter demodulates the rest by the albedo
+  (WSKP) and multiplies it back, so a lamp pixel whose albedo holds the lamp's emission (Blender
+  Cycles' Denoising Albedo: the Emission pass plus the surface's albedo, up to the lamp's
+  strength) gets its neighbours' light times that emission: 30 % too bright on
+  tests/data/cycles/passes-seed1.exr's lamp. ``--from cycles`` reads that albedo clipped to
+  [0, 1] (:mod:`jaxden.io.conventions`), which gives the lamp its colour back within 2 %;
+  measured over two Cycles scenes and two spp levels in
+  ``experiments/results/renderers/cycles-emission.md``. Nothing here repairs an albedo above 1
+  (reading a file warns about one).
 - **The emission is a fixed feature.** SURE perturbs the colour only (``frame.replace(color=)``,
   :mod:`jaxden.sure`), so its divergence is D's at ``colour - emission``. The emission is not
   independent of the colour's noise (the same samples): where an emitter covers part of a pixel
@@ -56,8 +65,9 @@ def require_emission(frame: Frame, who: str) -> None:
         raise FrameError(
             f"{who} keeps the emission out of the filter and needs the frame feature emission "
             f"(EXR channels {'/'.join(CHANNELS['emission'])}: the radiance emitted by the "
-            f"first hit, written by `jaxden render`; Blender Cycles' Emit pass with --channels "
-            f"emission=NAME.R,NAME.G,NAME.B), but the frame has only {have}")
+            f"first hit, written by `jaxden render`; Blender Cycles' Emission pass, View Layer "
+            f"Properties > Passes > Light > Emission, read by --from cycles; another name with "
+            f"--channels emission=NAME.R,NAME.G,NAME.B), but the frame has only {have}")
 
 
 def rest_of_radiance(color, emission, xp=jnp):

@@ -48,6 +48,20 @@ most any pixel took) shows adaptive sampling, under which the header's count is 
 pixel's (:attr:`Convention.sample_fraction`). ``Convention.how_to`` says, in the renderer's
 own terms, how to make it write a field or change a setting, for messages.
 
+An albedo is a reflectance in [0, 1] to every denoiser (WSKP divides the colour by it and
+multiplies the filtered irradiance back; OIDN clips it to [0, 1]), but Cycles' Denoising
+Albedo also holds the light its camera paths see: on a pixel that sees a lamp it is the
+Emission pass plus the surface's albedo (values up to the lamp's strength), where it sees
+the sky the Environment pass, and light met through near-specular surfaces, weighted by
+their colour (Cycles' ``film_write_emission_or_background_pass`` adds every emission or
+background contribution to the Denoising Albedo while the path still gathers denoising
+features). :attr:`Convention.albedo_includes_emission` names such albedo channels; they are
+read clipped to [0, 1], as OIDN and Blender's own denoiser read them: a pixel that sees a
+lamp gets albedo 1 (white), not the lamp's strength. Measured on two Cycles scenes with a lamp
+in view (``experiments/results/renderers/cycles-emission.md``), the clip serves OIDN better
+than the surfaces' own albedo (the Denoising Albedo minus the Emission pass) and WSKP-6 with
+``:emission=separate`` as well; the raw values made WSKP-6 brighten the lamp.
+
 Checked against files the renderers wrote: Blender 5.0.1 Cycles (``bpy`` from PyPI, multilayer
 EXR with every pass a user may enable, denoised and adaptive renders among them:
 ``experiments/renderers/cycles_fixtures.py``, ``tests/data/cycles/``; the older pass names
@@ -105,6 +119,10 @@ class Convention:
     #: How to make the renderer write a field (keyed by field) or turn off a setting (keys
     #: "denoise", "adaptive", "file"), in its own terms, for messages.
     how_to: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    #: Albedo channel sets (among ``fields["albedo"]``) that hold the light the renderer's
+    #: camera paths see besides the surfaces' reflectance (Blender's Denoising Albedo: the
+    #: emission of the lamps it sees): read clipped to [0, 1] (module docstring).
+    albedo_includes_emission: tuple[tuple[str, ...], ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -155,6 +173,7 @@ CONVENTIONS: dict[str, Convention] = {
                 "emission": (_rgb("{layer}.Emission."), _rgb("{layer}.Emit."))},
         denoised_colour=_rgb("{layer}.Combined."),
         sample_fraction="{layer}.Debug Sample Count.X",
+        albedo_includes_emission=(_rgb("{layer}.Denoising Albedo."),),
         how_to={
             "color": "enable View Layer Properties > Passes > Data > Combined",
             "albedo": "enable View Layer Properties > Passes > Data > Denoising Data (or "

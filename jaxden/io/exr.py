@@ -410,6 +410,9 @@ def read_frame(
     ``on_note``: called with one line (without the path) for what the reading decided that a
     user may want to know: the colour taken from a denoised render's raw pass, the sample
     count dropped for adaptive sampling.
+    The albedo is a reflectance in [0, 1]: a convention's albedo that holds light (Cycles'
+    Denoising Albedo: the emission of the lamps it sees) is read clipped to [0, 1]; an albedo
+    above 1 otherwise is kept and warned about (one stderr line; :func:`_albedo`).
     """
     path = Path(path)
     if convention is None:
@@ -465,6 +468,9 @@ def read_frame(
     fields: dict[str, Any] = {}
     wanted = [f for f in IMAGE_FIELDS if f in mapping and (keep is None or f in keep
                                                              or f in required)]
+    if "albedo" in wanted and set(mapping["albedo"]) <= present:
+        fields["albedo"] = _albedo(path, all_channels, mapping, convention,
+                                   None if reading is None else reading.layer)
     # Channels no returned field reads go at once, and each field's channels as it is
     # stacked: the peak is the decoded file plus one field, not twice the file (7680 x 4320
     # x 22 channels: 2.9 GB).
@@ -477,7 +483,8 @@ def read_frame(
         if set(names) <= present:
             if field not in wanted:
                 continue
-            fields[field] = np.stack([all_channels[c] for c in names], axis=-1)
+            if field not in fields:
+                fields[field] = np.stack([all_channels[c] for c in names], axis=-1)
             if field == "depth" and convention is not None:
                 fields[field] = _depth_misses(fields[field], names, convention,
                                               reading.layer)
@@ -585,6 +592,45 @@ def _adaptive_sampling(path, header, fraction, convention, spp, spp_override, on
                 "pixels): no one sample count holds for every pixel, so the header's"
                 + ("" if said is None else f" {float(said):g}") + " is not used")
     return {key: value for key, value in header.items() if key != "spp"}
+
+
+#: Above this an albedo is no reflectance (float rounding of a white surface stays below).
+ALBEDO_LIMIT = 1.001
+_warned: set[str] = set()  # warnings printed in this process (a dataset's files repeat them)
+
+
+def _warn_once(path, line: str, key: str) -> None:
+    """One ``jaxden: warning:`` line on stderr the first time this process meets ``key``."""
+    if key in _warned:
+        return
+    _warned.add(key)
+    print(f"jaxden: warning: {path}: {line}", file=sys.stderr, flush=True)
+
+
+def _albedo(path, all_channels, mapping, convention, layer) -> np.ndarray:
+    """The albedo field, (H, W, 3), a reflectance in [0, 1]. Channels that a convention's
+    renderer adds the light its camera paths see to (Cycles' Denoising Albedo:
+    :attr:`~jaxden.io.conventions.Convention.albedo_includes_emission`) are read clipped to
+    [0, 1], as OIDN reads them (a lamp pixel is white). Any other albedo above 1
+    (:data:`ALBEDO_LIMIT`) is kept, with one warning line on stderr (once per process)."""
+    from jaxden.io.conventions import CONVENTIONS
+
+    names = tuple(mapping["albedo"])
+    albedo = np.stack([all_channels[c] for c in names], axis=-1)
+    rule = CONVENTIONS.get(convention) if convention is not None else None
+    if rule is not None and names in {tuple(n.replace("{layer}", layer or "") for n in c)
+                                      for c in rule.albedo_includes_emission}:
+        return np.clip(albedo, 0.0, 1.0)
+    over = albedo > ALBEDO_LIMIT
+    if over.any():
+        _warn_once(path, f"the albedo is above 1 on {int(over.any(axis=-1).sum())} pixel(s) "
+                         f"(up to {float(albedo.max()):.4g}), but an albedo is a reflectance "
+                         f"in [0, 1]: WSKP divides the colour by it, which brightens or darkens "
+                         f"those pixels, and OIDN clips it at 1. Blender's Denoising Albedo "
+                         f"holds the emission of the lamps it sees: read Cycles renders with "
+                         f"--from cycles (merge them again), which clips it",
+                   key="albedo above 1")
+    return albedo
 
 
 def _depth_misses(depth, names, convention, layer):
