@@ -185,9 +185,9 @@ def test_the_albedo_named_by_hand_is_read_alike():
 def test_an_albedo_above_1_that_nothing_explains_is_one_warning(tmp_path, capsys, monkeypatch):
     """A file in jaxden's channels whose albedo is Blender's raw Denoising Albedo (merged
     before jaxden clipped it): kept as it is, one warning line, once a process."""
-    from jaxden.io import exr
+    from jaxden.io import reading_checks
 
-    monkeypatch.setattr(exr, "_warned", set())
+    monkeypatch.setattr(reading_checks, "_warned", set())
     frame = read_frame(PASSES, convention="cycles")
     raw = _stored(PASSES, "Denoising Albedo")
     path = tmp_path / "old.exr"
@@ -203,7 +203,7 @@ def test_an_albedo_above_1_that_nothing_explains_is_one_warning(tmp_path, capsys
     read_frame(path)
     assert capsys.readouterr().err == ""
     write_frame(tmp_path / "fine.exr", frame)  # an albedo in [0, 1]: nothing said
-    monkeypatch.setattr(exr, "_warned", set())
+    monkeypatch.setattr(reading_checks, "_warned", set())
     read_frame(tmp_path / "fine.exr")
     assert capsys.readouterr().err == ""
 

@@ -92,6 +92,9 @@ from jaxden.errors import ExrError
 #: the per-sample variance (divided by the sample count on reading), or none written.
 VARIANCE_KINDS = ("mean", "sample", "none")
 
+#: The header attribute (``jaxden.written_by_jaxden``) of every file jaxden writes.
+WRITTEN_BY_JAXDEN = "written_by_jaxden"
+
 
 @dataclasses.dataclass(frozen=True)
 class Convention:
