@@ -90,12 +90,11 @@ def main(argv: list[str] | None = None) -> int:
     code = None
     try:
         if args.command in ("train", "sweep"):
-            # One JAX device per core on a CPU (1.5-1.9x faster data-parallel steps on 2
-            # cores), before JAX creates its backend; XLA_FLAGS or JAXDEN_CPU_DEVICES override.
-            # Not for `bench`: its timings are of single-device inference, which a second
-            # device slows (OIDN-JAX at 1280x720: 4.82 s on one device, 5.76 s with two, on
-            # the 2-core machine), as `denoise` and `progressive` run it; `bench sharding`
-            # starts its own two-device processes.
+            # One JAX device per core on a CPU (data-parallel steps; docs/scaling.md), before
+            # JAX creates its backend; XLA_FLAGS or JAXDEN_CPU_DEVICES override. Not for
+            # `bench`: it times single-device inference as `denoise` and `progressive` run it,
+            # which a second device slows (measured: docs/history.md, "Benchmarks");
+            # `bench sharding` starts its own two-device processes.
             distributed.use_all_cores()
         from jaxden.compile_cache import enable_compilation_cache
 
