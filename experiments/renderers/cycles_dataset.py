@@ -17,8 +17,8 @@ default, as the references WSKP-6 was trained against, experiments/configs/datas
 Every render has its own seed (CRC-32 of its file name and --seed). Multilayer EXR, 32-bit
 float, with the Combined, Depth, Emission and Denoising Albedo / Normal / Depth passes, which
 `--from cycles` reads as the colour and WSKP-6's features (colour, albedo, normal, depth; the
-Emission pass takes the lamps' emission out of the Denoising Albedo and is kept as the
-frames' emission, for ``:emission=separate``). The
+Denoising Albedo, which holds the light of the lamps it sees, is read clipped to [0, 1], and
+the Emission pass is kept as the frames' emission, for ``:emission=separate``). The
 defaults make 9 scenes of 2 views at 256 x 256: 12 views to train on (scenes 0-5), 2 to
 validate (scene 6) and 4 held out (scenes 7, 8).
 
@@ -222,8 +222,8 @@ def build_scene(scene_seed: int, width: int, height: int):
     scene.collection.objects.link(camera)
     scene.camera = camera
     store_denoising_passes(scene)
-    # The Denoising Albedo holds the emission of the bulbs it sees; --from cycles takes the
-    # Emission pass out of it (docs/renderers.md).
+    # The Denoising Albedo holds the emission of the bulbs it sees (--from cycles reads it
+    # clipped to [0, 1]); the Emission pass is the frames' emission (docs/renderers.md).
     scene.view_layers[0].use_pass_emit = True
     return scene, (centre[0], centre[1], 0.5)
 
