@@ -139,3 +139,17 @@ def test_version(capsys):
         main(["--version"])
     assert info.value.code == 0 and capsys.readouterr().out.strip() == f"jaxden {__version__}"
 
+
+
+def test_sure_cache_takes_the_sure_settings_flags():
+    """`jaxden dataset sure-cache` reads its SURE options as one SureSettings, through the
+    same flags as `jaxden sure` (unset: the mixer's defaults)."""
+    from jaxden.cli import build_parser
+    from jaxden.cli.options import sure_settings
+    from jaxden.sure import SureSettings
+
+    args = build_parser().parse_args(["dataset", "sure-cache", "D", "--denoiser", "oidn",
+                                      "--probes", "2", "--covariance", "--seed", "3"])
+    assert sure_settings(args) == SureSettings(probes=2, covariance=True, seed=3)
+    args = build_parser().parse_args(["dataset", "sure-cache", "D", "--denoiser", "oidn"])
+    assert sure_settings(args) == SureSettings()

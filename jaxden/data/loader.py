@@ -164,7 +164,8 @@ class DatasetLoader:
             missing = [s for s in spp if s not in levels]
             if missing:
                 raise DatasetError(
-                    f"spp level(s) {missing} are not in {self.directory}; it has {levels}"
+                    f"spp level(s) {missing} are not in {self.directory}; it has {levels} "
+                    f"(leave data.spp unset to take every level it has, or name some of these)"
                 )
             levels = sorted(set(spp))
         if "variance" in features and 1 in levels:
