@@ -195,7 +195,7 @@ def test_unknown_names_list_shipped_models_and_suggest():
     from jaxden.denoise.registry import load_denoiser
 
     with pytest.raises(CheckpointError, match=r"did you mean 'wskp-6'.*by name: .*wskp-6.*"
-                                              r"oidn-jax; architectures .*wskp_mr"):
+                                              r"oidn-jax.*; architectures .*wskp_mr"):
         load_denoiser("wskp6")
     with pytest.raises(CheckpointError, match="runs/wskp: no such file or folder"):
         load_denoiser("runs/wskp")
