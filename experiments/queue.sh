@@ -61,7 +61,7 @@ step data-pd-rt $J dataset build experiments/configs/dataset-pd-rt.toml --out "$
 closed_form() {  # closed_form BASE
   mkdir -p "$H/runs/pd-closed-form"
   .venv/bin/python -m jaxden.cli evaluate pd --data "$H/data/pd-test-high" \
-    --denoiser "$B/$1" --mixer closed-form --mixer-set sure_covariance=true \
+    --denoiser "$B/$1" --mixer closed-form --mixer-set sure.covariance=true \
     --tstat per_channel=true --probes 1 --keep-current --out "$H/runs/pd-closed-form/$1"
 }
 base_steps() {  # base_steps BASE: the base, its covariance-SURE mixer, Eq. 9 alone over it

@@ -206,7 +206,8 @@ def upgrade_mixer_config(data: Mapping[str, Any]) -> dict[str, Any]:
     both = sorted(set(flat) & set(table))
     if both:
         raise ConfigError(f"MixerConfig: {', '.join(f'sure_{k} and sure.{k}' for k in both)} "
-                          f"both given; keep the table [model_config.sure] only")
+                          f"both given; keep the table [model_config.sure] only (as an "
+                          f"override: {', '.join(f'sure.{k}=VALUE' for k in both)})")
     data["sure"] = {**flat, **table}
     return data
 
