@@ -37,7 +37,8 @@ def test_the_page_names_its_files_and_commands():
     assert "file:my_filter.py" in kinds and "file:test_my_filter.py" in kinds
     commands = "\n".join(text for kind, text in page_blocks() if kind == "bash")
     for command in ("jaxden sure", "jaxden progressive", "jaxden train", "jaxden evaluate denoise",
-                    "jaxden evaluate pd", "jaxden sweep", "--executor local", "pytest"):
+                    "jaxden evaluate pd", "jaxden sweep", "--executor local", "pytest",
+                    "jaxden evaluate my-rmse"):
         assert command in commands, command
 
 
@@ -59,7 +60,8 @@ def test_the_page_runs_as_written(tmp_path):
         assert done.returncode == 0, (text, done.stdout[-3000:], done.stderr[-3000:])
         assert "Traceback" not in done.stderr, (text, done.stderr[-3000:])
     for output in ("frame.sure.exr", "frame.pd-closed.exr", "frame.pd-shipped.exr",
-                   "frame.pd-trained.exr", "results/kernelnet.json", "results/pd-guided-blur.json"):
+                   "frame.pd-trained.exr", "results/kernelnet.json", "results/pd-guided-blur.json",
+                   "results/my-rmse.json"):
         assert (work / output).is_file(), output
     runs = sorted(p.parent.name for p in
                   (tmp_path / "home" / "runs" / "sweep-kernelnet").glob("*/result.json"))
