@@ -176,12 +176,8 @@ def _import_name(spec: str, origin: str):
                 f"nor in {here}); give the path of its .py file or install it") from None
         sys.path.insert(0, here)  # as `python -m` would: the user's own folder
         return _import_name(spec, origin)
-    except (KeyboardInterrupt, SystemExit):
-        raise
-    except ConfigError as error:
-        if isinstance(error, PluginError):
-            raise
-        raise  # a clash or bad registration inside the plugin: its own one line
+    except (KeyboardInterrupt, SystemExit, ConfigError):
+        raise  # a ConfigError (a clash, a bad registration) is already its own one line
     except BaseException as error:  # noqa: BLE001 - any failure of the user's code
         raise _failure(spec, origin, error) from None
 

@@ -79,11 +79,13 @@ class Registry(dict):
         self.owners[name] = owner
         return entry
 
-    def clash_message(self, name: str, owner: str, held_by: str) -> str:
+    def clash_message(self, name: str, owner: str, held_by: str, what: str | None = None) -> str:
+        """One line: ``owner``'s ``what`` (default: this registry's kind) called ``name``
+        clashes with this registry's entry that ``held_by`` registered."""
         holder = (f"jaxden's built-in {self.what}" if is_built_in(held_by)
                   else f"the {self.what} of module '{held_by}'")
-        return (f"{self.what} name {name!r} from module '{owner}' clashes with {holder} "
-                f"{name!r}; register it under another name")
+        return (f"{what or self.what} name {name!r} from module '{owner}' clashes with "
+                f"{holder} {name!r}; register it under another name")
 
     def find(self, name: str) -> Any:
         """The entry ``name``; when it is missing, the plugins that ``JAXDEN_PLUGINS`` and
@@ -111,8 +113,4 @@ def check_free(name: str, what: str, owner: str, *others: Registry) -> None:
     for registry in others:
         held_by = registry.owner(name)
         if held_by is not None and held_by != owner:
-            raise PluginClashError(
-                f"{what} name {name!r} from module '{owner}' clashes with "
-                + (f"jaxden's built-in {registry.what}" if is_built_in(held_by)
-                   else f"the {registry.what} of module '{held_by}'") + f" {name!r}; "
-                "register it under another name")
+            raise PluginClashError(registry.clash_message(name, owner, held_by, what))

@@ -160,7 +160,8 @@ def build_sure_cache(dataset_dir, denoiser_spec, out_dir=None, *,
         stored = load_cache_manifest(directory)
         if stored is not None:
             differences = config_diff(stored.get("identity", {}), identity)
-            if differences and all(d.startswith("denoiser.code_sha256:") for d in differences):
+            if differences and not config_diff(_without_code(stored.get("identity", {})),
+                                               _without_code(identity)):
                 # Same denoiser, weights and settings, other code: what the old code computed
                 # is not this denoiser's output. Recompute in place: without the records,
                 # each file is judged by its header's cache key, the old code's.
@@ -266,6 +267,14 @@ def build_sure_cache(dataset_dir, denoiser_spec, out_dir=None, *,
                 bar.close()
             save()
     return SureCache(dataset_dir, directory)
+
+
+def _without_code(identity: dict) -> dict:
+    """A cache identity without the denoiser's code hash (what stays equal when only the
+    denoiser's code changed)."""
+    denoiser = {k: v for k, v in dict(identity.get("denoiser") or {}).items()
+                if k != "code_sha256"}
+    return {**identity, "denoiser": denoiser}
 
 
 def _finished(directory: Path, manifest, identity: dict, cache_key: str) -> bool:
