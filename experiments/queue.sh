@@ -29,6 +29,11 @@ step() {  # step NAME COMMAND...: run unless $H/done/NAME exists, time it
     echo "queue: $name FAILED (exit $?)"; return 1
   fi
 }
+# The comparisons of both papers (SVGF, BMFR, NBGD, MR-KP, NFOR, the Deep Combiner): the
+# real-time sets their tables are measured on and the trained baselines learn from, first.
+step data-rt-test $J dataset build experiments/configs/dataset-rt-test.toml --out "$H/data/rt-test" || exit 1
+step data-rt-seq $J dataset sequences experiments/configs/sequences-rt-test.toml --out "$H/data/rt-seq" --quiet || exit 1
+step data-rt $J dataset build experiments/configs/dataset-rt.toml --out "$H/data/rt" || exit 1
 # Progressive denoising on every pixel (lamps, highlights): the held-out sets every shipped
 # mixer is measured on, the stress set built to break it first (experiments/configs/
 # dataset-stress.toml, full frames with small emitters, glints and caustics), then the rest.
