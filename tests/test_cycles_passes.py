@@ -419,3 +419,42 @@ def test_a_jaxden_render_is_not_taken_for_a_denoised_image(tmp_path):
     frame = read_frame(PASSES, convention="cycles")
     write_frame(tmp_path / "r.exr", frame.replace(spp=np.float32(4)))
     assert read_frame(tmp_path / "r.exr", refuse_denoised=True).color is not None
+
+
+@pytest.mark.parametrize("merged", [False, True])
+def test_a_cycles_frame_keeps_its_lamp_out_of_the_filter_by_default(tmp_path, capsys, merged):
+    """Cycles' Denoising Albedo holds the lamp's emission (read clipped to [0, 1]), so
+    `denoise` on a Cycles render, read directly or merged, runs the denoiser with
+    emission=separate unless told otherwise: the output equals the explicit spec's and the
+    note says so; `:emission=filter` keeps the old filter (a different image on the lamp)."""
+    from jaxden.io.exr import read_image
+
+    if merged:
+        source = tmp_path / "merged.exr"
+        renders = [CYCLES / f"passes-seed{s}.exr" for s in (1, 2)]
+        assert run_cli(["merge", *renders, "--from", "cycles", "--out", source], capsys)[0] == 0
+        reading: list[str] = []
+    else:
+        source, reading = PASSES, ["--from", "cycles"]
+
+    def denoise(model, name):
+        code, lines, _ = run_cli(["denoise", source, *reading, "--model", model, "--out",
+                                  tmp_path / name], capsys)
+        assert code == 0, lines
+        return read_image(tmp_path / name), " ".join(lines)
+
+    default, said = denoise("wskp-6", "default.exr")
+    separate, said_explicit = denoise("wskp-6:emission=separate", "separate.exr")
+    filtered, said_filter = denoise("wskp-6:emission=filter", "filter.exr")
+    np.testing.assert_array_equal(default, separate)
+    assert "wskp-6:emission=separate" in said and "emission is kept out of the filter" in said
+    assert "kept out of the filter" not in said_explicit + said_filter
+    lamp = read_frame(source, convention=None if merged else "cycles").emission.max(-1) > 0
+    assert lamp.any() and not np.allclose(filtered[lamp], default[lamp], rtol=0.05)
+
+
+def test_a_cycles_frame_without_an_emission_pass_is_filtered_as_before(tmp_path, capsys):
+    path = _copy(tmp_path, PASSES, drop=("Emission",))
+    code, lines, _ = run_cli(["denoise", path, "--from", "cycles", "--model", "wskp-6",
+                              "--out", tmp_path / "d.exr"], capsys)
+    assert code == 0 and "kept out of the filter" not in " ".join(lines), lines

@@ -34,6 +34,7 @@ from jaxden.cli.options import (
     add_overwrite_input_option,
     channel_map,
     check_finite_result,
+    emission_spec,
     exr_outputs,
     feature_notice,
     read_input_frame,
@@ -52,7 +53,7 @@ def cmd_denoise(args: argparse.Namespace) -> int:
 
     (out,) = exr_outputs(("--out", args.out), inputs=(args.input,),
                          overwrite_input=args.overwrite_input)
-    denoiser = load_denoiser(args.model)
+    denoiser = load_denoiser(emission_spec(args.model, args.input, args))
     required = denoiser.definition.required(denoiser.config)
     mapping = channel_map(args) or {}
     frame = read_frame(args.input, require=(*required, *(f for f in mapping if f not in required)),
@@ -87,7 +88,7 @@ def cmd_sure(args: argparse.Namespace) -> int:
     (out,) = exr_outputs(("--out", args.out), inputs=(args.input, *(args.buffers or ())),
                          overwrite_input=args.overwrite_input)
     settings = sure_settings(args).resolved()
-    denoiser = load_denoiser(args.denoiser)
+    denoiser = load_denoiser(emission_spec(args.denoiser, args.input, args))
     frame = read_input_frame(args, "jaxden sure", None if args.buffers else denoiser,
                              covariance=settings.covariance)
     feature_notice(frame, denoiser, args.input)
@@ -239,7 +240,7 @@ def cmd_progressive(args: argparse.Namespace) -> int:
     else:
         params, config = load_mixer(args.mixer)
     settings = sure_settings(args).over(config.sure)  # an unset option: the mixer's
-    denoiser = load_denoiser(args.denoiser)
+    denoiser = load_denoiser(emission_spec(args.denoiser, args.input, args))
     frame = read_input_frame(args, "jaxden progressive", denoiser,
                              covariance=settings.covariance and not args.buffers)
     feature_notice(frame, denoiser, args.input)

@@ -364,3 +364,56 @@ def non_negative_int(text: str) -> int:
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
     return value
+
+
+def emission_spec(spec: str, path, args: argparse.Namespace) -> str:
+    """The denoiser spec to run on ``path``: ``spec`` with ``emission=separate`` added when the
+    file's albedo was read from a renderer whose albedo carries the lamps' light
+    (:attr:`jaxden.io.conventions.Convention.albedo_includes_emission`, Blender Cycles'
+    Denoising Albedo: read clipped to [0, 1], so a lamp pixel's albedo is white, not its
+    reflectance) and the file has the emission beside it; ``spec`` itself otherwise, and
+    whenever it sets ``emission`` (``:emission=filter`` keeps the filter on the lamps).
+
+    The renderer is ``--from`` or, for a file ``jaxden merge`` wrote, the convention its renders
+    were read by (its header's buffer list). Why: a kernel predictor that divides the colour
+    by that albedo spreads a lamp of strength 400 over its neighbours (WSKP-6: 16-72x MC's
+    RMSE on Cycles frames with a visible lamp), and keeping the emission out of the filter puts
+    it at or below MC (experiments/results/renderers/cycles-emission.md). One note line on
+    stderr says what was decided."""
+    from jaxden.data.merge import buffer_list
+    from jaxden.denoise.registry import split_spec
+    from jaxden.frame import CHANNELS
+    from jaxden.io.conventions import CONVENTIONS, resolve
+    from jaxden.io.exr import read_header
+
+    if "emission" in split_spec(spec)[1]:
+        return spec
+    convention = getattr(args, "convention", None)
+    header = read_header(path)
+    if convention in (None, "jaxden"):
+        listed = buffer_list(header, str(path))
+        if listed is None or listed.convention is None:
+            return spec
+        rule = CONVENTIONS.get(listed.convention)
+        has_emission = set(CHANNELS["emission"]) <= set(header["channels"])
+        mapped = dict(getattr(args, "channels", None) or ()).get("emission")
+        has_emission = has_emission or (mapped is not None
+                                        and set(mapped) <= set(header["channels"]))
+    else:
+        rule = CONVENTIONS.get(convention)
+        mapped = dict(getattr(args, "channels", None) or ()).get("emission")
+        if mapped is not None:
+            has_emission = set(mapped) <= set(header["channels"])
+        else:
+            reading = resolve(convention, header["channels"], header,
+                              layer=getattr(args, "layer", None), where=str(path))
+            names = reading.mapping.get("emission")
+            has_emission = names is not None and set(names) <= set(header["channels"])
+    if rule is None or not rule.albedo_includes_emission or not has_emission:
+        return spec
+    text = str(spec)
+    joined = f"{text},emission=separate" if split_spec(spec)[1] else f"{text}:emission=separate"
+    stderr(f"jaxden: note: {path}: the albedo comes from {rule.name}, whose albedo holds the "
+           f"lamps' emission (read clipped to [0, 1]); the emission is kept out of the filter "
+           f"({joined}; add :emission=filter to filter it)")
+    return joined
