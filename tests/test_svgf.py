@@ -482,3 +482,24 @@ def test_receptive_field_is_the_tiling_radius():
     delta = np.abs(np.asarray(S.svgf_spatial(bumped, cfg) - S.svgf_spatial(frame, cfg)))
     ys, xs = np.nonzero(delta.max(-1) > 0)
     assert max(np.abs(ys - 12).max(), np.abs(xs - 12).max()) == radius
+
+
+def test_the_registered_svgf_runs_a_sequence_as_svgf_sequence_does():
+    """`load_denoiser("svgf")` carries SVGF's temporal form: Denoiser.sequence over frames
+    equals svgf_sequence (the history carried, not the spatial form per frame), and its
+    emission-separated form adds each frame's emission to the filtered rest."""
+    reference, frames = static_sequence(4, seed=23, h=16, w=16)
+    den = load_denoiser("svgf")
+    assert den.temporal
+    got = den.sequence(frames)
+    for g, w in zip(got, S.svgf_sequence(frames)):
+        assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-5, atol=1e-6)
+    spatial = np.asarray(den(frames[3]))
+    assert not np.allclose(np.asarray(got[3]), spatial, rtol=1e-3)
+    emission = [np.zeros((16, 16, 3), np.float32) for _ in frames]
+    emission[2][5, 6] = 50.0
+    lit = [f.replace(color=np.asarray(f.color) + e, emission=e) for f, e in zip(frames, emission)]
+    separated = load_denoiser("svgf:emission=separate").sequence(lit)
+    for t in range(4):
+        assert_allclose(np.asarray(separated[t]) - emission[t], np.asarray(got[t]),
+                        rtol=1e-4, atol=1e-5)

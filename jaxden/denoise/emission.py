@@ -108,3 +108,18 @@ def separated_apply(apply: Callable, name: str, differentiable: bool) -> Callabl
                                  who=f"denoiser '{name}'")
 
     return apply_separated
+
+
+def separated_step(step: Callable) -> Callable:
+    """A temporal form ``step(params, config, state, frame) -> (image, state)`` with the
+    emission kept out of the filter: the history holds the rest of the radiance, and each
+    frame's emission is added to its image (JAX denoisers)."""
+
+    def step_separated(params, config, state, frame: Frame):
+        require_emission(frame, "this temporal denoiser")
+        emission = jnp.asarray(frame.emission, jnp.float32)
+        rest = rest_of_radiance(jnp.asarray(frame.color, jnp.float32), emission, jnp)
+        image, state = step(params, config, state, frame.replace(color=rest))
+        return jnp.asarray(image, jnp.float32) + emission, state
+
+    return step_separated

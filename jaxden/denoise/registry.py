@@ -35,7 +35,7 @@ from typing import Any
 
 import jax
 
-from jaxden.denoise.emission import EMISSION_MODES, separated_apply
+from jaxden.denoise.emission import EMISSION_MODES, separated_apply, separated_step
 from jaxden.errors import CheckpointError, ConfigError
 from jaxden.frame import Frame
 from jaxden.paths import WEIGHTS_DIR, resolve_weights, shipped_weights_file
@@ -58,6 +58,10 @@ class DenoiserDef:
     fields it uses when a frame has them (OIDN's albedo and normal); ``options``: its own
     spec options ``((KEY, (VALUE, ...)), ...)``, the first value the default, and
     ``configure(config, {KEY: VALUE}) -> config`` applies them (:func:`with_options`).
+    ``step(params, config, state, frame) -> (image, state)``: a temporal method's form over a
+    sequence (``state`` None before the first frame; the frames of one sequence share their
+    size): SVGF, BMFR; ``apply`` is then its single-frame (spatial) part. None: frames are
+    independent (:meth:`Denoiser.sequence` runs ``apply`` on each).
     """
 
     name: str
@@ -72,6 +76,7 @@ class DenoiserDef:
     optional: Callable[[Any], tuple[str, ...]] | None = None  # fields used when present
     options: tuple[tuple[str, tuple[str, ...]], ...] = ()
     configure: Callable[[Any, dict[str, str]], Any] | None = None
+    step: Callable[[Any, Any, Any, Frame], tuple[Any, Any]] | None = None
 
 
 #: Every denoiser by name: jaxden's own and those of plugins (:mod:`jaxden.plugins`).
@@ -243,6 +248,36 @@ class Denoiser:
         self.check_frame(frame)
         return self.function()(frame)
 
+    @property
+    def temporal(self) -> bool:
+        """Whether it has a temporal form (history carried from frame to frame)."""
+        return self.definition.step is not None
+
+    @functools.cached_property
+    def _jitted_step(self):
+        definition, config = self.definition, self.config
+        if not self.differentiable:
+            return lambda params, state, frame: definition.step(params, config, state, frame)
+        return jax.jit(lambda params, state, frame: definition.step(params, config, state, frame))
+
+    def step(self, state, frame: Frame):
+        """One frame of a sequence: ``(image, state)``; ``state`` None for the first frame.
+        A denoiser without a temporal form returns ``(self(frame), None)``. Compiled once per
+        frame size (twice in all: the first frame has no state)."""
+        self.check_frame(frame)
+        if self.definition.step is None:
+            return self.function()(frame), None
+        return self._jitted_step(self.params, state, frame)
+
+    def sequence(self, frames) -> list:
+        """The images of consecutive frames of one sequence, in order (history carried
+        through a temporal form; each frame alone otherwise)."""
+        state, images = None, []
+        for frame in frames:
+            image, state = self.step(state, frame)
+            images.append(image)
+        return images
+
     def deployed(self) -> Denoiser:
         """The inference form: RepVGG blocks folded into single 5x5 convolutions (same outputs
         to float round-off, fewer operations). Models without RepVGG blocks are returned as is."""
@@ -341,6 +376,7 @@ def emission_separated(definition: DenoiserDef) -> DenoiserDef:
         optional=definition.optional,
         options=definition.options,
         configure=definition.configure,
+        step=None if definition.step is None else separated_step(definition.step),
     )
 
 

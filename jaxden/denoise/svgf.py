@@ -514,4 +514,5 @@ register(DenoiserDef(
     tiling=lambda config: TileSpec(radius=svgf_radius(config)),
     options=(("preset", tuple(SVGF_PRESETS)),),
     configure=_configure,
+    step=lambda params, config, state, frame: svgf_step(state, frame, config),
 ))
