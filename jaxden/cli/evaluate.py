@@ -35,7 +35,8 @@ and config, seeds, weights hashes) and OUT.md (the tables). Examples:
   # the tile oracle cross-fitted on an independent render, beside a PD result
   jaxden evaluate oracle --data $JAXDEN_HOME/data/test-chain \\
       --report experiments/results/pd/pd-oidn-test-shipped.json --out OUT
-  # a denoiser's PSNR / SSIM / relMSE / FLIP at 1 spp, or per frame of sequences
+  # a denoiser's PSNR / SSIM / relMSE / FLIP at 1 spp (and, where the frames carry the
+  # emission, relMSE and mean brightness on the lamp pixels), or per frame of sequences
   jaxden evaluate denoise --data $JAXDEN_HOME/data/rt-test --denoiser wskp-6 --out OUT
   jaxden evaluate sequences --data $JAXDEN_HOME/data/rt-seq --denoiser wskp-6 --out OUT
 
