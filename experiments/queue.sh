@@ -142,6 +142,9 @@ step finetune-wskp6-cycles "${X[@]}" $J train experiments/configs/finetune-wskp6
   --workdir "$H/runs/finetune-wskp6-cycles"
 step cycles-wskp6-stock cycles_eval wskp-6 cycles-wskp6-stock
 step cycles-wskp6-finetuned cycles_eval "$H/runs/finetune-wskp6-cycles" cycles-wskp6-finetuned
+step cycles-wskp6-stock-separate cycles_eval wskp-6:emission=separate cycles-wskp6-stock-separate
+step cycles-wskp6-finetuned-separate cycles_eval "$H/runs/finetune-wskp6-cycles:emission=separate" \
+  cycles-wskp6-finetuned-separate
 step cycles-wskp6-gain .venv/bin/python experiments/finetune_gain.py \
   --stock experiments/results/renderers/cycles-wskp6-stock.json \
   --tuned experiments/results/renderers/cycles-wskp6-finetuned.json \
