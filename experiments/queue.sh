@@ -48,6 +48,23 @@ step data-test-high-chain $J dataset build experiments/configs/dataset-test-high
 # The mixers' training set, and the paper's f_act mixer over the shipped WSKP-6 (the recipe of
 # wskp-6-pd with the f_act head of the paper's Table 4): measured beside the shipped mixers.
 step data-pd-rt4k $J dataset build experiments/configs/dataset-pd-rt4k.toml --out "$H/data/pd-rt4k"
+# The Deep Combiner over OIDN in JAX, two seeds, on the mixers' training set, and the
+# progressive-denoising paper's Fig. 11 on pd-test-high: MC, OIDN, DC, PD(OIDN), PD(DC)
+# (into $H/runs/pd-fig11; `python experiments/pd_fig11.py` tabulates them).
+step dc-oidn-s0 "${X[@]}" $J train experiments/configs/train-dc.toml --workdir "$H/runs/dc-oidn-s0"
+fig11_pd() {  # fig11_pd DENOISER MIXER NAME
+  mkdir -p "$H/runs/pd-fig11"
+  if [ "$2" = closed-form ]; then
+    set -- "$1" "$2" "$3" --mixer-set sure.covariance=true --tstat per_channel=true --probes 1
+  fi
+  .venv/bin/python -m jaxden.cli evaluate pd --data "$H/data/pd-test-high" --denoiser "$1" \
+    --mixer "$2" --keep-current --out "$H/runs/pd-fig11/$3" "${@:4}"
+}
+step fig11-pd-dc-s0 fig11_pd "$H/runs/dc-oidn-s0" closed-form pd-dc-s0
+step fig11-pd-oidn-closed-form fig11_pd oidn-jax closed-form pd-oidn-closed-form
+step fig11-pd-oidn fig11_pd oidn-jax oidn-pd pd-oidn
+step dc-oidn-s1 "${X[@]}" $J train experiments/configs/train-dc.toml seed=1 --workdir "$H/runs/dc-oidn-s1"
+step fig11-pd-dc-s1 fig11_pd "$H/runs/dc-oidn-s1" closed-form pd-dc-s1
 step mixer-wskp6-fact "${X[@]}" $J train experiments/configs/mixer-wskp6.toml \
   data.dataset="$H/data/pd-rt4k" model_config.head=f_act model_config.logit_bound=none \
   model_config.logit_eps=0.001 --workdir "$H/runs/mixer-wskp6-fact"

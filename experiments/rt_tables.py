@@ -22,14 +22,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
+from jaxden.evaluate.seeds import group, single, stats, table
+
 REPO = Path(__file__).resolve().parent.parent
 SWEEPS = ("rt-main", "rt-variants", "rt-ablation", "rt-noise2noise")
-METRICS = (("psnr", "PSNR (dB)", "{:.2f}"), ("ssim", "SSIM", "{:.4f}"),
-           ("relmse", "relMSE", "{:.4f}"), ("flip", "FLIP", "{:.4f}"))
 LABELS = {"wskp": "WSKP-6", "wskp3": "WSKP-3", "kp": "KP (13x13)", "kp1": "KP-1", "kp2": "KP-2",
           "wskp_mr": "WSKP-MR", "unet": "U-Net (hdr, alb, nrm)",
           "wskp_id": "WSKP-6 with a 1 x 1 kernel fused (ours)"}
@@ -42,54 +41,6 @@ def load_results(home: Path) -> dict[str, list[dict]]:
         folder = home / "runs" / "sweeps" / sweep
         out[sweep] = [json.loads(p.read_text()) for p in sorted(folder.glob("*/result.json"))]
     return out
-
-
-def _evaluation(result: dict, kind: str) -> dict | None:
-    for name, value in result.get("evaluations", {}).items():
-        if name.startswith(kind + ":"):
-            return value
-    return None
-
-
-def mean_std(values: list[float]) -> tuple[float, float, int]:
-    n = len(values)
-    mean = sum(values) / n
-    std = math.sqrt(sum((v - mean) ** 2 for v in values) / (n - 1)) if n > 1 else float("nan")
-    return mean, std, n
-
-
-def group(results: list[dict], key) -> dict[str, list[dict]]:
-    groups: dict[str, list[dict]] = {}
-    for result in results:
-        groups.setdefault(key(result), []).append(result)
-    return groups
-
-
-def stats(members: list[dict], kind: str, prefix: str) -> dict[str, tuple[float, float, int]]:
-    out = {}
-    for metric, _, _ in METRICS:
-        values = [e[f"{prefix}_{metric}"] for m in members
-                  if (e := _evaluation(m, kind)) and f"{prefix}_{metric}" in e]
-        if values:
-            out[metric] = mean_std(values)
-    return out
-
-
-def cell(stat, fmt: str) -> str:
-    if stat is None:
-        return "not run"
-    mean, std, n = stat
-    spread = "" if n < 2 else f" ± {fmt.format(std)}"
-    return fmt.format(mean) + spread + ("" if n < 2 else f" ({n} seeds)")
-
-
-def table(rows: list[tuple[str, dict]]) -> str:
-    lines = ["| method | " + " | ".join(m[1] for m in METRICS) + " |",
-             "|---|" + "---:|" * len(METRICS)]
-    for label, row in rows:
-        lines.append(f"| {label} | " + " | ".join(cell(row.get(m), f) for m, _, f in METRICS)
-                     + " |")
-    return "\n".join(lines)
 
 
 def reference_rows(home: Path, cache: Path) -> dict:
@@ -107,13 +58,6 @@ def reference_rows(home: Path, cache: Path) -> dict:
     if seq.is_dir():
         out["seq"] = report.summarize(report.evaluate_sequences(seq, "oidn"))
     return out
-
-
-def single(summary: dict | None, prefix: str) -> dict:
-    if not summary:
-        return {}
-    return {m: (summary[f"{prefix}_{m}"], float("nan"), 1) for m, _, _ in METRICS
-            if f"{prefix}_{m}" in summary}
 
 
 def _compare(a, b):

@@ -815,3 +815,36 @@ def test_probe_noise_rademacher_has_no_diagonal_noise():
         assert values.std(axis=0).min() > 0.01, kind
         error = np.abs(values.mean(axis=0) - 0.5 * variance)
         assert np.all(error < 5 * values.std(axis=0) / np.sqrt(2000)), kind
+
+
+# ------------------------------------------------------------------------- pd_fig11
+def test_pd_fig11_tables_and_claims_from_evaluate_pd_rows(tmp_path):
+    """Means per spp of the columns each run gives, per-crop ratios to MC at the top spp, and
+    the claims decided on those numbers; a missing run is named."""
+    fig11 = load_script("pd_fig11")
+    folder = tmp_path / "home" / "runs" / "pd-fig11"
+    folder.mkdir(parents=True)
+
+    def rows(den, pd):  # two crops at 2 and 4096 spp; MC RMSE 1.0 / 0.01
+        out = []
+        for crop, scale in (("a", 1.0), ("b", 3.0)):
+            for spp, mc in ((2, 1.0), (4096, 0.01)):
+                out.append({"crop": crop, "spp": spp, "mc_rmse": mc * scale,
+                            "mc_relmse": mc, "denoiser_rmse": den[spp] * scale,
+                            "denoiser_relmse": den[spp], "pd_rmse": pd[spp] * scale,
+                            "pd_relmse": pd[spp]})
+        return out
+
+    for name, den, pd in (("pd-oidn", {2: 0.3, 4096: 0.02}, {2: 0.35, 4096: 0.0099}),
+                          ("pd-dc-s0", {2: 0.2, 4096: 0.015}, {2: 0.25, 4096: 0.01})):
+        (folder / f"{name}.json").write_text(json.dumps({"rows": rows(den, pd)}))
+    out = tmp_path / "fig11"
+    assert fig11.main(["--home", str(tmp_path / "home"), "--out", str(out)]) == 0
+    text = (out.with_suffix(".md")).read_text()
+    assert "| 2 | 2 | 0.6 | 0.4 | 0.7 | 0.5 |" in text  # MC, OIDN, DC s0, PD(OIDN), PD(DC s0)
+    assert "- DC s0 below PD over it at 2 spp (RMSE): yes (0.4 against 0.5)" in text
+    assert "- DC s0 above MC at 4096 spp (RMSE): yes (0.03 against MC 0.02)" in text
+    assert "PD(DC s0) at or below MC at the top spp (4096) on every crop: met (worst crop " \
+           "1.0000x" in text
+    assert "| PD(OIDN) | 4096 | 0.9900 | 0 of 2 |" in text
+    assert "Missing: `pd-oidn-closed-form`" in text and "`pd-dc-s1`" in text
