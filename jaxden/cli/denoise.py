@@ -32,46 +32,111 @@ from jaxden.cli.options import (
     add_convention_options,
     add_memory_options,
     add_overwrite_input_option,
+    batch_outputs,
     channel_map,
     check_finite_result,
     emission_spec,
     exr_outputs,
     feature_notice,
+    output_folder,
     read_input_frame,
+    same_file,
     stderr,
     sure_input_options,
     sure_settings,
+)
+from jaxden.cli.batch import (
+    add_skip_existing_option,
+    batch_summary,
+    check_sequence,
+    denoisers_by_input,
+    input_sizes,
+    run_jobs,
+    sequence_step,
 )
 from jaxden.errors import CheckpointError, ConfigError, FrameError
 
 
 def cmd_denoise(args: argparse.Namespace) -> int:
-    from jaxden.cli.options import convention_options, exr_outputs, feature_notice
+    """``jaxden denoise IN [IN ...] --model SPEC (--out OUT.exr | --out-dir DIR)``: each
+    input read, denoised and written in turn by one loaded denoiser (compiled once per frame
+    size); ``--sequence``: the inputs are consecutive frames, a temporal denoiser carries its
+    history from one to the next."""
+    import numpy as np
+
+    from jaxden.cli.options import convention_options
     from jaxden.denoise.registry import load_denoiser
     from jaxden.denoise.tiled import denoise_frame
     from jaxden.io.exr import read_frame, write_image
 
-    (out,) = exr_outputs(("--out", args.out), inputs=(args.input,),
-                         overwrite_input=args.overwrite_input)
-    denoiser = load_denoiser(emission_spec(args.model, args.input, args))
-    required = denoiser.definition.required(denoiser.config)
+    inputs = list(args.input)
+    targets = batch_outputs(inputs, ("--out", args.out), ("--out-dir", args.out_dir))
+    make = args.out_dir is not None and output_folder("--out-dir", args.out_dir)
+    outputs = exr_outputs(*targets, inputs=inputs, overwrite_input=args.overwrite_input,
+                          new_folders=(args.out_dir,) if make else ())
+    base = load_denoiser(args.model)  # first: a spec that cannot load is the error
+    several = len(inputs) > 1
+    sizes = input_sizes(inputs) if several or args.sequence else None
+    denoisers = denoisers_by_input(base, args.model, inputs, args)
+    temporal = args.sequence and base.temporal
+    if temporal:
+        check_sequence(args, inputs, sizes, denoisers)
+    elif args.sequence and several:
+        stderr(f"jaxden: note: {args.model} has no temporal form: --sequence changes nothing, "
+               f"each frame is denoised alone")
+    elif base.temporal and several:
+        stderr(f"jaxden: note: {args.model} has a temporal form, which --sequence uses (the "
+               f"inputs in order as consecutive frames, its history carried from one to the "
+               f"next); without it each frame is denoised alone by its single-frame form")
     mapping = channel_map(args) or {}
-    frame = read_frame(args.input, require=(*required, *(f for f in mapping if f not in required)),
-                       nonfinite=args.nonfinite, channel_map=mapping or None,
-                       keep=denoiser.fields_read(),
-                       **convention_options(args))
-    feature_notice(frame, denoiser, args.input)
+    limit = _memory_limit(args)
+    said: set = set()
+    history = {"state": None, "step": None}
 
-    def tell(plan):
-        if plan.tile:
-            stderr(f"jaxden: {args.input}: tiles of {plan.tile} px + {plan.halo} px overlap")
+    def denoise_one(source, out, denoiser):
+        required = denoiser.definition.required(denoiser.config)
+        keep = (*denoiser.fields_read(), *(("motion",) if temporal else ()))
+        frame = read_frame(source, require=(*required, *(f for f in mapping if f not in required)),
+                           nonfinite=args.nonfinite, channel_map=mapping or None, keep=keep,
+                           **convention_options(args))
+        feature_notice(frame, denoiser, source, said if several else None)
+        if temporal:
+            if history["step"] is None:
+                history["step"] = sequence_step(denoiser, frame, limit, source)
+            elif frame.motion is None and "motion" not in said:
+                said.add("motion")
+                stderr(f"jaxden: note: {source} has no motion vectors (motion.X/Y; name a "
+                       f"renderer's with --channels motion=X,Y): {denoiser.name} carries its "
+                       f"history as if nothing moved")
+            image, history["state"] = history["step"](history["state"], frame)
+            image = np.asarray(image, np.float32)
+        else:
+            def tell(plan):
+                if plan.tile and (plan.tile, plan.halo) not in said:
+                    stderr(f"jaxden: {source}: tiles of {plan.tile} px + {plan.halo} px overlap")
+                    if several:
+                        said.add((plan.tile, plan.halo))
 
-    image, _ = denoise_frame(denoiser, frame, tile=args.tile, limit=_memory_limit(args),
-                             progress=True, on_plan=tell)
-    check_finite_result(image, "the denoised image",
-                        f"{args.input} denoised by {denoiser.name} ({args.model})")
-    write_image(out, image, attributes={"denoiser": denoiser.name, "source": str(args.input)})
-    print(f"wrote {args.out} (denoised by {denoiser.name})")
+            image, _ = denoise_frame(denoiser, frame, tile=args.tile, limit=limit,
+                                     progress=True, on_plan=tell)
+        check_finite_result(image, "the denoised image",
+                            f"{source} denoised by {denoiser.name} ({args.model})")
+        write_image(out, image, attributes={"denoiser": denoiser.name, "source": str(source)})
+
+    jobs = [(source, (out,), denoiser) for source, out, denoiser
+            in zip(inputs, outputs, denoisers)]
+    done = run_jobs(jobs, denoise_one, skip_existing=args.skip_existing,
+                     folders=(args.out_dir,) if make else (), sequence=temporal)
+    if done is None:
+        return 130
+    names = ", ".join(dict.fromkeys(denoiser.name for denoiser in denoisers))
+    if not several:
+        written = args.out if args.out is not None else outputs[0]
+        print(f"skipped {written}: it exists (--skip-existing)" if done[1] else
+              f"wrote {written} (denoised by {names})")
+        return 0
+    print(batch_summary(done, args.out_dir, f"denoised by {names}"
+                   + (", its history carried through the sequence" if temporal else "")))
     return 0
 
 
@@ -183,20 +248,28 @@ def read_buffers(args: argparse.Namespace, frame):
     return colours
 
 
-def buffers_notice(path) -> None:
+def buffers_notice(path, batch: bool = False) -> bool:
     """One stderr line when the input at ``path`` lists the buffers it was made from and
-    ``--buffers`` was not given: they would give sub-buffer SURE."""
+    ``--buffers`` was not given: they would give sub-buffer SURE (``batch``: the input is one
+    of several, which run with --buffers one at a time). Returns whether it was said."""
     from jaxden.data.merge import read_buffer_list
     from jaxden.errors import ExrError
 
     try:
         listed = read_buffer_list(path)
     except ExrError:  # a record --buffers would refuse; without --buffers it changes nothing
-        return
-    if listed is not None:
+        return False
+    if listed is None:
+        return False
+    if batch:
+        stderr(f"jaxden: note: {path} (and maybe other inputs) was made from "
+               f"{len(listed.files)} buffers; one input at a time with --buffers gives "
+               f"sub-buffer SURE (no probes, no Gaussian assumption) instead of probe SURE")
+    else:
         stderr(f"jaxden: note: {path} was made from {len(listed.files)} buffers; --buffers "
                f"{' '.join(listed.files)} gives sub-buffer SURE (no probes, no Gaussian "
                f"assumption) instead of probe SURE")
+    return True
 
 
 def _memory_limit(args: argparse.Namespace) -> int | None:
@@ -207,7 +280,8 @@ def _memory_limit(args: argparse.Namespace) -> int | None:
 
 
 def cmd_progressive(args: argparse.Namespace) -> int:
-    """``jaxden progressive IN.exr --denoiser NAME|CKPT --mixer CKPT --out OUT.exr``."""
+    """``jaxden progressive IN [IN ...] --denoiser NAME|CKPT --mixer CKPT (--out OUT.exr |
+    --out-dir DIR)``: the mixer and the denoiser loaded once, each input run in turn."""
     import warnings
 
     import jax
@@ -220,9 +294,25 @@ def cmd_progressive(args: argparse.Namespace) -> int:
     from jaxden.progressive.pipeline import MixerDenoiserWarning, warn_if_other_denoiser
     from jaxden.progressive.tiled import progressive_frame
 
-    out, alpha_out = exr_outputs(("--out", args.out), ("--alpha", args.alpha),
-                                 inputs=(args.input, *(args.buffers or ())),
-                                 overwrite_input=args.overwrite_input)
+    inputs = list(args.input)
+    several = len(inputs) > 1
+    if args.buffers and several:
+        raise ConfigError(f"--buffers names the sub-buffers of one input, but {len(inputs)} "
+                          f"inputs were given; run each input with its own --buffers")
+    targets = batch_outputs(inputs, ("--out", args.out), ("--out-dir", args.out_dir))
+    alphas = batch_outputs(inputs, ("--alpha", args.alpha), ("--alpha-dir", args.alpha_dir),
+                           required=False)
+    if args.out_dir is not None and args.alpha_dir is not None and same_file(args.out_dir,
+                                                                             args.alpha_dir):
+        raise ConfigError(f"--alpha-dir {args.alpha_dir} is the --out-dir folder: each input's "
+                          f"name would be written twice there; give another folder")
+    folders = [folder for option, folder in (("--out-dir", args.out_dir),
+                                             ("--alpha-dir", args.alpha_dir))
+               if folder is not None and output_folder(option, folder)]
+    checked = exr_outputs(*(pair for both in zip(targets, alphas) for pair in both),
+                          inputs=(*inputs, *(args.buffers or ())),
+                          overwrite_input=args.overwrite_input, new_folders=folders)
+    outputs = list(zip(checked[0::2], checked[1::2]))
     if args.mixer is None:
         from jaxden.denoise.registry import split_spec
         from jaxden.progressive.pipeline import SHIPPED_MIXERS, load_shipped_mixer
@@ -240,59 +330,90 @@ def cmd_progressive(args: argparse.Namespace) -> int:
     else:
         params, config = load_mixer(args.mixer)
     settings = sure_settings(args).over(config.sure)  # an unset option: the mixer's
-    denoiser = load_denoiser(emission_spec(args.denoiser, args.input, args))
-    frame = read_input_frame(args, "jaxden progressive", denoiser,
-                             covariance=settings.covariance and not args.buffers)
-    feature_notice(frame, denoiser, args.input)
-    buffers = read_buffers(args, frame) if args.buffers else None
-    if buffers is None:
-        buffers_notice(args.input)
-    with warnings.catch_warnings():  # said here in one line; the library then stays quiet
-        warnings.simplefilter("ignore", MixerDenoiserWarning)
-        note = warn_if_other_denoiser(config, denoiser, args.denoiser)
-    if note is not None:
-        stderr(f"jaxden: note: {note}")
-    if settings.covariance and frame.covariance is None and buffers is None:
-        stderr(f"jaxden: note: the mixer was trained on SURE from the colour covariance, but "
-               f"{args.input} has none (channels covariance.RG/GB/BR): SURE falls back to the "
-               f"per-channel form, which underestimates the error of a denoiser that mixes "
-               f"channels")
-    keep = ("z", "alpha_prime", "alpha") if alpha_out is not None else ("z",)
+    base = load_denoiser(args.denoiser)  # first: a spec that cannot load is the error
+    if several:
+        input_sizes(inputs)  # every input readable before any work
+    denoisers = denoisers_by_input(base, args.denoiser, inputs, args)
+    keep = ("z", "alpha_prime", "alpha") if args.alpha or args.alpha_dir else ("z",)
+    said: set = set()
+    results: dict = {}
 
-    def tell(plan):
-        if plan.tile:
-            stderr(f"jaxden: {args.input}: {plan.describe(*np.shape(frame.color)[-3:-1])}")
+    def run_one(source, out, alpha_out, denoiser):
+        frame = read_input_frame(args, "jaxden progressive", denoiser,
+                                 covariance=settings.covariance and not args.buffers,
+                                 path=source)
+        feature_notice(frame, denoiser, source, said if several else None)
+        buffers = read_buffers(args, frame) if args.buffers else None
+        if buffers is None and "buffers" not in said and buffers_notice(source, several) \
+                and several:
+            said.add("buffers")
+        if ("mixer", id(denoiser)) not in said:  # once for each denoiser
+            said.add(("mixer", id(denoiser)))
+            with warnings.catch_warnings():  # said here in one line; the library stays quiet
+                warnings.simplefilter("ignore", MixerDenoiserWarning)
+                note = warn_if_other_denoiser(config, denoiser, args.denoiser)
+            if note is not None:
+                stderr(f"jaxden: note: {note}")
+        if settings.covariance and frame.covariance is None and buffers is None and (
+                "covariance" not in said):
+            stderr(f"jaxden: note: the mixer was trained on SURE from the colour covariance, "
+                   f"but {source} has none (channels covariance.RG/GB/BR): SURE falls back to "
+                   f"the per-channel form, which underestimates the error of a denoiser that "
+                   f"mixes channels")
+            if several:
+                said.add("covariance")
 
-    outputs, _ = progressive_frame(
-        frame, denoiser, params, config, jax.random.PRNGKey(settings.seed), sure=settings,
-        tstat=None if args.no_tstat else config.tstat, nonfinite=args.nonfinite,
-        swap_average=args.swap_average, tile=args.tile, limit=_memory_limit(args), keep=keep,
-        progress=True, on_plan=tell, buffers=buffers)
-    z = outputs["z"]
-    swap_average = config.swap_average if args.swap_average is None else args.swap_average
-    attributes = {"source": str(args.input), "denoiser": denoiser.name, "mixer": str(args.mixer),
-                  "probes": settings.probes, "probe_dist": settings.probe_dist,
-                  "seed": settings.seed, "tstat": int(not args.no_tstat),
-                  "swap_average": int(swap_average)}
-    message = f"wrote {out} (progressive denoising: {denoiser.name} + mixer {args.mixer}"
-    if buffers is None:
-        message += ")"
-    else:  # SURE from the sub-buffers: no probes, no seed
-        del attributes["probes"], attributes["probe_dist"], attributes["seed"]
-        attributes |= {"method": "buffers", "buffers": len(buffers)}
-        message += f", SURE from {len(buffers)} sub-buffers)"
-    check_finite_result(z, "the progressive-denoising result",
-                        f"{args.input}, denoiser {args.denoiser} and mixer {args.mixer}")
-    with all_or_nothing():  # --out and --alpha: both or neither
-        write_image(out, np.asarray(z), attributes=attributes)
-        if alpha_out is not None:
-            alpha_prime, alpha = outputs["alpha_prime"], outputs["alpha"]
-            channels = {name: alpha_prime[..., i] for i, name in enumerate(("R", "G", "B"))}
-            channels |= {f"unscaled.{c}": alpha[..., i] for i, c in enumerate("RGB")}
-            write_channels(alpha_out, channels, attributes=attributes)
-            message += (f"; alpha in {alpha_out} (mean alpha {alpha.mean():.4f}, after the "
-                        f"t-test {alpha_prime.mean():.4f})")
-    print(message)
+        def tell(plan):
+            text = plan.describe(*np.shape(frame.color)[-3:-1])
+            if plan.tile and text not in said:
+                stderr(f"jaxden: {source}: {text}")
+                if several:
+                    said.add(text)
+
+        produced, _ = progressive_frame(
+            frame, denoiser, params, config, jax.random.PRNGKey(settings.seed), sure=settings,
+            tstat=None if args.no_tstat else config.tstat, nonfinite=args.nonfinite,
+            swap_average=args.swap_average, tile=args.tile, limit=_memory_limit(args),
+            keep=keep, progress=True, on_plan=tell, buffers=buffers)
+        z = produced["z"]
+        swap_average = config.swap_average if args.swap_average is None else args.swap_average
+        attributes = {"source": str(source), "denoiser": denoiser.name,
+                      "mixer": str(args.mixer), "probes": settings.probes,
+                      "probe_dist": settings.probe_dist, "seed": settings.seed,
+                      "tstat": int(not args.no_tstat), "swap_average": int(swap_average)}
+        message = f"wrote {out} (progressive denoising: {denoiser.name} + mixer {args.mixer}"
+        if buffers is None:
+            message += ")"
+        else:  # SURE from the sub-buffers: no probes, no seed
+            del attributes["probes"], attributes["probe_dist"], attributes["seed"]
+            attributes |= {"method": "buffers", "buffers": len(buffers)}
+            message += f", SURE from {len(buffers)} sub-buffers)"
+        check_finite_result(z, "the progressive-denoising result",
+                            f"{source}, denoiser {args.denoiser} and mixer {args.mixer}")
+        with all_or_nothing():  # the image and its alpha: both or neither
+            write_image(out, np.asarray(z), attributes=attributes)
+            if alpha_out is not None:
+                alpha_prime, alpha = produced["alpha_prime"], produced["alpha"]
+                channels = {name: alpha_prime[..., i] for i, name in enumerate(("R", "G", "B"))}
+                channels |= {f"unscaled.{c}": alpha[..., i] for i, c in enumerate("RGB")}
+                write_channels(alpha_out, channels, attributes=attributes)
+                message += (f"; alpha in {alpha_out} (mean alpha {alpha.mean():.4f}, after the "
+                            f"t-test {alpha_prime.mean():.4f})")
+        results["message"] = message
+
+    jobs = [(source, pair, denoiser) for source, pair, denoiser
+            in zip(inputs, outputs, denoisers)]
+    done = run_jobs(jobs, run_one, skip_existing=args.skip_existing, folders=folders)
+    if done is None:
+        return 130
+    if not several:
+        print(results["message"] if done[0] else
+              f"skipped {outputs[0][0]}: it exists (--skip-existing)")
+        return 0
+    names = ", ".join(dict.fromkeys(denoiser.name for denoiser in denoisers))
+    alpha_text = f"; alpha in {args.alpha_dir}" if args.alpha_dir is not None else ""
+    print(batch_summary(done, args.out_dir, f"progressive denoising: {names} + mixer {args.mixer}")
+          + alpha_text)
     return 0
 
 
@@ -323,14 +444,22 @@ def add_commands(sub) -> None:
                     "alpha before the t-statistic scaling (unscaled.R/G/B). SURE comes from "
                     "random probes, or with --buffers from K sub-buffers of the input.",
     )
-    sure_input_options(p, probes_from_mixer=True)
+    sure_input_options(p, probes_from_mixer=True, several=True)
     p.add_argument("--mixer", default=None,
                    help="trained mixer: a shipped name (oidn-pd), a checkpoint folder of "
                         "`jaxden train` or a .msgpack file; or closed-form[:sigma=S] (the "
                         "paper's Eq. 9 with local means: no weights, any denoiser); default: "
                         "the mixer shipped for --denoiser (oidn-pd for oidn and oidn-jax)")
-    p.add_argument("--out", required=True, help="output .exr")
-    p.add_argument("--alpha", default=None, help="also write the mixing weights to this .exr")
+    p.add_argument("--out", default=None, help="output .exr (one input)")
+    p.add_argument("--out-dir", default=None, metavar="DIR",
+                   help="output folder (made if missing): each input written there under its "
+                        "own file name")
+    p.add_argument("--alpha", default=None,
+                   help="also write the mixing weights to this .exr (one input)")
+    p.add_argument("--alpha-dir", default=None, metavar="DIR",
+                   help="also write each input's mixing weights into this folder, under the "
+                        "input's file name")
+    add_skip_existing_option(p)
     p.add_argument("--buffers", nargs="+", default=None, metavar="BUFFER.exr",
                    help="K >= 2 independent sub-buffer renders (equal spp) whose mean is IN, "
                         "e.g. the renders `jaxden merge` made IN from (then exactly those): "
@@ -347,13 +476,29 @@ def add_commands(sub) -> None:
     add_overwrite_input_option(p)
     p.set_defaults(func=cmd_progressive)
 
-    p = sub.add_parser("denoise", help="denoise an EXR with a registered or trained denoiser")
-    p.add_argument("input", help="input EXR (colour and the features the model needs)")
+    p = sub.add_parser(
+        "denoise", help="denoise EXRs with a registered or trained denoiser",
+        description="Denoises one EXR (--out) or several (--out-dir): the denoiser is loaded "
+                    "once and compiled once per frame size, and each input is read, denoised "
+                    "and written in turn. --sequence: the inputs are consecutive frames of one "
+                    "animation, in the order given, and a temporal denoiser (svgf) carries its "
+                    "history from frame to frame.")
+    p.add_argument("input", nargs="+", metavar="IN",
+                   help="input EXRs (colour and the features the model needs)")
     p.add_argument("--model", required=True,
                    help="oidn, a shipped model name, or a checkpoint folder; add "
                         ":emission=separate to keep the emission (emission.R/G/B) out of the "
                         "filter: D(colour - emission) + emission")
-    p.add_argument("--out", required=True, help="output .exr")
+    p.add_argument("--out", default=None, help="output .exr (one input)")
+    p.add_argument("--out-dir", default=None, metavar="DIR",
+                   help="output folder (made if missing): each input written there under its "
+                        "own file name")
+    p.add_argument("--sequence", action="store_true",
+                   help="the inputs are consecutive frames of one animation, in the order "
+                        "given: a temporal denoiser (svgf) carries its history from one to the "
+                        "next (whole frames of one size; without it each frame is denoised "
+                        "alone)")
+    add_skip_existing_option(p)
     p.add_argument("--nonfinite", choices=("error", "zero"), default="error",
                    help="NaN/inf in the input: refuse (default) or replace by 0")
     add_channels_option(p)

@@ -118,12 +118,13 @@ def channel_map(args: argparse.Namespace) -> dict[str, tuple[str, ...]] | None:
     return mapping or None
 
 
-def feature_notice(frame, denoiser, path) -> None:
+def feature_notice(frame, denoiser, path, said: set | None = None) -> None:
     """On stderr: a model is about to run on features made otherwise than those it was
     trained on (:mod:`jaxden.data.features`: the file's header against the checkpoint's
     record), or OIDN without albedo or normal, which raises its error (measured:
     experiments/results/oidn/oidn-no-features.md), and a mixer trained on OIDN with features
-    then sees inputs unlike its training data."""
+    then sees inputs unlike its training data. ``said``: the notes a command running over
+    several files has given (each is said once, for the first file it concerns)."""
     from jaxden.data.features import warn_frame_features
 
     warn_frame_features(getattr(denoiser, "trained_features", None), path,
@@ -131,6 +132,10 @@ def feature_notice(frame, denoiser, path) -> None:
     if denoiser.name.partition("+")[0] != "oidn":  # also oidn+emission-separate
         return
     lacking = [field for field in ("albedo", "normal") if getattr(frame, field) is None]
+    if said is not None:
+        if ("oidn-features", *lacking) in said:
+            return
+        said.add(("oidn-features", *lacking))
     if lacking:
         from jaxden.frame import CHANNELS
 
@@ -141,13 +146,15 @@ def feature_notice(frame, denoiser, path) -> None:
 
 
 def exr_outputs(*outputs: tuple[str, str | None], inputs=(),
-                overwrite_input: bool = False) -> list[Path | None]:
+                overwrite_input: bool = False, new_folders=()) -> list[Path | None]:
     """Check the output .exr files of a command, given as ``(option, path or None)`` pairs,
     before any work: .exr names, distinct, not folders, in existing writable folders
     (:func:`jaxden.fileio.check_outputs`), and none of them one of the command's ``inputs``
     (the same file, also through a link or another spelling of the path) unless
     ``overwrite_input``: writing a denoised image over the render would lose its variance
-    and features. Returns the paths (None where not given)."""
+    and features. ``new_folders``: output folders that do not exist yet (from
+    :func:`output_folder`): the command makes them before it writes, so their files are
+    only checked for their names. Returns the paths (None where not given)."""
     from jaxden.fileio import check_outputs
 
     given = [(option, path) for option, path in outputs if path is not None]
@@ -155,15 +162,101 @@ def exr_outputs(*outputs: tuple[str, str | None], inputs=(),
         if Path(path).suffix.lower() != ".exr":
             raise ConfigError(f"{option} must name an .exr file, got {path}")
     if not overwrite_input:
+        sources = _file_keys(source for source in inputs if source is not None)
         for option, path in given:
-            for source in inputs:
-                if source is not None and same_file(path, source):
-                    raise ConfigError(
-                        f"{option} {path} is the input file {source}: writing there would "
-                        f"replace the render (its variance and features would be lost); choose "
-                        f"another output path, or pass --overwrite-input")
-    checked = iter(check_outputs(*given))
-    return [None if path is None else next(checked) for _, path in outputs]
+            source = next((sources[key] for key in _keys_of(path) if key in sources), None)
+            if source is not None:
+                raise ConfigError(
+                    f"{option} {path} is the input file {source}: writing there would "
+                    f"replace the render (its variance and features would be lost); choose "
+                    f"another output path, or pass --overwrite-input")
+    later = {Path(folder) for folder in new_folders}
+    checked = iter(check_outputs(*((option, path) for option, path in given
+                                   if Path(path).parent not in later)))
+    return [None if path is None else Path(path) if Path(path).parent in later
+            else next(checked) for _, path in outputs]
+
+
+def _keys_of(path) -> list:
+    """What two spellings of one file share: the resolved path (links followed), and
+    (device, inode) where the file exists (hard links); as :func:`same_file` compares."""
+    path = Path(path)
+    try:
+        keys: list = [path.resolve()]
+    except (RuntimeError, OSError):  # a symbolic link loop
+        keys = [path.absolute()]
+    try:
+        status = os.stat(path)
+    except OSError:
+        return keys
+    return [*keys, (status.st_dev, status.st_ino)]
+
+
+def _file_keys(paths) -> dict:
+    """``{key: path}`` over :func:`_keys_of` of each of ``paths`` (the first path a key
+    names): a batch of N outputs is checked against N inputs in N look-ups, not N^2."""
+    keys: dict = {}
+    for path in paths:
+        for key in _keys_of(path):
+            keys.setdefault(key, path)
+    return keys
+
+
+def output_folder(option: str, folder) -> bool:
+    """Check the output folder of ``option`` (``--out-dir DIR``) before any work: a folder,
+    or a path that can be made one (its nearest existing parent a writable folder). Returns
+    whether it must still be made (the command makes it just before its first write, so a
+    refused command leaves no folder behind)."""
+    folder = Path(folder)
+    if folder.exists():
+        if not folder.is_dir():
+            raise ConfigError(f"{option} {folder}: is a file, not a folder")
+        return False
+    parent = folder.absolute().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"{option} {folder}: cannot make it (no permission to write into "
+                          f"{parent})")
+    return True
+
+
+def batch_outputs(inputs, file_option: tuple[str, str | None],
+                  folder_option: tuple[str, str | None], *, required: bool = True
+                  ) -> list[tuple[str, str | Path | None]]:
+    """The output of each of ``inputs`` as ``(option, path)`` pairs for :func:`exr_outputs`:
+    the file of ``file_option`` (``("--out", OUT.exr)``; one input only) or the input's own
+    file name inside the folder of ``folder_option`` (``("--out-dir", DIR)``); with neither
+    given, ``(option, None)`` each unless ``required``. One ConfigError line for both given,
+    neither (when required), a file for several inputs, and two inputs of the same name."""
+    (file_flag, file_path), (folder_flag, folder) = file_option, folder_option
+    if file_path is not None and folder is not None:
+        raise ConfigError(f"give {file_flag} or {folder_flag}, not both")
+    if file_path is None and folder is None:
+        if required:
+            raise ConfigError(f"give {file_flag} OUT.exr (one input) or {folder_flag} DIR (each "
+                              f"input written there under its own name)")
+        return [(file_flag, None) for _ in inputs]
+    if file_path is not None:
+        if len(inputs) > 1:
+            raise ConfigError(f"{file_flag} names one file, but {len(inputs)} inputs were given; "
+                              f"pass {folder_flag} DIR to write each there under its own name")
+        return [(file_flag, file_path)]
+    seen: dict[str, str] = {}
+    for source in inputs:
+        name = Path(source).name
+        if Path(name).suffix.lower() != ".exr":
+            raise ConfigError(f"{folder_flag} writes each input under its own file name, which "
+                              f"must end in .exr: {source}")
+        if name in seen:
+            first = seen[name]
+            if same_file(first, source):
+                raise ConfigError(f"{source} is given twice as an input")
+            raise ConfigError(f"{first} and {source} have the same file name, so both would be "
+                              f"written to {Path(folder) / name}; give inputs with distinct "
+                              f"names, or run them separately")
+        seen[name] = str(source)
+    return [(f"{folder_flag} {folder}:", Path(folder) / Path(source).name) for source in inputs]
 
 
 def same_file(a, b) -> bool:
@@ -188,19 +281,20 @@ def add_overwrite_input_option(parser: argparse.ArgumentParser) -> None:
 
 
 def read_input_frame(args: argparse.Namespace, who: str, denoiser=None,
-                     covariance: bool = True):
-    """Read ``args.input`` for SURE: colour and variance required (clear errors otherwise);
-    with ``denoiser``, only the fields SURE and it read are kept (memory; ``covariance``:
-    whether SURE reads the colour covariance)."""
+                     covariance: bool = True, path=None):
+    """Read ``path`` (default ``args.input``) for SURE: colour and variance required (clear
+    errors otherwise); with ``denoiser``, only the fields SURE and it read are kept (memory;
+    ``covariance``: whether SURE reads the colour covariance)."""
     from jaxden.io.exr import read_frame, read_header
 
+    path = args.input if path is None else path
     mapping = channel_map(args)
     keep = None
     if denoiser is not None:
         keep = ("color", "variance", *(("covariance",) if covariance else ()),
                 *denoiser.fields_read())
     frame = read_frame(
-        args.input,
+        path,
         require=("color", *(mapping or {})),  # channels named on the command line must exist
         nonfinite=args.nonfinite,
         channel_map=mapping,
@@ -213,11 +307,11 @@ def read_input_frame(args: argparse.Namespace, who: str, denoiser=None,
     if frame.variance is None:
         names = ", ".join((mapping or {}).get("variance", ("variance.R", "variance.G",
                                                               "variance.B")))
-        header = read_header(args.input)
+        header = read_header(path)
         found = ", ".join(header["channels"])
         if frame.spp is not None and float(frame.spp) < 2:
             raise FrameError(
-                f"{args.input}: {who} needs SURE, and SURE needs the variance of the pixel "
+                f"{path}: {who} needs SURE, and SURE needs the variance of the pixel "
                 f"mean, which one sample per pixel cannot estimate: render >= 2 spp, or merge "
                 f"K >= 2 renders with different seeds (jaxden merge R1.exr .. RK.exr --out X.exr)")
         if getattr(args, "convention", None) not in (None, "jaxden") and "variance" not in (
@@ -225,14 +319,14 @@ def read_input_frame(args: argparse.Namespace, who: str, denoiser=None,
             from jaxden.io.conventions import CONVENTIONS
 
             raise FrameError(
-                f"{args.input}: {who} needs SURE, and SURE needs the variance of the pixel "
+                f"{path}: {who} needs SURE, and SURE needs the variance of the pixel "
                 f"mean, which a {args.convention} file does not hold: render the frame K >= 2 "
                 f"times with different seeds and merge them (jaxden merge R1.exr .. RK.exr "
                 f"--from {args.convention} --out X.exr), or name its variance channels with "
                 f"--channels variance=R,G,B ({args.convention}: "
                 f"{CONVENTIONS[args.convention].note})")
         raise FrameError(
-            f"{args.input}: {who} needs SURE, and SURE needs the variance of the pixel mean "
+            f"{path}: {who} needs SURE, and SURE needs the variance of the pixel mean "
             f"(channels {names}), which the file lacks (it has {found}); name your renderer's "
             f"variance channels with --channels variance=R,G,B (and --sample-variance if they "
             f"hold the per-sample variance)"
@@ -306,10 +400,18 @@ def sure_settings(args: argparse.Namespace):
                            for f in dataclasses.fields(SureSettings)})
 
 
-def sure_input_options(parser: argparse.ArgumentParser, *, probes_from_mixer: bool = False) -> None:
+def sure_input_options(parser: argparse.ArgumentParser, *, probes_from_mixer: bool = False,
+                       several: bool = False) -> None:
     """The input and SURE options of ``jaxden sure`` and ``jaxden progressive``; with
-    ``probes_from_mixer`` an unset SURE option is the mixer's (its training settings)."""
-    parser.add_argument("input", help="input EXR: colour and the variance of the pixel mean")
+    ``probes_from_mixer`` an unset SURE option is the mixer's (its training settings);
+    ``several``: one input or more (``args.input`` is then a list)."""
+    if several:
+        parser.add_argument("input", nargs="+", metavar="IN",
+                            help="input EXRs: colour and the variance of the pixel mean; "
+                                 "several are run in turn by one loaded mixer and denoiser "
+                                 "(with --out-dir)")
+    else:
+        parser.add_argument("input", help="input EXR: colour and the variance of the pixel mean")
     parser.add_argument("--denoiser", required=True,
                         help="oidn, a shipped model name, a checkpoint folder or a .msgpack file; "
                              "add :emission=separate to keep the emission out of the filter")
@@ -367,8 +469,37 @@ def non_negative_int(text: str) -> int:
 
 
 def emission_spec(spec: str, path, args: argparse.Namespace) -> str:
-    """The denoiser spec to run on ``path``: ``spec`` with ``emission=separate`` added when the
-    file's albedo was read from a renderer whose albedo carries the lamps' light
+    """The denoiser spec to run on ``path`` (:func:`emission_decision`), its note said on
+    stderr."""
+    decided, note = emission_decision(spec, path, args)
+    if note is not None:
+        stderr(f"jaxden: note: {path}: {note}")
+    return decided
+
+
+def emission_specs(spec: str, paths, args: argparse.Namespace) -> list[str]:
+    """:func:`emission_spec` for each of several input files, each note said once for the
+    files it concerns (one line for a batch whose files all decide alike, not one a file)."""
+    decisions = [emission_decision(spec, path, args) for path in paths]
+    notes: dict[str, list] = {}
+    for path, (_, note) in zip(paths, decisions):
+        if note is not None:
+            notes.setdefault(note, []).append(path)
+    for note, concerned in notes.items():
+        if len(concerned) == 1:
+            which = str(concerned[0])
+        elif len(concerned) == len(paths):
+            which = f"the {len(paths)} inputs"
+        else:
+            which = f"{len(concerned)} of the {len(paths)} inputs ({concerned[0]}, ...)"
+        stderr(f"jaxden: note: {which}: {note}")
+    return [decided for decided, _ in decisions]
+
+
+def emission_decision(spec: str, path, args: argparse.Namespace) -> tuple[str, str | None]:
+    """``(the denoiser spec to run on path, the note that says why, or None)``: ``spec`` with
+    ``emission=separate`` added when the file's albedo was read from a renderer whose albedo
+    carries the lamps' light
     (:attr:`jaxden.io.conventions.Convention.albedo_includes_emission`, Blender Cycles'
     Denoising Albedo: read clipped to [0, 1], so a lamp pixel's albedo is white, not its
     reflectance) and the file has the emission beside it; ``spec`` itself otherwise, and
@@ -378,8 +509,8 @@ def emission_spec(spec: str, path, args: argparse.Namespace) -> str:
     were read by (its header's buffer list). Why: a kernel predictor that divides the colour
     by that albedo spreads a lamp of strength 400 over its neighbours (WSKP-6: 16-72x MC's
     RMSE on Cycles frames with a visible lamp), and keeping the emission out of the filter puts
-    it at or below MC (experiments/results/renderers/cycles-emission.md). One note line on
-    stderr says what was decided."""
+    it at or below MC (experiments/results/renderers/cycles-emission.md). The note (without
+    the path) says what was decided."""
     from jaxden.data.merge import buffer_list
     from jaxden.denoise.registry import split_spec
     from jaxden.frame import CHANNELS
@@ -387,13 +518,13 @@ def emission_spec(spec: str, path, args: argparse.Namespace) -> str:
     from jaxden.io.exr import read_header
 
     if "emission" in split_spec(spec)[1]:
-        return spec
+        return spec, None
     convention = getattr(args, "convention", None)
     header = read_header(path)
     if convention in (None, "jaxden"):
         listed = buffer_list(header, str(path))
         if listed is None or listed.convention is None:
-            return spec
+            return spec, None
         rule = CONVENTIONS.get(listed.convention)
         has_emission = set(CHANNELS["emission"]) <= set(header["channels"])
         mapped = dict(getattr(args, "channels", None) or ()).get("emission")
@@ -410,10 +541,9 @@ def emission_spec(spec: str, path, args: argparse.Namespace) -> str:
             names = reading.mapping.get("emission")
             has_emission = names is not None and set(names) <= set(header["channels"])
     if rule is None or not rule.albedo_includes_emission or not has_emission:
-        return spec
+        return spec, None
     text = str(spec)
     joined = f"{text},emission=separate" if split_spec(spec)[1] else f"{text}:emission=separate"
-    stderr(f"jaxden: note: {path}: the albedo comes from {rule.name}, whose albedo holds the "
-           f"lamps' emission (read clipped to [0, 1]); the emission is kept out of the filter "
-           f"({joined}; add :emission=filter to filter it)")
-    return joined
+    return joined, (f"the albedo comes from {rule.name}, whose albedo holds the lamps' emission "
+                    f"(read clipped to [0, 1]); the emission is kept out of the filter "
+                    f"({joined}; add :emission=filter to filter it)")

@@ -215,7 +215,13 @@ class Denoiser:
         return self.definition.differentiable
 
     def tile_spec(self):
-        """:class:`jaxden.tiling.TileSpec` of this denoiser, or None (whole frames only)."""
+        """:class:`jaxden.tiling.TileSpec` of this denoiser, or None (whole frames only). The
+        same object every call, so that programs compiled per function (a tile's apply) are
+        reused from frame to frame."""
+        return self._tile_spec
+
+    @functools.cached_property
+    def _tile_spec(self):
         return None if self.definition.tiling is None else self.definition.tiling(self.config)
 
     def fields_read(self) -> tuple[str, ...]:

@@ -60,6 +60,18 @@ def bound_apply(apply, config):
     return lambda params, frame: apply(params, config, frame)
 
 
+@functools.lru_cache(maxsize=64)
+def tile_function(apply, config):
+    """``(params, tile_frame) -> {"image": (h, w, 3) float32}`` of a denoiser's tile, one
+    function object per (apply, config): JAX keeps traces and compiled programs per function
+    object, so the frames of a batch that share a size compile once (not once a frame)."""
+
+    def run(params, sub):
+        return {"image": jnp.asarray(apply(params, config, sub), jnp.float32)}
+
+    return run
+
+
 def tile_inputs(denoiser, frame: Frame):
     """``(params, apply)`` for running ``denoiser`` on tiles of ``frame``: the whole-frame
     statistics of its TileSpec packed beside its parameters (see
@@ -93,12 +105,8 @@ def denoise_frame(denoiser, frame: Frame, *, tile: int | None = None, limit: int
     frame = frame.replace(**{name: None for name in IMAGE_FIELDS if name not in used}).numpy()
     height, width = np.shape(frame.color)[:2]
     params, apply = tile_inputs(denoiser, frame)
-    config = denoiser.config
-
-    def run(params_, sub):
-        return {"image": jnp.asarray(apply(params_, config, sub), jnp.float32)}
-
-    program = TileProgram(run, lambda t: (params, window(frame, t)))
+    program = TileProgram(tile_function(apply, denoiser.config),
+                          lambda t: (params, window(frame, t)))
     limit = memory_limit() if limit is None else int(limit)
     frame_bytes = sum(np.asarray(a).nbytes for a in jax.tree_util.tree_leaves(frame))
     frame_bytes += height * width * 12

@@ -175,6 +175,22 @@ def _tile_mixer(mixer_params, x, y, var, sure_map, sigma, *, mixer_config, tstat
     return {name: parts[name] for name in keep if name in parts}
 
 
+@functools.lru_cache(maxsize=64)
+def _cached_stage(stage, **options):
+    return functools.partial(stage, **options)
+
+
+def _stage_function(stage, **options):
+    """``functools.partial(stage, **options)``, one object per (stage, options): JAX keeps
+    traces and compiled programs per function object, so the frames of a batch that share a
+    size and settings compile once (not once a frame). Options that cannot be hashed (a
+    mixer config holding arrays) get a new object, compiled anew."""
+    try:
+        return _cached_stage(stage, **options)
+    except TypeError:
+        return functools.partial(stage, **options)
+
+
 #: What :func:`progressive_denoise_tiled` can return (``keep``): z', alpha', alpha, y, SURE,
 #: var dy/dx.
 OUTPUTS = ("z", "alpha_prime", "alpha", "denoised", "sure", "divergence")
@@ -273,7 +289,7 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
     if stage == "all":
         params, apply = tile_inputs(denoiser, frame)
         apply = bound_apply(apply, denoiser.config)
-        run_tile = functools.partial(
+        run_tile = _stage_function(
             _tile_all, apply=apply, mixer_config=mixer_config, tstat=tstat,
             swap_average=bool(swap_average), spp=spp, variance_dof=variance_dof,
             settings=settings, frame_shape=(height, width, 3), keep=tuple(keep))
@@ -283,7 +299,7 @@ def progressive_denoise_tiled(frame: Frame, denoiser, mixer_params, mixer_config
             origin = np.asarray([tile_.src[0][0], tile_.src[1][0]], np.int32)
             return (params, mixer_params, sub, key, origin, np.float32(eps), sigma)
     else:
-        run_tile = functools.partial(
+        run_tile = _stage_function(
             _tile_mixer, mixer_config=mixer_config, tstat=tstat,
             swap_average=bool(swap_average), spp=spp, variance_dof=variance_dof,
             keep=tuple(keep))
