@@ -461,3 +461,37 @@ def test_buffer_denoiser_hook():
     out = hook.denoise(halves, SMALL, tile=0)
     assert out.dtype == np.float32 and out.shape == (10, 12, 3)
     assert_allclose(out, np.asarray(N.nfor(*halves, SMALL)), rtol=1e-6, atol=1e-6)
+
+
+def test_jaxden_denoise_runs_nfor_on_the_buffers_of_a_render(tmp_path, capsys):
+    """`jaxden render --buffers 2` then `jaxden denoise IN --model nfor --buffers B0 B1`: the
+    image equals nfor_frames of the buffers as read, and its error against a 512-spp render
+    is below the input's (the Cornell box, 40 x 32, 16 spp, seed 3); nfor without buffers,
+    and a single-frame denoiser with them, are one error line each."""
+    from helpers import assert_one_error_line, run_cli
+
+    from jaxden.io.exr import read_frame, read_image
+
+    noisy = tmp_path / "box.exr"
+    assert run_cli(["render", "cornell-box", "--spp", "16", "--size", "40x32", "--seed", "3",
+                    "--buffers", "2", "--out", noisy], capsys)[0] == 0
+    reference = tmp_path / "ref.exr"
+    assert run_cli(["render", "cornell-box", "--spp", "512", "--size", "40x32", "--seed", "99",
+                    "--out", reference], capsys)[0] == 0
+    buffers = [tmp_path / "box.b0.exr", tmp_path / "box.b1.exr"]
+    out = tmp_path / "nfor.exr"
+    code, lines, _ = run_cli(["denoise", noisy, "--model", "nfor", "--buffers", *buffers,
+                              "--out", out], capsys)
+    assert code == 0, lines
+    image = read_image(out)
+    frames = [read_frame(b) for b in buffers]
+    assert_allclose(image, np.asarray(N.nfor_frames(frames)), rtol=1e-5, atol=1e-6)
+    truth = read_image(reference)
+    mse = float(np.mean((image - truth) ** 2))
+    mse_in = float(np.mean((read_image(noisy) - truth) ** 2))
+    assert mse < 0.7 * mse_in, (mse, mse_in)
+    code, lines, _ = run_cli(["denoise", noisy, "--model", "nfor", "--out", out], capsys)
+    assert_one_error_line(code, lines, "nfor", "--buffers")
+    code, lines, _ = run_cli(["denoise", noisy, "--model", "wskp-6", "--buffers", *buffers,
+                              "--out", out], capsys)
+    assert_one_error_line(code, lines, "wskp-6", "single frame")

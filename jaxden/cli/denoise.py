@@ -27,6 +27,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from jaxden.cli.batch import (
+    add_skip_existing_option,
+    batch_summary,
+    check_sequence,
+    denoisers_by_input,
+    input_sizes,
+    run_jobs,
+    sequence_step,
+)
 from jaxden.cli.options import (
     add_channels_option,
     add_convention_options,
@@ -45,15 +54,6 @@ from jaxden.cli.options import (
     sure_input_options,
     sure_settings,
 )
-from jaxden.cli.batch import (
-    add_skip_existing_option,
-    batch_summary,
-    check_sequence,
-    denoisers_by_input,
-    input_sizes,
-    run_jobs,
-    sequence_step,
-)
 from jaxden.errors import CheckpointError, ConfigError, FrameError
 
 
@@ -65,10 +65,13 @@ def cmd_denoise(args: argparse.Namespace) -> int:
     import numpy as np
 
     from jaxden.cli.options import convention_options
+    from jaxden.denoise.nfor import BUFFER_DENOISERS
     from jaxden.denoise.registry import load_denoiser
     from jaxden.denoise.tiled import denoise_frame
     from jaxden.io.exr import read_frame, write_image
 
+    if args.buffers or args.model in BUFFER_DENOISERS:
+        return _denoise_buffers(args, BUFFER_DENOISERS)
     inputs = list(args.input)
     targets = batch_outputs(inputs, ("--out", args.out), ("--out-dir", args.out_dir))
     make = args.out_dir is not None and output_folder("--out-dir", args.out_dir)
@@ -137,6 +140,49 @@ def cmd_denoise(args: argparse.Namespace) -> int:
         return 0
     print(batch_summary(done, args.out_dir, f"denoised by {names}"
                    + (", its history carried through the sequence" if temporal else "")))
+    return 0
+
+
+def _denoise_buffers(args: argparse.Namespace, registry) -> int:
+    """``jaxden denoise IN --model nfor --buffers B1.exr .. BK.exr --out OUT.exr``: a denoiser
+    of K >= 2 independent sub-buffers whose mean is IN (checked as ``progressive --buffers``
+    checks them), each read with the features it needs."""
+    from jaxden.cli.options import convention_options
+    from jaxden.io.exr import read_frame, write_image
+
+    definition = registry.get(args.model)
+    if definition is None:
+        raise ConfigError(f"--buffers: {args.model} denoises a single frame; the denoisers of "
+                          f"K >= 2 sub-buffers are {', '.join(registry)} (drop --buffers)")
+    if not args.buffers or len(args.buffers) < definition.min_buffers:
+        raise ConfigError(
+            f"{args.model} denoises K >= {definition.min_buffers} independent renders of the "
+            f"frame: give them with --buffers B1.exr B2.exr ... (their mean is IN: `jaxden "
+            f"render --buffers 2` writes both, `jaxden merge` the mean of renders with "
+            f"different seeds)")
+    if len(args.input) != 1 or args.sequence or args.out_dir is not None or args.out is None:
+        raise ConfigError(f"--buffers: {args.model} takes one input (the buffers' mean) and "
+                          f"--out OUT.exr")
+    source = args.input[0]
+    (out,) = exr_outputs(("--out", args.out), inputs=(source, *args.buffers),
+                         overwrite_input=args.overwrite_input)
+    config = definition.config_cls()
+    mapping = channel_map(args) or {}
+    mean = read_frame(source, require=("color",), nonfinite=args.nonfinite, keep=("color",),
+                      channel_map=mapping or None, **convention_options(args))
+    read_buffers(args, mean, source)  # K >= 2, one size, their mean IN's colour
+    required = definition.required(config)
+    buffers = [read_frame(path, require=(*required, *(f for f in mapping if f not in required)),
+                          nonfinite=args.nonfinite, channel_map=mapping or None,
+                          keep=(*required, "variance", "position"), **convention_options(args))
+               for path in args.buffers]
+    image = definition.denoise(buffers, config, tile=args.tile, limit=_memory_limit(args),
+                               progress=True)
+    check_finite_result(image, "the denoised image", f"{source} denoised by {args.model} from "
+                        f"{len(buffers)} buffers")
+    write_image(out, image, attributes={"denoiser": args.model, "source": str(source),
+                                        "buffers": len(buffers)})
+    print(f"wrote {args.out} (denoised by {args.model} from {len(buffers)} sub-buffers)")
     return 0
 
 
@@ -220,9 +266,10 @@ def _sure_from_buffers(args: argparse.Namespace, frame, denoiser, out: Path) -> 
     return 0
 
 
-def read_buffers(args: argparse.Namespace, frame):
+def read_buffers(args: argparse.Namespace, frame, path=None):
     """The colours of ``args.buffers`` as one (K, H, W, 3) float32 array, checked against
-    ``frame`` (``args.input`` as read), for ``jaxden sure`` and ``jaxden progressive`` alike,
+    ``frame`` (``path``, default ``args.input``, as read), for ``jaxden sure``, ``jaxden
+    progressive`` and the buffer denoisers of ``jaxden denoise`` alike,
     by :func:`jaxden.sure.buffers.check_sub_buffers` (each failure one FrameError naming the
     files): at least 2, each of the input's size, none given twice, equal spp where their
     headers state one, and their mean equal to the input's colour; where the input's header
@@ -235,8 +282,9 @@ def read_buffers(args: argparse.Namespace, frame):
     from jaxden.io.exr import read_frame
     from jaxden.sure.buffers import check_sub_buffers
 
-    paths = [str(path) for path in args.buffers]
-    listed = read_buffer_list(args.input)
+    source = args.input if path is None else path
+    paths = [str(p) for p in args.buffers]
+    listed = read_buffer_list(source)
     reading = {} if listed is None else {"convention": listed.convention,
                                          "layer": listed.layer}
     buffers = [read_frame(path, require=("color",), nonfinite=args.nonfinite, keep=("color",),
@@ -244,7 +292,7 @@ def read_buffers(args: argparse.Namespace, frame):
     colours = np.stack([np.asarray(buffer.color, np.float32) for buffer in buffers])
     check_sub_buffers(frame.color, colours, where="--buffers", names=paths,
                       spp=[None if b.spp is None else float(b.spp) for b in buffers],
-                      made_from=listed, frame_name=str(args.input))
+                      made_from=listed, frame_name=str(source))
     return colours
 
 
@@ -343,7 +391,7 @@ def cmd_progressive(args: argparse.Namespace) -> int:
                                  covariance=settings.covariance and not args.buffers,
                                  path=source)
         feature_notice(frame, denoiser, source, said if several else None)
-        buffers = read_buffers(args, frame) if args.buffers else None
+        buffers = read_buffers(args, frame, source) if args.buffers else None
         if buffers is None and "buffers" not in said and buffers_notice(source, several) \
                 and several:
             said.add("buffers")
@@ -499,6 +547,10 @@ def add_commands(sub) -> None:
                         "next (whole frames of one size; without it each frame is denoised "
                         "alone)")
     add_skip_existing_option(p)
+    p.add_argument("--buffers", nargs="+", default=None, metavar="BUFFER.exr",
+                   help="K >= 2 independent sub-buffer renders (equal spp) whose mean is IN, "
+                        "for a denoiser of sub-buffers: nfor (NFOR, Bitterli et al. 2016); "
+                        "`jaxden render --buffers 2` writes them")
     p.add_argument("--nonfinite", choices=("error", "zero"), default="error",
                    help="NaN/inf in the input: refuse (default) or replace by 0")
     add_channels_option(p)
