@@ -7,7 +7,14 @@ directly visible emission out of the filter with the spec option ``:emission=sep
 (:mod:`jaxden.denoise.emission`).
 """
 
-from jaxden.denoise import deep_combiner, models, oidn, oidn_jax, svgf  # noqa: F401  (registration)
+from jaxden.denoise import (  # noqa: F401  (registration)
+    bmfr,
+    deep_combiner,
+    models,
+    oidn,
+    oidn_jax,
+    svgf,
+)
 from jaxden.denoise.emission import EMISSION_MODES, separate_emission
 from jaxden.denoise.registry import (
     DENOISER_OPTIONS,
