@@ -99,13 +99,32 @@ def test_denoisers_bench_one_model(tiny, capsys, monkeypatch):
 
     monkeypatch.setattr(denoisers, "MODELS", {"kp": "kp"})
     monkeypatch.setattr(denoisers, "OIDN_JAX", False)
+    monkeypatch.setattr(denoisers, "BASELINES", {})
+    monkeypatch.setattr(denoisers, "DC_BASE", None)
+    monkeypatch.setattr(denoisers, "NFOR", False)
     result = run_json("denoisers", capsys)
     assert_ratios(result, ["kp_over_oidn"])
     assert (result["width"], result["height"]) == FRAME_SIZE
     assert result["kp_s"] > 0 and result["oidn_s"] > 0
 
 
-@pytest.mark.slow  # seven models initialised and compiled: ~30-90 s here
+@pytest.mark.slow  # SVGF, BMFR (each also as a sequence step), DC, NFOR compiled: ~30-60 s
+def test_denoisers_bench_times_the_comparisons_against_wskp6(tiny, capsys, monkeypatch):
+    """The papers' baselines are timed in the same run as WSKP-6, as ratios to it."""
+    from jaxden.bench import denoisers
+
+    monkeypatch.setattr(denoisers, "MODELS", {"wskp6": "wskp"})
+    monkeypatch.setattr(denoisers, "OIDN_JAX", False)
+    monkeypatch.setattr(denoisers, "DC_BASE", "wskp-6")
+    result = run_json("denoisers", capsys)
+    keys = ("svgf", "svgf_step", "bmfr", "bmfr_step", "dc", "nfor", "oidn")
+    assert_ratios(result, [f"{key}_over_wskp6" for key in keys])
+    for key in keys:
+        assert result[f"{key}_over_wskp6"] == pytest.approx(result[f"{key}_s"]
+                                                            / result["wskp6_s"])
+
+
+@pytest.mark.slow  # every model initialised and compiled: ~1-3 min here
 def test_denoisers_bench(tiny, capsys):
     from jaxden.bench import denoisers
 

@@ -6,7 +6,14 @@ KP-2 (5 layers, 7 x 7), the U-Net and OIDN ('high' quality,
 pyoidn on the same CPU). The JAX models run in their inference (deploy) form, jitted and
 compiled before timing, with freshly initialised weights (inference time does not depend on
 the weights' values). Each is timed alternately with the others, median of the repeats.
-OIDN in JAX with Intel's weights (``oidnjax``) is timed beside them. Keys
+OIDN in JAX with Intel's weights (``oidnjax``) is timed beside them, and so are the methods
+the two papers compare against: SVGF and BMFR (their single-frame form, and ``svgf_step`` /
+``bmfr_step``: one frame of a sequence with the history of the frame before), the Deep
+Combiner over OIDN in JAX (``dc``, the base's time included), NBGD and MR-KP (freshly
+initialised, as the models above), and NFOR on two half buffers (``nfor``: the Cornell box at
+2 spp with seeds 11 and 12, or the bench frame twice when it is read from a file; timed once
+after a call that compiles it, minutes at 1280 x 720 on a CPU). ``<key>_over_wskp6`` = its
+time / WSKP-6's, the comparisons' tables' unit. Keys
 ``<model>_over_oidn`` = model time / OIDN time, ``<model>_over_kp`` = model time / KP's
 (the WSKP paper's target: WSKP-6 <= 0.5 KP) and ``wskp6_network_over_kp``: WSKP-6's
 ImportanceNet alone (its 6 layers, no kernel decoding) / KP, the floor of ``wskp6_over_kp``
@@ -21,7 +28,15 @@ import numpy as np
 from jaxden.bench import bench_frame, median_times, register
 
 MODELS = {"wskp3": "wskp3", "wskp6": "wskp", "wskp_mr": "wskp_mr", "kp": "kp", "kp1": "kp1",
-          "kp2": "kp2", "unet": "unet"}
+          "kp2": "kp2", "unet": "unet", "nbgd": "nbgd", "mrkp": "mrkp"}
+#: Training-free baselines by spec, timed in their single-frame form; those in TEMPORAL also
+#: as one step of a sequence (``<key>_step``).
+BASELINES = {"svgf": "svgf", "bmfr": "bmfr"}
+TEMPORAL = ("svgf", "bmfr")
+#: The Deep Combiner over this base (the one experiments/configs/train-dc.toml trains over).
+DC_BASE: str | None = "oidn-jax"
+#: Time NFOR on two half buffers (once, after a compiling call).
+NFOR = True
 #: Also time OIDN in JAX (Intel's weights, :mod:`jaxden.denoise.oidn_jax`) against pyoidn,
 #: the same network and inputs (albedo, normal, clean features, quality high).
 OIDN_JAX = True
@@ -57,9 +72,15 @@ def bench_denoisers(quick: bool) -> dict:
                           config.deploy)
         network = jax.jit(lambda f: net.apply(wskp6.params, network_inputs(f, config.tonemap)))
         runners["wskp6_network"] = lambda: jax.block_until_ready(network(device_frame))
+    runners |= _baseline_runners(device_frame)
     median = median_times(runners, repeats)
+    if NFOR:
+        median["nfor"] = _nfor_time(frame, size)
     result: dict = {f"{key}_over_oidn": median[key] / median["oidn"]
                     for key in (*MODELS, *(["oidnjax"] if OIDN_JAX else []))}
+    if "wskp6" in median:
+        result.update({f"{key}_over_wskp6": value / median["wskp6"]
+                       for key, value in median.items() if key != "wskp6"})
     result.update({f"{key}_over_kp": median[key] / median["kp"] for key in MODELS
                    if key != "kp" and "kp" in median})
     if "wskp6_network" in median and "kp" in median:
@@ -85,3 +106,49 @@ def _oidn_jax_runner(frame):
     jax.block_until_ready(function(*inputs))
     return lambda: jax.block_until_ready(function(*inputs))
 
+
+
+def _baseline_runners(device_frame) -> dict:
+    """Runners of :data:`BASELINES` (and their sequence steps) and of the Deep Combiner."""
+    import jax
+
+    from jaxden.denoise.registry import load_denoiser, make_denoiser
+
+    runners = {}
+    for key, spec in BASELINES.items():
+        denoiser = load_denoiser(spec)
+        function = denoiser.function()
+        runners[key] = (lambda f=function: jax.block_until_ready(f(device_frame)))
+        if key in TEMPORAL:
+            _, state = denoiser.step(None, device_frame)  # the history of a frame before
+            runners[f"{key}_step"] = (lambda d=denoiser, s=state: jax.block_until_ready(
+                d.step(s, device_frame)[0]))
+    if DC_BASE is not None:
+        from jaxden.denoise.deep_combiner import DeepCombinerConfig
+
+        dc = make_denoiser("dc", DeepCombinerConfig(base=DC_BASE), key=jax.random.PRNGKey(0))
+        function = dc.function()
+        runners["dc"] = lambda: jax.block_until_ready(function(device_frame))
+    return runners
+
+
+def _nfor_time(frame, size) -> float:
+    """Seconds of one NFOR call on two half buffers of ``size``, after a compiling call."""
+    import os
+    import time
+
+    import jax
+
+    from jaxden.bench import BENCH_FRAME_ENV
+    from jaxden.denoise.nfor import nfor
+
+    if os.environ.get(BENCH_FRAME_ENV):
+        halves = [frame, frame]
+    else:
+        from jaxden.render.core import render_frame
+
+        halves = [render_frame("cornell-box", 2, seed=seed, size=size) for seed in (11, 12)]
+    jax.block_until_ready(nfor(*halves))
+    start = time.perf_counter()
+    jax.block_until_ready(nfor(*halves))
+    return time.perf_counter() - start
