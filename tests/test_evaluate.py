@@ -166,3 +166,27 @@ def test_evaluate_sequences_records_the_sequence_set(tmp_path, capsys):
     assert dataset["manifest_sha256"] == file_sha256(data / MANIFEST_NAME)
     assert dataset["config"]["frames"] == 3
     assert "| OIDN (tdn) |" in out.with_suffix(".md").read_text()
+
+
+@pytest.mark.slow  # ~15 s: renders a 4-frame sequence set
+def test_a_temporal_denoiser_is_scored_with_its_own_history_on_sequences(tmp_path):
+    """evaluate_sequences gives SVGF a `seq_*` column: its temporal form over the raw frames
+    from the sequence's first (what Denoiser.sequence gives), beside the single-frame and
+    accumulated-input columns; a denoiser without one gets none."""
+    from jaxden.data.sequences import SequenceConfig, build_sequences, load_sequence
+    from jaxden.denoise import load_denoiser
+    from jaxden.evaluate import evaluate_sequences
+    from jaxden.evaluate.denoise import image_errors
+
+    data = tmp_path / "seq"
+    build_sequences(SequenceConfig(scenes=("cornell-box",), size=(20, 16), frames=4, spp=2,
+                                   reference_spp=8, seed=5), data, progress=False)
+    rows = evaluate_sequences(data, "svgf")
+    key = rows[0]["sequence"]
+    frames, references = load_sequence(data, key)
+    images = load_denoiser("svgf").sequence(frames)
+    for row in rows:
+        want = image_errors(images[row["frame"]], references[row["frame"]])
+        assert row["seq_rmse"] == pytest.approx(want["rmse"], rel=1e-6)
+        assert "den_rmse" in row and "tdn_rmse" in row
+    assert "seq_rmse" not in evaluate_sequences(data, "wskp-6")[0]

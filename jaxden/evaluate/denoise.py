@@ -140,7 +140,9 @@ def evaluate_sequences(sequence_dir, denoiser, *, temporal=None,
     errors of the denoiser on the frame alone (``den_*``) and on the temporally accumulated
     input (``tdn_*``: :func:`jaxden.denoise.temporal.accumulate` with ``temporal``, a
     :class:`~jaxden.denoise.temporal.TemporalConfig`), and of the two inputs (``mc_*``,
-    ``acc_*``). The first ``skip_frames`` frames (no history yet) are left out of the rows.
+    ``acc_*``); a temporal denoiser (SVGF, BMFR: :attr:`Denoiser.temporal`) also with its own
+    history over the raw frames (``seq_*``: :meth:`Denoiser.step` from the sequence's first
+    frame). The first ``skip_frames`` frames (no history yet) are left out of the rows.
     """
     import jax
 
@@ -153,8 +155,11 @@ def evaluate_sequences(sequence_dir, denoiser, *, temporal=None,
     rows = []
     for key in read_manifest(sequence_dir)["sequences"]:
         frames, references = load_sequence(sequence_dir, key)
-        history = None
+        history, state = None, None
         for t, (frame, reference) in enumerate(zip(frames, references)):
+            own = None
+            if model.temporal:
+                own, state = model.step(state, frame)
             if history is None:
                 history, accumulated = start_history(frame), np.asarray(frame.color)
             else:
@@ -164,7 +169,8 @@ def evaluate_sequences(sequence_dir, denoiser, *, temporal=None,
             acc_frame = frame.replace(color=np.asarray(accumulated, np.float32))
             row: dict[str, Any] = {"sequence": key, "frame": t}
             for prefix, image in (("mc", frame.color), ("den", model(frame)),
-                                  ("acc", acc_frame.color), ("tdn", model(acc_frame))):
+                                  ("acc", acc_frame.color), ("tdn", model(acc_frame)),
+                                  *((("seq", own),) if own is not None else ())):
                 row |= {f"{prefix}_{k}": v for k, v in image_errors(image, reference).items()}
             rows.append(row)
     return rows
@@ -350,11 +356,13 @@ SEQUENCES = Evaluator(
         data, options.denoiser, skip_frames=options.skip_frames),
     summarize=_summary,
     table=lambda fields, rows, provenance: markdown(
-        {_label(provenance): fields["summary"]}, prefixes=("mc", "den", "acc", "tdn")),
+        {_label(provenance): fields["summary"]},
+        prefixes=("mc", "den", "acc", "tdn",
+                  *(("seq",) if "seq_rmse" in fields["summary"] else ()))),
     provenance=lambda options: {**_weights(options), "skip_frames": options.skip_frames},
     dataset=sequence_provenance,
     sweep_options=lambda run_dir, table: SequencesOptions(denoiser=str(run_dir)),
     sweep_check=check_sequence_set,
     sweep_key="seq",
-    sweep_columns=_sweep_columns({"den": "", "tdn": "temporal"}),
+    sweep_columns=_sweep_columns({"den": "", "tdn": "temporal", "seq": "own history"}),
 )
