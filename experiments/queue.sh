@@ -60,11 +60,17 @@ fig11_pd() {  # fig11_pd DENOISER MIXER NAME
   .venv/bin/python -m jaxden.cli evaluate pd --data "$H/data/pd-test-high" --denoiser "$1" \
     --mixer "$2" --keep-current --out "$H/runs/pd-fig11/$3" "${@:4}"
 }
+# The trained baselines of the WSKP paper's tables (NBGD, MR-KP; two seeds each), then the
+# progressive-denoising evaluations of the first DC, then WSKP-6 and KP (rt-main) for the same
+# tables (`python experiments/rt_comparisons.py` reads whatever has finished).
+step sweep-rt-baselines "${X[@]}" $J sweep experiments/sweeps/rt-baselines.toml \
+  --workdir "$H/runs/sweeps/rt-baselines"
 step fig11-pd-dc-s0 fig11_pd "$H/runs/dc-oidn-s0" closed-form pd-dc-s0
 step fig11-pd-oidn-closed-form fig11_pd oidn-jax closed-form pd-oidn-closed-form
 step fig11-pd-oidn fig11_pd oidn-jax oidn-pd pd-oidn
 step dc-oidn-s1 "${X[@]}" $J train experiments/configs/train-dc.toml seed=1 --workdir "$H/runs/dc-oidn-s1"
 step fig11-pd-dc-s1 fig11_pd "$H/runs/dc-oidn-s1" closed-form pd-dc-s1
+step sweep-rt-main $J sweep experiments/sweeps/rt-main.toml --workdir "$H/runs/sweeps/rt-main"
 step mixer-wskp6-fact "${X[@]}" $J train experiments/configs/mixer-wskp6.toml \
   data.dataset="$H/data/pd-rt4k" model_config.head=f_act model_config.logit_bound=none \
   model_config.logit_eps=0.001 --workdir "$H/runs/mixer-wskp6-fact"

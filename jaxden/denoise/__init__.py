@@ -13,6 +13,7 @@ from jaxden.denoise import (  # noqa: F401  (registration)
     models,
     oidn,
     oidn_jax,
+    rt_baselines,
     svgf,
 )
 from jaxden.denoise.emission import EMISSION_MODES, separate_emission
