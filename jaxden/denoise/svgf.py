@@ -72,7 +72,12 @@ class SVGFConfig:
     largest history length; ``depth_tolerance`` / ``normal_tolerance``: the reprojection tests
     ``|z - z_prev| / (dz + 0.01) <= depth_tolerance`` and ``|n - n_prev| / (fwidth n + 0.01) <=
     normal_tolerance``; ``variance_prefilter``: blur the variance 3 x 3 before each pass;
-    ``reprojection_fallback``: try a 3 x 3 neighbourhood when no bilinear tap is valid.
+    ``reprojection_fallback``: try a 3 x 3 neighbourhood when no bilinear tap is valid;
+    ``albedo_floor``: the albedo (de)modulation divides by WSKP's safe albedo
+    (:func:`jaxden.denoise.nn.wskp.safe_albedo`: the albedo from this floor up, a ramp to 1
+    below it), so no pixel's illumination is amplified more than 1 / floor; 0: Falcor's
+    ``max(albedo, 0.001)`` (docs/departures.md, "SVGF": dark albedo amplified up to 1000x
+    spreads into the neighbours' history).
     """
 
     alpha_color: float = bounded(0.2, low=0, low_open=True, high=1)
@@ -89,6 +94,7 @@ class SVGFConfig:
     normal_tolerance: float = bounded(16.0, low=0, low_open=True)
     variance_prefilter: bool = True
     reprojection_fallback: bool = True
+    albedo_floor: float = bounded(0.05, low=0, high=1)
 
     def __post_init__(self) -> None:
         check_fields(self)
@@ -205,17 +211,25 @@ def normal_width(normal: jax.Array) -> jax.Array:
     return jnp.sqrt(jnp.sum(width * width, axis=-1, keepdims=True) + 1e-30)
 
 
-def demodulate(color: jax.Array, albedo: jax.Array) -> jax.Array:
-    """Untextured illumination ``color / max(albedo, 0.001)``, NaN set to 0:
-    ``(..., H, W, 3), (..., H, W, 3) -> (..., H, W, 3)``."""
-    illum = color / jnp.maximum(albedo, ALBEDO_GUARD)
+def guarded_albedo(albedo: jax.Array, floor: float = 0.0) -> jax.Array:
+    """The albedo SVGF divides by: WSKP's safe albedo above ``floor`` > 0
+    (:func:`jaxden.denoise.nn.wskp.safe_albedo`), Falcor's ``max(albedo, 0.001)`` for 0."""
+    from jaxden.denoise.nn.wskp import safe_albedo
+
+    return safe_albedo(albedo, floor) if floor > 0 else jnp.maximum(albedo, ALBEDO_GUARD)
+
+
+def demodulate(color: jax.Array, albedo: jax.Array, floor: float = 0.0) -> jax.Array:
+    """Untextured illumination ``color / guarded_albedo(albedo, floor)`` (``floor`` 0:
+    ``max(albedo, 0.001)``), NaN set to 0: ``(..., H, W, 3), (..., H, W, 3) -> (..., H, W, 3)``."""
+    illum = color / guarded_albedo(albedo, floor)
     return jnp.where(jnp.isnan(illum), 0.0, illum)
 
 
-def remodulate(illum: jax.Array, albedo: jax.Array) -> jax.Array:
-    """``max(albedo, 0.001) * illum``, the inverse of :func:`demodulate`:
+def remodulate(illum: jax.Array, albedo: jax.Array, floor: float = 0.0) -> jax.Array:
+    """``guarded_albedo(albedo, floor) * illum``, the inverse of :func:`demodulate`:
     ``(..., H, W, 3) -> (..., H, W, 3)``."""
-    return illum * jnp.maximum(albedo, ALBEDO_GUARD)
+    return illum * guarded_albedo(albedo, floor)
 
 
 def edge_weight(depth_p, depth_q, phi_z, normal_p, normal_q, phi_normal, lum_p, lum_q, phi_l,
@@ -428,14 +442,14 @@ def svgf_spatial(frame: Frame, config: SVGFConfig = SVGF_PAPER) -> jax.Array:
     albedo, normal, depth ``(..., H, W, C)`` -> ``(..., H, W, 3)`` linear radiance. Pure and
     differentiable."""
     frame.require("albedo", "normal", "depth", who="denoiser 'svgf'")
-    illum = demodulate(frame.color, frame.albedo)
+    illum = demodulate(frame.color, frame.albedo, config.albedo_floor)
     lum = luminance(illum)
     moments = jnp.concatenate([lum, lum * lum], axis=-1)
     history = jnp.ones_like(lum)
     color, variance = spatial_variance(illum, moments, jnp.zeros_like(lum), history,
                                        frame.depth, frame.normal, config)
     color, _, _ = atrous(color, variance, frame.depth, frame.normal, config)
-    return remodulate(color, frame.albedo)
+    return remodulate(color, frame.albedo, config.albedo_floor)
 
 
 def initial_state(height: int, width: int) -> SVGFState:
@@ -457,7 +471,7 @@ def svgf_step(state: SVGFState | None, frame: Frame, config: SVGFConfig = SVGF_P
     if state is None:
         state = initial_state(height, width)
     motion = frame.motion if frame.motion is not None else jnp.zeros((height, width, 2))
-    illum = demodulate(frame.color, frame.albedo)
+    illum = demodulate(frame.color, frame.albedo, config.albedo_floor)
     prev_color, prev_moments, prev_history, valid = reproject(
         state, frame.depth, frame.normal, motion, config)
     color, moments, variance, history = accumulate(
@@ -468,7 +482,7 @@ def svgf_step(state: SVGFState | None, frame: Frame, config: SVGFConfig = SVGF_P
     new_state = SVGFState(color=feedback, moments=moments, history=history,
                           depth=jnp.asarray(frame.depth, jnp.float32),
                           normal=jnp.asarray(frame.normal, jnp.float32))
-    return remodulate(filtered, frame.albedo), new_state
+    return remodulate(filtered, frame.albedo, config.albedo_floor), new_state
 
 
 @functools.partial(jax.jit, static_argnames="config")
