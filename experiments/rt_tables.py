@@ -29,6 +29,7 @@ from jaxden.evaluate.seeds import group, single, stats, table
 
 REPO = Path(__file__).resolve().parent.parent
 SWEEPS = ("rt-main", "rt-variants", "rt-ablation", "rt-noise2noise")
+TABLES = ("rt-table1", "rt-table3", "rt-table5", "rt-fusion", "rt-noise2noise")
 LABELS = {"wskp": "WSKP-6", "wskp3": "WSKP-3", "kp": "KP (13x13)", "kp1": "KP-1", "kp2": "KP-2",
           "wskp_mr": "WSKP-MR", "unet": "U-Net (hdr, alb, nrm)",
           "wskp_id": "WSKP-6 with a 1 x 1 kernel fused (ours)"}
@@ -101,12 +102,21 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--home", default=os.environ.get("JAXDEN_HOME", "~/jaxden-work"))
     parser.add_argument("--out", default=str(REPO / "experiments" / "results" / "rt"))
+    parser.add_argument("--tables", nargs="+", choices=TABLES, default=list(TABLES),
+                        help="write these tables only (default all): e.g. rt-table3 after a "
+                             "benchmark run, on a machine without the sweeps' runs")
     args = parser.parse_args(argv)
     home = Path(args.home).expanduser()
     out = Path(args.out)
+
+    def emit(name: str, text: str) -> None:
+        if name.split(".")[0] in args.tables:
+            (out / name).write_text(text)
+
     results = load_results(home)
     peers = reference_rows(home, out / "rt-peers.json")
-    (out / "rt-peers.json").write_text(json.dumps(peers, indent=1, sort_keys=True))
+    if "rt-table1" in args.tables:  # the input's and OIDN's scores the table shows
+        (out / "rt-peers.json").write_text(json.dumps(peers, indent=1, sort_keys=True))
 
     def model_key(result):  # WSKP with the 1 x 1 kernel among its sizes is a row of its own
         sizes = result["config"].get("model_config", {}).get("kernel_sizes") or []
@@ -153,8 +163,8 @@ def main(argv=None) -> int:
             "## Per frame, 1 spp", "", table(per_frame), "",
             "## Sequences (`data/rt-seq`): per frame and with temporal accumulation", "",
             table(temporal), "", *targets, ""]
-    (out / "rt-table1.md").write_text("\n".join(text))
-    (out / "rt-table1.json").write_text(json.dumps(
+    emit("rt-table1.md", "\n".join(text))
+    emit("rt-table1.json", json.dumps(
         {"per_frame": {k: v for k, v in per_frame}, "temporal": {k: v for k, v in temporal},
          "runs": {s: [r["run"] for r in results[s]] for s in SWEEPS}}, indent=1,
         sort_keys=True, default=str))
@@ -181,7 +191,7 @@ def main(argv=None) -> int:
                   "otherwise; `bench-decoder.json` times both). The paper's 0.46x is measured "
                   "on a GPU with a fused CUDA decoder. Machine, commit and load: "
                   "`bench-denoisers.json` (_provenance)."]
-    (out / "rt-table3.md").write_text("\n".join(lines) + "\n")
+    emit("rt-table3.md", "\n".join(lines) + "\n")
 
     # Table 5 and Figures 9/10: the ablation sweep, every row at its own (shorter) budget
     ablation = results["rt-ablation"]
@@ -206,7 +216,7 @@ def main(argv=None) -> int:
             table([("WSKP-6, RepVGG blocks", repvgg), ("WSKP-6, plain 5x5 convolutions", plain)]),
             "", "Target: RepVGG beats plain convolutions (paper: +0.6 dB): "
             + verdict(repvgg.get("psnr"), plain.get("psnr"))]
-    (out / "rt-table5.md").write_text("\n".join(text) + "\n")
+    emit("rt-table5.md", "\n".join(text) + "\n")
 
     order_sizes = sorted(by_sizes, key=lambda k: (k.count(","), [int(v) for v in k.split(",")]))
     rows = [(f"kernel {k}" if "," not in k else f"fusion {k}", stats(by_sizes[k], "den", "den"))
@@ -220,7 +230,7 @@ def main(argv=None) -> int:
     best = max(singles, key=lambda s: s[0]) if singles else None
     text.append("Target: the fusion of six sizes beats the best single size by more than the "
                 "seed-to-seed standard deviation: " + verdict(fused, best))
-    (out / "rt-fusion.md").write_text("\n".join(text) + "\n")
+    emit("rt-fusion.md", "\n".join(text) + "\n")
     # Noise2Noise: noisy 4-spp targets against the references, L2 loss
     n2n = results["rt-noise2noise"]
     rows = [("targets: 256-spp references", stats(
@@ -240,7 +250,7 @@ def main(argv=None) -> int:
             table(rows), "",
             "Change with noisy targets (PSNR): " + change(rows[1][1].get("psnr"),
                                                           rows[0][1].get("psnr"))]
-    (out / "rt-noise2noise.md").write_text("\n".join(text) + "\n")
+    emit("rt-noise2noise.md", "\n".join(text) + "\n")
     print(f"wrote rt-table1, rt-table3, rt-table5, rt-fusion, rt-noise2noise under {out}")
     return 0
 
