@@ -251,7 +251,7 @@ def main(argv=None) -> int:
             "Change with noisy targets (PSNR): " + change(rows[1][1].get("psnr"),
                                                           rows[0][1].get("psnr"))]
     emit("rt-noise2noise.md", "\n".join(text) + "\n")
-    print(f"wrote rt-table1, rt-table3, rt-table5, rt-fusion, rt-noise2noise under {out}")
+    print(f"wrote {', '.join(args.tables)} under {out}")
     return 0
 
 

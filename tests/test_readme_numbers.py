@@ -100,6 +100,20 @@ HEADLINE = {
     ("inference time, 1280 x 720: WSKP-6 / KP; WSKP-6 / OIDN", "one frame"): [
         ("bench-denoisers.json", _key("wskp6_over_kp")),
         ("bench-denoisers.json", _key("wskp6_over_oidn"))],
+    ("inference time, 1280 x 720, over WSKP-6's in the same run: SVGF; BMFR; NBGD; MR-KP; "
+     "the Deep Combiner over OIDN in JAX; NFOR", "one frame"): [
+        ("bench-denoisers.json", _key("svgf_over_wskp6")),
+        ("bench-denoisers.json", _key("bmfr_over_wskp6")),
+        ("bench-denoisers.json", _key("nbgd_over_wskp6")),
+        ("bench-denoisers.json", _key("mrkp_over_wskp6")),
+        ("bench-denoisers.json", _key("dc_over_wskp6")),
+        ("bench-denoisers.json", _key("nfor_over_wskp6"))],
+    ("offline, 64 spp, whole frames: RMSE of NFOR, OIDN, PD(OIDN) / MC's (scene means)",
+     "8 held-out 256 x 256 frames (lamps, glints)"): [
+        ("offline-nfor.json", lambda d: d["means"]["NFOR"]["rmse"] / d["means"]["MC"]["rmse"]),
+        ("offline-nfor.json", lambda d: d["means"]["OIDN"]["rmse"] / d["means"]["MC"]["rmse"]),
+        ("offline-nfor.json",
+         lambda d: d["means"]["PD(OIDN)"]["rmse"] / d["means"]["MC"]["rmse"])],
     ("OIDN in JAX (Intel's weights) / pyoidn, 1280 x 720", "one frame"): [
         ("bench-denoisers.json", _key("oidnjax_over_oidn"))],
     ("SURE by `jax.jvp` (one probe) / one WSKP-6 forward, 1280 x 720", "one frame"): [
