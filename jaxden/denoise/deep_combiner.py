@@ -48,7 +48,6 @@ from typing import Literal
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from jaxden.config import bounded, check_fields
 from jaxden.denoise.nn.combiner import (
@@ -87,12 +86,10 @@ def base_sha256(base: Denoiser) -> str:
     config = (config_to_dict(base.config) if dataclasses.is_dataclass(base.config)
               else repr(base.config))
     digest.update(json.dumps([base.name, config], sort_keys=True, default=str).encode())
-    leaves = jax.tree_util.tree_leaves_with_path(base.params)
-    for path, leaf in sorted(leaves, key=lambda pair: jax.tree_util.keystr(pair[0])):
-        array = np.ascontiguousarray(np.asarray(leaf))
-        digest.update(jax.tree_util.keystr(path).encode())
-        digest.update(f"{array.dtype.str}{array.shape}".encode())
-        digest.update(array.tobytes())
+    from jaxden.progressive.cache import hash_params
+
+    if base.params is not None:
+        hash_params(digest, base.params)
     return digest.hexdigest()
 
 

@@ -76,13 +76,19 @@ def params_sha256(params: Any) -> str | None:
     if params is None:
         return None
     digest = hashlib.sha256()
+    hash_params(digest, params)
+    return digest.hexdigest()
+
+
+def hash_params(digest, params: Any) -> None:
+    """Feed ``params`` into the hashlib object ``digest``: each leaf's path, dtype, shape and
+    bytes, in path order."""
     leaves = jax.tree_util.tree_leaves_with_path(params)
     for path, leaf in sorted(leaves, key=lambda pair: jax.tree_util.keystr(pair[0])):
         array = np.ascontiguousarray(np.asarray(leaf))
         digest.update(jax.tree_util.keystr(path).encode())
         digest.update(f"{array.dtype.str}{array.shape}".encode())
         digest.update(array.tobytes())
-    return digest.hexdigest()
 
 
 def _plain(value: Any) -> Any:
