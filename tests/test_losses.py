@@ -45,6 +45,9 @@ def test_gradients_analytic():
         "l2": 2 * (x - y) / n,
         "relmse": 2 * (x - y) / (y**2 + 0.01) / n,
         "relmse_sg": 2 * (x - y) / (x**2 + 0.01) / n,  # no gradient through the denominator
+        # the Deep Combiner's (jaxden.denoise.deep_combiner): the target's channel mean squared
+        # in the denominator, here one channel
+        "relmse_dc": 2 * (x - y) / (y**2 + 0.01) / n,
         # d/dx |x-y| / (|x|+|y|+eps) = sign(x-y)/D - |x-y| sign(x) / D^2
         "smape": (
             np.sign(x - y) / (np.abs(x) + np.abs(y) + 0.01)
