@@ -49,7 +49,8 @@ TRAINED = (("wskp", "WSKP-6"), ("wskp3", "WSKP-3"), ("kp", "KP (13x13)"),
 BENCH_KEYS = {"WSKP-6": "wskp6", "WSKP-3": "wskp3", "KP (13x13)": "kp", "NBGD": "nbgd",
               "MR-KP": "mrkp", "OIDN 2 (pretrained, 'high')": "oidn", "SVGF, one frame": "svgf",
               "SVGF, a frame of a sequence": "svgf_step", "BMFR, one frame": "bmfr",
-              "BMFR, a frame of a sequence": "bmfr_step"}
+              "BMFR, a frame of a sequence": "bmfr_step", "NFOR (two half buffers)": "nfor",
+              "Deep Combiner over OIDN in JAX": "dc"}
 
 
 def score(home: Path) -> dict[str, dict]:
@@ -85,7 +86,7 @@ def rows(scored: dict, runs: dict[str, list[dict]]) -> tuple[list, list]:
     label = {key: text for key, text, _ in SCORED}
     per_frame = [("1-spp input", single(scored["oidn"].get("den"), "mc"))]
     per_frame += [(label[k], single(scored[k].get("den"), "den")) for k, _, _ in SCORED]
-    per_frame += [(f"{text}, trained here ({len(runs.get(m, []))} runs)",
+    per_frame += [(f"{text}, trained here (runs: {len(runs.get(m, []))})",
                    stats(runs.get(m, []), "den", "den")) for m, text in TRAINED]
     sequences = [("1-spp input", single(scored["oidn"].get("seq"), "mc")),
                  ("accumulated input", single(scored["oidn"].get("seq"), "acc"))]
