@@ -848,3 +848,44 @@ def test_pd_fig11_tables_and_claims_from_evaluate_pd_rows(tmp_path):
            "1.0000x" in text
     assert "| PD(OIDN) | 4096 | 0.9900 | 0 of 2 |" in text
     assert "Missing: `pd-oidn-closed-form`" in text and "`pd-dc-s1`" in text
+
+
+# ------------------------------------------------------------------------- rt_comparisons
+def test_rt_comparisons_rows_seeds_and_claims(tmp_path, monkeypatch):
+    """The scored methods' rows (per frame; per frame, accumulated and own history on the
+    sequences, the last only where a summary has it), trained runs as mean ± std over seeds,
+    and the claims decided from them with the bench's time ratio."""
+    rt = load_script("rt_comparisons")
+
+    def summary(psnr, seq=False):
+        out = {f"{p}_{m}": psnr + i for i, p in enumerate(("mc", "den", "acc", "tdn"))
+               for m in ("psnr",)} | {f"{p}_{m}": 0.5 for p in ("mc", "den", "acc", "tdn")
+                                      for m in ("ssim", "relmse", "flip")}
+        if seq:
+            out |= {"seq_psnr": psnr + 9, "seq_ssim": 0.5, "seq_relmse": 0.5, "seq_flip": 0.5}
+        return out
+
+    scored = {key: {"den": summary(20.0), "seq": summary(21.0, seq=key == "svgf")}
+              for key, _, _ in rt.SCORED}
+    monkeypatch.setattr(rt, "score", lambda home: scored)
+    for sweep, model, seed, psnr in (("rt-main", "wskp", 0, 26.6), ("rt-main", "wskp", 1, 26.8),
+                                     ("rt-main", "kp", 0, 26.1), ("rt-main", "kp", 1, 26.3),
+                                     ("rt-baselines", "nbgd", 0, 25.0)):
+        folder = tmp_path / "home" / "runs" / "sweeps" / sweep / f"{model}-s{seed}"
+        folder.mkdir(parents=True)
+        result = {"run": folder.name, "config": {"model": model, "seed": seed},
+                  "evaluations": {"den:/x/rt-test": {"den_psnr": psnr, "den_ssim": 0.7,
+                                                     "den_relmse": 0.2, "den_flip": 0.2}}}
+        (folder / "result.json").write_text(json.dumps(result))
+    out = tmp_path / "out"
+    out.mkdir()
+    assert rt.main(["--home", str(tmp_path / "home"), "--out", str(out)]) == 0
+    text = (out / "rt-comparisons.md").read_text()
+    assert "| WSKP-6, trained here (runs: 2) | 26.70 ± 0.14 (2 seeds) |" in text
+    assert "| NBGD, trained here (runs: 1) | 25.00 |" in text
+    assert "| MR-KP, trained here (runs: 0) | not run |" in text
+    assert "| SVGF (paper settings), own history | 30.00 |" in text
+    assert "BMFR, own history" not in text
+    assert ("- WSKP-6 comparable to KP at about half its time: PSNR 26.70 against 26.20 dB "
+            "(margin +0.50 dB, seed-to-seed standard deviation 0.14 dB)") in text
+    assert "- WSKP-6 better than NBGD at equal time: PSNR 26.70 against 25.00 dB" in text
