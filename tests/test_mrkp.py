@@ -6,7 +6,6 @@ receptive field, a training smoke and the `jaxden train` path."""
 from __future__ import annotations
 
 import math
-import tomllib
 from pathlib import Path
 
 import jax
@@ -199,19 +198,6 @@ def test_tiles_equal_the_whole_frame():
 def test_a_few_adam_steps_lower_the_loss():
     first, last = train_smoke("mrkp", steps=8, learning_rate=1e-3)
     assert np.isfinite(last) and last < 0.97 * first, (first, last)
-
-
-def test_train_config_is_train_rt_with_the_model_changed():
-    from jaxden.train.config import load_train_config
-    from jaxden.train.tasks import model_config
-
-    rt_config = tomllib.loads((ROOT / "experiments/configs/train-rt.toml").read_text())
-    ours = tomllib.loads((ROOT / "experiments/configs/train-mrkp.toml").read_text())
-    assert ours.pop("model") == "mrkp" and rt_config.pop("model") == "wskp"
-    assert ours.pop("model_config") == {}
-    assert ours == rt_config
-    config = load_train_config(ROOT / "experiments/configs/train-mrkp.toml")
-    assert model_config(config) == rt.MRKPConfig()
 
 
 @pytest.fixture(scope="module")

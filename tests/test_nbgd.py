@@ -291,17 +291,19 @@ def test_names_are_new_and_a_second_owner_is_refused():
 
 
 # ------------------------------------------------------------------------------ training
-def test_train_config_is_train_rt_with_the_model_changed():
+@pytest.mark.parametrize("model,config_cls", [("nbgd", "NBGDConfig"), ("mrkp", "MRKPConfig")])
+def test_train_config_is_train_rt_with_the_model_changed(model, config_cls):
+    """train-nbgd.toml and train-mrkp.toml are the real-time recipe with the model changed."""
     from jaxden.train.config import load_train_config
     from jaxden.train.tasks import model_config
 
     rt_config = tomllib.loads((ROOT / "experiments/configs/train-rt.toml").read_text())
-    ours = tomllib.loads((ROOT / "experiments/configs/train-nbgd.toml").read_text())
-    assert ours.pop("model") == "nbgd" and rt_config.pop("model") == "wskp"
+    ours = tomllib.loads((ROOT / f"experiments/configs/train-{model}.toml").read_text())
+    assert ours.pop("model") == model and rt_config.pop("model") == "wskp"
     assert ours.pop("model_config") == {}
     assert ours == rt_config
-    config = load_train_config(ROOT / "experiments/configs/train-nbgd.toml")
-    assert model_config(config) == rt.NBGDConfig()
+    config = load_train_config(ROOT / f"experiments/configs/train-{model}.toml")
+    assert model_config(config) == getattr(rt, config_cls)()
 
 
 @pytest.fixture(scope="module")
