@@ -521,26 +521,20 @@ def emission_decision(spec: str, path, args: argparse.Namespace) -> tuple[str, s
         return spec, None
     convention = getattr(args, "convention", None)
     header = read_header(path)
-    if convention in (None, "jaxden"):
+    names = dict(getattr(args, "channels", None) or ()).get("emission")  # --channels wins
+    if convention in (None, "jaxden"):  # a file jaxden wrote: the renders it merged
         listed = buffer_list(header, str(path))
         if listed is None or listed.convention is None:
             return spec, None
         rule = CONVENTIONS.get(listed.convention)
-        has_emission = set(CHANNELS["emission"]) <= set(header["channels"])
-        mapped = dict(getattr(args, "channels", None) or ()).get("emission")
-        has_emission = has_emission or (mapped is not None
-                                        and set(mapped) <= set(header["channels"]))
+        names = names or CHANNELS["emission"]
     else:
         rule = CONVENTIONS.get(convention)
-        mapped = dict(getattr(args, "channels", None) or ()).get("emission")
-        if mapped is not None:
-            has_emission = set(mapped) <= set(header["channels"])
-        else:
-            reading = resolve(convention, header["channels"], header,
-                              layer=getattr(args, "layer", None), where=str(path))
-            names = reading.mapping.get("emission")
-            has_emission = names is not None and set(names) <= set(header["channels"])
-    if rule is None or not rule.albedo_includes_emission or not has_emission:
+        names = names or resolve(convention, header["channels"], header,
+                                 layer=getattr(args, "layer", None),
+                                 where=str(path)).mapping.get("emission")
+    if (rule is None or not rule.albedo_includes_emission or names is None
+            or not set(names) <= set(header["channels"])):
         return spec, None
     text = str(spec)
     joined = f"{text},emission=separate" if split_spec(spec)[1] else f"{text}:emission=separate"
