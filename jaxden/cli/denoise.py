@@ -170,12 +170,11 @@ def _denoise_buffers(args: argparse.Namespace, registry) -> int:
     mapping = channel_map(args) or {}
     mean = read_frame(source, require=("color",), nonfinite=args.nonfinite, keep=("color",),
                       channel_map=mapping or None, **convention_options(args))
-    read_buffers(args, mean, source)  # K >= 2, one size, their mean IN's colour
     required = definition.required(config)
-    buffers = [read_frame(path, require=(*required, *(f for f in mapping if f not in required)),
-                          nonfinite=args.nonfinite, channel_map=mapping or None,
-                          keep=(*required, "variance", "position"), **convention_options(args))
-               for path in args.buffers]
+    buffers = read_buffer_frames(  # K >= 2, one size, their mean IN's colour
+        args, mean, source, require=(*required, *(f for f in mapping if f not in required)),
+        keep=(*required, "variance", "position"), channel_map=mapping or None,
+        reading=convention_options(args))
     image = definition.denoise(buffers, config, tile=args.tile, limit=_memory_limit(args),
                                progress=True)
     check_finite_result(image, "the denoised image", f"{source} denoised by {args.model} from "
@@ -267,14 +266,24 @@ def _sure_from_buffers(args: argparse.Namespace, frame, denoiser, out: Path) -> 
 
 
 def read_buffers(args: argparse.Namespace, frame, path=None):
-    """The colours of ``args.buffers`` as one (K, H, W, 3) float32 array, checked against
-    ``frame`` (``path``, default ``args.input``, as read), for ``jaxden sure``, ``jaxden
-    progressive`` and the buffer denoisers of ``jaxden denoise`` alike,
-    by :func:`jaxden.sure.buffers.check_sub_buffers` (each failure one FrameError naming the
+    """The colours of ``args.buffers`` as one (K, H, W, 3) float32 array, read and checked by
+    :func:`read_buffer_frames` (for ``jaxden sure`` and ``jaxden progressive``)."""
+    import numpy as np
+
+    return np.stack([np.asarray(buffer.color, np.float32)
+                     for buffer in read_buffer_frames(args, frame, path)])
+
+
+def read_buffer_frames(args: argparse.Namespace, frame, path=None, *, require=("color",),
+                       keep=("color",), channel_map=None, reading=None) -> list:
+    """The Frames of ``args.buffers`` (fields ``require`` and ``keep``), checked against
+    ``frame`` (``path``, default ``args.input``, as read) by
+    :func:`jaxden.sure.buffers.check_sub_buffers` (each failure one FrameError naming the
     files): at least 2, each of the input's size, none given twice, equal spp where their
     headers state one, and their mean equal to the input's colour; where the input's header
     lists the buffers it was made from (:func:`jaxden.data.merge.read_buffer_list`), exactly
-    those, read by the convention they were merged with (``jaxden merge --from``).
+    those, read by the convention they were merged with (``jaxden merge --from``), else by
+    ``reading`` (``convention`` and ``layer`` of :func:`jaxden.io.exr.read_frame`).
     """
     import numpy as np
 
@@ -285,15 +294,15 @@ def read_buffers(args: argparse.Namespace, frame, path=None):
     source = args.input if path is None else path
     paths = [str(p) for p in args.buffers]
     listed = read_buffer_list(source)
-    reading = {} if listed is None else {"convention": listed.convention,
-                                         "layer": listed.layer}
-    buffers = [read_frame(path, require=("color",), nonfinite=args.nonfinite, keep=("color",),
-                          **reading) for path in paths]
+    if listed is not None:
+        reading = {"convention": listed.convention, "layer": listed.layer}
+    buffers = [read_frame(path, require=require, nonfinite=args.nonfinite, keep=keep,
+                          channel_map=channel_map, **(reading or {})) for path in paths]
     colours = np.stack([np.asarray(buffer.color, np.float32) for buffer in buffers])
     check_sub_buffers(frame.color, colours, where="--buffers", names=paths,
                       spp=[None if b.spp is None else float(b.spp) for b in buffers],
                       made_from=listed, frame_name=str(source))
-    return colours
+    return buffers
 
 
 def buffers_notice(path, batch: bool = False) -> bool:
