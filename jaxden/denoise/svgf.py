@@ -40,6 +40,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxden.config import bounded, check_fields
+from jaxden.denoise.nn.wskp import safe_albedo
 from jaxden.denoise.registry import DenoiserDef, register
 from jaxden.denoise.temporal import bilinear_taps
 from jaxden.errors import ConfigError
@@ -214,8 +215,6 @@ def normal_width(normal: jax.Array) -> jax.Array:
 def guarded_albedo(albedo: jax.Array, floor: float = 0.0) -> jax.Array:
     """The albedo SVGF divides by: WSKP's safe albedo above ``floor`` > 0
     (:func:`jaxden.denoise.nn.wskp.safe_albedo`), Falcor's ``max(albedo, 0.001)`` for 0."""
-    from jaxden.denoise.nn.wskp import safe_albedo
-
     return safe_albedo(albedo, floor) if floor > 0 else jnp.maximum(albedo, ALBEDO_GUARD)
 
 
