@@ -48,6 +48,13 @@ step data-test-high-chain $J dataset build experiments/configs/dataset-test-high
 # The mixers' training set, and the paper's f_act mixer over the shipped WSKP-6 (the recipe of
 # wskp-6-pd with the f_act head of the paper's Table 4): measured beside the shipped mixers.
 step data-pd-rt4k $J dataset build experiments/configs/dataset-pd-rt4k.toml --out "$H/data/pd-rt4k"
+# StatMC's statistics (Frame.boxcox) on the held-out crops and the stress frames: the same
+# configs, seeds and samples (the colour is that of the sets above), 4..4096 spp.
+STATS="statistics=true spp=[4,8,16,32,64,128,256,512,1024,2048,4096]"
+step data-stress-stats $J dataset build experiments/configs/dataset-stress.toml name=stress-stats \
+  $STATS --out "$H/data/stress-stats"
+step data-pd-test-high-stats $J dataset build experiments/configs/dataset-pd-test-high.toml \
+  name=pd-test-high-stats $STATS --out "$H/data/pd-test-high-stats"
 # The Deep Combiner over OIDN in JAX, two seeds, on the mixers' training set, and the
 # progressive-denoising paper's Fig. 11 on pd-test-high: MC, OIDN, DC, PD(OIDN), PD(DC)
 # (into $H/runs/pd-fig11; `python experiments/pd_fig11.py` tabulates them).

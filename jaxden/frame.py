@@ -20,6 +20,15 @@ emission   (..., H, W, 3)  radiance emitted by the surface each camera ray hits 
                            visible emitters, Le at the first hit), averaged over the colour's
                            own samples; the environment on camera-ray misses is not in it
                            (Cycles' ``Emit`` pass; the background is its own pass there)
+boxcox     (..., H, W, 9)  per-pixel sample statistics of the Box-Cox(0.5) transformed radiance
+                           b = (sqrt(L) - 1) / 0.5 of each sample, per channel: the mean of b
+                           (R, G, B), its second and third central moments about that mean,
+                           mean((b - mean b)^2) and mean((b - mean b)^3) (R, G, B each), i.e.
+                           M2 / n and M3 / n of the online (Welford) form; n is the statistics'
+                           sample count, ``variance_dof + 1`` where that is set (a frame merged
+                           from K renders by their spread has K: the statistics of the K
+                           renders' means), else ``spp``. What StatMC's pairwise test reads
+                           (:mod:`jaxden.denoise.statmc`, :mod:`jaxden.render.integrators`)
 spp        (...)           samples per pixel (a float array so batches can mix spp levels)
 variance_dof (...)         degrees of freedom of the variance estimate per pixel (None: spp - 1,
                            a sample variance of the pixel's own samples); a frame merged from K
@@ -61,7 +70,12 @@ CHANNELS: dict[str, tuple[str, ...]] = {
     "motion": ("motion.X", "motion.Y"),
     "covariance": ("covariance.RG", "covariance.GB", "covariance.BR"),
     "emission": ("emission.R", "emission.G", "emission.B"),
+    "boxcox": ("boxcox.mean.R", "boxcox.mean.G", "boxcox.mean.B",
+               "boxcox.m2.R", "boxcox.m2.G", "boxcox.m2.B",
+               "boxcox.m3.R", "boxcox.m3.G", "boxcox.m3.B"),
 }
+#: The Box-Cox exponent of ``Frame.boxcox`` (StatMC's lambda).
+BOXCOX_LAMBDA = 0.5
 IMAGE_FIELDS: tuple[str, ...] = tuple(CHANNELS)
 NonFinitePolicy = Literal["error", "zero"]
 
@@ -82,6 +96,7 @@ class Frame:
     covariance: Any = None
     emission: Any = None
     variance_dof: Any = None
+    boxcox: Any = None
 
     # ------------------------------------------------------------------ accessors
     @property
@@ -100,6 +115,14 @@ class Frame:
     def features(self) -> tuple[str, ...]:
         """Names of the image fields that are present."""
         return tuple(name for name in IMAGE_FIELDS if getattr(self, name) is not None)
+
+    def statistics_count(self):
+        """n of the ``boxcox`` statistics: ``variance_dof + 1`` where that is set (K for a
+        frame merged from K renders by their spread; the pooled sample count for a frame
+        pooled exactly), else ``spp``; None when neither is known. Shape (...)."""
+        if self.variance_dof is not None:
+            return self.variance_dof + 1
+        return self.spp
 
     def replace(self, **changes: Any) -> Frame:
         return dataclasses.replace(self, **changes)
@@ -168,7 +191,8 @@ class Frame:
         """Check shapes and values; return the frame (repaired if ``nonfinite='zero'``).
 
         Checks: every present field is an array of shape (..., H, W, C) with the field's channel
-        count and the colour's (..., H, W); variance and emission are >= 0; all fields are
+        count and the colour's (..., H, W); variance, emission and boxcox's second moments
+        are >= 0; all fields are
         finite; ``spp`` and ``variance_dof``, where given, are finite and > 0.
         ``emission <= color`` is not checked: it holds for jaxden's renders (the same samples),
         but not per pixel for other renderers (a clamped or differently filtered combined
@@ -251,6 +275,22 @@ class Frame:
                         f"{emission[index]:.6g}); pass nonfinite='zero' (CLI: --nonfinite zero) "
                         f"to clip them to 0")
                 repaired["emission"] = np.maximum(emission, 0.0).astype(emission.dtype)
+        if "boxcox" in arrays:
+            statistics = repaired.get("boxcox", arrays["boxcox"])
+            second = statistics[..., 3:6]
+            tolerance = 1e-5 * (1.0 + np.square(statistics[..., 0:3]))
+            if (second < -tolerance).any() or (nonfinite == "error" and (second < 0).any()):
+                index = tuple(int(i) for i in np.argwhere(second < 0)[0])
+                raise FrameError(
+                    f"{where}: boxcox's second central moments (boxcox.m2.R/G/B) must be >= 0 "
+                    f"but {int((second < 0).sum())} value(s) are negative (first at index "
+                    f"{index}: {second[index]:.6g})"
+                    + ("; pass nonfinite='zero' (CLI: --nonfinite zero) to clip round-off"
+                       if nonfinite == "error" else ""))
+            if (second < 0).any():
+                repaired["boxcox"] = np.concatenate(
+                    [statistics[..., 0:3], np.maximum(second, 0.0), statistics[..., 6:9]],
+                    axis=-1).astype(statistics.dtype)
         if "covariance" in arrays:
             repaired.update(_checked_covariance(
                 repaired.get("covariance", arrays["covariance"]),
@@ -279,6 +319,8 @@ def _fields_pass(fields: dict) -> jax.Array:
     for name in ("variance", "emission"):
         if name in fields:
             ok &= jnp.all(fields[name] >= 0)
+    if "boxcox" in fields:
+        ok &= jnp.all(fields["boxcox"][..., 3:6] >= 0)
     if "covariance" in fields:
         if "variance" not in fields:
             return jnp.array(False)

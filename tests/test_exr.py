@@ -25,6 +25,8 @@ def make_frame(h=6, w=7, seed=0, full=True):
             position=rng.normal(size=(h, w, 3)).astype(np.float32),
             motion=rng.normal(size=(h, w, 2)).astype(np.float32),
             emission=rng.uniform(0, 2, (h, w, 3)).astype(np.float32),
+            boxcox=np.concatenate([rng.uniform(-2, 3, (h, w, 3)), rng.uniform(0, 1, (h, w, 3)),
+                                   rng.uniform(-1, 1, (h, w, 3))], axis=-1).astype(np.float32),
         )
         var = fields["variance"]
         fields["covariance"] = (rng.uniform(-0.9, 0.9, (h, w, 3))

@@ -39,7 +39,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     (out,) = exr_outputs(("--out", args.out))
     parameters = parse_parameters(args.define)
     frame = render_frame(args.scene, spp=args.spp, seed=args.seed, size=args.size, aux=args.aux,
-                         feature_spp=args.feature_spp, parameters=parameters or None)
+                         feature_spp=args.feature_spp, parameters=parameters or None,
+                         statistics=args.statistics)
     write_frame(out, frame, half=args.half, attributes={
         "seed": args.seed, "scene": args.scene,
         **feature_attributes(args.spp, args.aux, args.feature_spp)})
@@ -71,7 +72,8 @@ def _render_buffers(args: argparse.Namespace, out: Path) -> int:
     seeds = [args.seed * k + i for i in range(k)]
     parameters = parse_parameters(args.define)
     parts = [render_cached(args.scene, args.spp // k, seed=s, size=args.size, aux=args.aux,
-                           feature_spp=args.feature_spp, parameters=parameters or None).numpy()
+                           feature_spp=args.feature_spp, parameters=parameters or None,
+                           statistics=args.statistics).numpy()
              for s in seeds]
     full = combine_buffers(parts)
     full = full.replace(**{name: np.asarray(getattr(full, name), np.float32)
@@ -154,6 +156,9 @@ def add_commands(sub) -> None:
     p.add_argument("--buffers", type=positive_int, default=None, metavar="K",
                    help="also keep K independent sub-buffers of spp / K samples each "
                         "(OUT.b0.exr ..; OUT is their combination), for `jaxden sure --buffers`")
+    p.add_argument("--statistics", action="store_true",
+                   help="also write the per-pixel sample statistics StatMC tests with "
+                        "(boxcox.mean/m2/m3.R/G/B: Box-Cox(0.5) mean and central moments)")
     p.add_argument("-D", dest="define", action="append", default=[], metavar="NAME=VALUE",
                    help="set $NAME in an XML scene, as Mitsuba's -D (repeatable; wins over the "
                         "scene's <default>)")

@@ -83,14 +83,15 @@ class CropTask:
     threads: int | None = None  # Dr.Jit worker threads for this process (None: all cores)
     aux: str = "first-hit"  # DatasetConfig.aux; passed to the renderer only when not default
     feature_spp: int = 16  # DatasetConfig.feature_spp; passed only when not the default 16
+    statistics: bool = False  # DatasetConfig.statistics; passed only when True
     parameters: tuple[tuple[str, str], ...] = ()  # DatasetConfig.scene_parameters (XML scenes)
     scene_file: str = ""  # an XML scene's absolute path (workers may run in another folder)
 
 
-def _feature_options(aux: str, feature_spp: int) -> dict[str, Any]:
+def _feature_options(aux: str, feature_spp: int, statistics: bool = False) -> dict[str, Any]:
     """The feature keywords a dataset passes to its renderer: only those off their defaults,
     so render functions written before they existed keep working on ordinary datasets."""
-    options: dict[str, Any] = {}
+    options: dict[str, Any] = {"statistics": True} if statistics else {}
     if aux != "first-hit":
         options["aux"] = aux
     if feature_spp != 16:
@@ -124,7 +125,8 @@ def render_crop(task: CropTask) -> list[dict[str, Any]]:
 
     Runs in a worker process. The render function is called as
     ``render_fn(scene, spp, seed=seed, size=(width, height), crop=(top, left, height, width))``
-    (plus ``aux=`` / ``feature_spp=`` when the dataset's differ from ``"first-hit"`` / 16)
+    (plus ``aux=`` / ``feature_spp=`` when the dataset's differ from ``"first-hit"`` / 16, and
+    ``statistics=True`` when the dataset asks for them)
     and must return a :class:`jaxden.frame.Frame` of the crop's size with the dataset features.
     """
     render = task.render_fn or render_cached
@@ -150,7 +152,7 @@ def _render_one(task: CropTask, item: RenderTask, render: RenderFn) -> dict[str,
 
     top, left, height, width = task.window
     start = time.perf_counter()
-    extra = _feature_options(task.aux, task.feature_spp)
+    extra = _feature_options(task.aux, task.feature_spp, task.statistics)
     if task.parameters:
         extra["parameters"] = dict(task.parameters)
     frame = render(task.scene_file or task.scene, item.spp, seed=item.seed, size=task.size,
@@ -192,7 +194,8 @@ def _check_render(frame: Any, task: CropTask, item: RenderTask) -> None:
             f"{who} returned colour of shape {np.shape(frame.color)}, expected the crop's "
             f"({height}, {width}, 3)"
         )
-    missing = [f for f in required_features(item.spp) if getattr(frame, f) is None]
+    missing = [f for f in required_features(item.spp) + (("boxcox",) if task.statistics else ())
+               if getattr(frame, f) is None]
     if missing:
         raise DatasetError(f"{who} returned a frame without {', '.join(missing)}")
     if frame.spp is not None and float(np.asarray(frame.spp)) != float(item.spp):
@@ -339,7 +342,7 @@ def build_dataset(
 
     if not isinstance(config, DatasetConfig):
         config = load_dataset_config(config)
-    options = _feature_options(config.aux, config.feature_spp)
+    options = _feature_options(config.aux, config.feature_spp, config.statistics)
     missing = _missing_keywords(render_fn, options) if render_fn is not None else []
     if missing:
         raise DatasetError(
@@ -434,6 +437,7 @@ def _build(config: DatasetConfig, directory: Path, planned: Manifest, pool: Any,
                     threads=threads,
                     aux=config.aux,
                     feature_spp=config.feature_spp,
+                    statistics=config.statistics,
                     parameters=tuple(sorted(config.scene_parameters.items())),
                     scene_file=_scene_file(crops[crop_id].scene),
                 )

@@ -136,6 +136,9 @@ class DatasetConfig:
       Both defaults differ from ``jaxden render``'s (specular-chain at 1024); a model trained
       on the dataset records them, and running it on a frame of other features prints a
       warning (:mod:`jaxden.data.features`).
+    - ``statistics``: also render each item's per-pixel sample statistics (``Frame.boxcox``:
+      the Box-Cox(0.5) mean and central moments StatMC's test reads; 9 float32 channels more
+      per file, same samples as the colour); False by default.
     - ``scene_parameters``: ``$name`` values for the XML scenes, as Mitsuba's ``-D``
       (``[scene_parameters]`` table, e.g. ``spp = "64"``); empty by default.
     - ``splits``: see :class:`SplitConfig`.
@@ -153,6 +156,7 @@ class DatasetConfig:
     half: bool = False
     aux: str = DEFAULT_AUX
     feature_spp: int = bounded(DEFAULT_FEATURE_SPP, low=1, high=2**24)
+    statistics: bool = False
     scene_parameters: dict[str, str] = dataclasses.field(default_factory=dict)
     splits: SplitConfig = SplitConfig()
 

@@ -38,6 +38,7 @@ import numpy as np
 
 from jaxden.errors import ExrError, FrameError
 from jaxden.frame import Frame
+from jaxden.render.integrators import boxcox_of_samples
 
 
 def _check_buffers(frames: Sequence[Frame], names: Sequence[str]) -> None:
@@ -96,7 +97,8 @@ def combine_buffers(buffers) -> Frame:
     of all K * m samples over K * m, from each buffer's variance of its mean (m samples each;
     the frames must have ``spp``) and the spread of the buffer means, exactly as if one
     render had taken all the samples; the covariance between channels likewise when every
-    buffer has one (else none). Features (albedo, normal, ...): the mean over the
+    buffer has one (else none); ``boxcox`` pooled exactly likewise (:func:`pool_boxcox`) when
+    every buffer has it (else none). Features (albedo, normal, ...): the mean over the
     buffers (per-sample averages, as one render of all samples gives them; a present feature
     must be present in every buffer). ``variance_dof``: None (spp - 1, the sample variance of
     all K m samples) when no buffer records one, else the sum of the buffers' (m - 1 where a
@@ -132,8 +134,11 @@ def combine_buffers(buffers) -> Frame:
                  * m * (m - 1)
                  + m * ((means - mean) * (means_next - np.roll(mean, -1, axis=-1))).sum(axis=0))
         features["covariance"] = cross / (k * m - 1) / (k * m)
+    boxcox = [f.boxcox for f in frames]
+    if all(b is not None for b in boxcox):
+        features["boxcox"] = pool_boxcox(boxcox, [f.statistics_count() for f in frames])
     for name in frames[0].features():
-        if name in ("color", "variance", "covariance"):
+        if name in ("color", "variance", "covariance", "boxcox"):
             continue
         if any(getattr(f, name) is None for f in frames):
             raise FrameError(f"combine_buffers: {name} is in buffer 0 but not in every buffer")
@@ -142,6 +147,23 @@ def combine_buffers(buffers) -> Frame:
     return frames[0].replace(color=mean, variance=squares / (n - 1) / n, **features,
                              spp=np.full(np.shape(frames[0].spp), n, np.float32),
                              variance_dof=_pooled_dof(frames, m))
+
+
+def pool_boxcox(statistics, counts) -> np.ndarray:
+    """``Frame.boxcox`` of all the samples of K renders from each one's (..., 9) statistics
+    and sample count n_k (``Frame.statistics_count``), exactly (Chan et al.'s pairwise update
+    of the mean and the second and third central moments, all at once): with d_k = mean_k -
+    mean, M2 = sum n_k (m2_k + d_k^2) and M3 = sum n_k (m3_k + 3 m2_k d_k + d_k^3), returned as
+    M2 / n and M3 / n, n = sum n_k. float64."""
+    stats = np.stack([np.asarray(b, np.float64) for b in statistics])
+    n_k = np.stack([np.broadcast_to(np.asarray(c, np.float64), np.shape(stats[0])[:-3])
+                    for c in counts])[..., None, None, None]
+    n = n_k.sum(axis=0)
+    mean = (n_k * stats[..., 0:3]).sum(axis=0) / n
+    d = stats[..., 0:3] - mean
+    second = (n_k * (stats[..., 3:6] + d * d)).sum(axis=0) / n
+    third = (n_k * (stats[..., 6:9] + 3.0 * stats[..., 3:6] * d + d ** 3)).sum(axis=0) / n
+    return np.concatenate([mean, second, third], axis=-1)
 
 
 def _pooled_dof(frames, m: int):
@@ -163,6 +185,11 @@ def merge_renders(frames: Sequence[Frame], names: Sequence[str] | None = None) -
     between channels likewise. ``spp``: the renders' sum when they record one, else None.
     ``variance_dof``: the variance's degrees of freedom, always set: K - 1 from the spread,
     K m - 1 pooled (more where the renders record their own; :func:`combine_buffers`).
+    ``boxcox`` (StatMC's statistics): pooled exactly where the variance is and every render
+    has them; from the spread, the statistics of the K colours as K samples (Box-Cox of
+    each render's mean: valid for the test, which compares means of K i.i.d. values, but with
+    K - 1 degrees of freedom it accepts far more: the limit for renderers that cannot write
+    per-sample moments).
     ``names`` (e.g. the file paths) label the messages. Raises FrameError for fewer than 2
     renders, other sizes, fields or sample counts, a variance in some renders but not all, and
     one render given twice (equal, or equal but for rounding: :func:`same_render`).
@@ -190,6 +217,9 @@ def merge_renders(frames: Sequence[Frame], names: Sequence[str] | None = None) -
               "variance": np.square(deviation).sum(axis=0) / ((k - 1) * k),
               "covariance": (deviation * np.roll(deviation, -1, axis=-1)).sum(axis=0)
               / ((k - 1) * k)}
+    # The statistics of the K renders' means, as K samples (their count, K, is the variance's
+    # K - 1 degrees of freedom plus one): whatever per-sample statistics the renders carry.
+    fields["boxcox"] = boxcox_of_samples(colours)
     for field in frames[0].features():
         if field not in fields:
             fields[field] = np.mean([np.asarray(getattr(f, field), np.float64) for f in frames],

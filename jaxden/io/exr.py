@@ -46,7 +46,7 @@ from jaxden.limits import check_exr_size
 ATTRIBUTE_PREFIX = "jaxden."
 #: Key that :func:`read_channels` sets in the header of a file with jaxden's attributes.
 #: Channels written in float32 even by ``write_frame(half=True)``.
-PRECISE_CHANNELS = frozenset(CHANNELS["variance"] + CHANNELS["covariance"])
+PRECISE_CHANNELS = frozenset(CHANNELS["variance"] + CHANNELS["covariance"] + CHANNELS["boxcox"])
 _FIELDS_BY_CHANNEL_COUNT = {"color": 3, "variance": 3}
 
 

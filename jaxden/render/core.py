@@ -210,7 +210,7 @@ def _scene_and_sensor(scene, size, crop, sensor, parameters=None):
 _integrator_cache: dict = {}
 
 
-def _integrators(scene, max_depth):
+def _integrators(scene, max_depth, statistics: bool = False):
     """(inner colour integrator, its moment wrapper) for a scene, cached."""
     import mitsuba as mi
 
@@ -225,10 +225,10 @@ def _integrators(scene, max_depth):
         if key not in _integrator_cache:
             _integrator_cache[key] = integrators.path_integrator(depth)
         inner = _integrator_cache[key]
-    key = ("moment", mi.variant(), id(inner))
+    key = ("moment", mi.variant(), id(inner), statistics)
     entry = _integrator_cache.get(key)
     if entry is None or entry[0] is not inner:
-        entry = (inner, integrators.moment_integrator(inner))
+        entry = (inner, integrators.moment_integrator(inner, statistics=statistics))
         _integrator_cache[key] = entry
         while len(_integrator_cache) > 32:
             _integrator_cache.pop(next(iter(_integrator_cache)))
@@ -265,12 +265,13 @@ def _render(scene, sensor, integrator, seed: int, spp: int, channels: int) -> np
 
 
 def _render_colour(mi_scene, mi_sensor, max_depth, seed: int, spp: int,
-                   shape: tuple[int, int], budget: int):
+                   shape: tuple[int, int], budget: int, statistics: bool = False):
     """Colour passes: (pixel mean, variance of the mean, covariance of the mean between
-    channels, emission of the first hit averaged over the same samples), float32; variance
-    and covariance None at 1 spp."""
-    _, moment = _integrators(mi_scene, max_depth)
-    channels = integrators.MOMENT_CHANNELS
+    channels, emission of the first hit averaged over the same samples, Box-Cox statistics or
+    None), float32; variance and covariance None at 1 spp."""
+    _, moment = _integrators(mi_scene, max_depth, statistics)
+    channels = integrators.MOMENT_CHANNELS + (len(integrators.STATISTICS_AOVS) if statistics
+                                              else 0)
     sums = np.zeros(shape + (channels,), np.float64)
     for index, pass_spp in enumerate(split_passes(spp, shape[0] * shape[1], budget)):
         sums += pass_spp * _render(mi_scene, mi_sensor, moment, derive_seed(seed, "color", index),
@@ -278,12 +279,14 @@ def _render_colour(mi_scene, mi_sensor, max_depth, seed: int, spp: int,
     moments = sums / spp
     m1 = moments[..., 0:3]
     emission = moments[..., 9:12].astype(np.float32)
+    boxcox = None if not statistics else integrators.boxcox_statistics(
+        moments[..., 12:15], moments[..., 15:18], moments[..., 18:21], spp)
     if spp == 1:
-        return m1.astype(np.float32), None, None, emission
+        return m1.astype(np.float32), None, None, emission, boxcox
     variance = integrators.variance_of_mean(m1, moments[..., 3:6], spp)
     covariance = integrators.covariance_of_mean(m1, moments[..., 6:9], variance, spp)
     return (m1.astype(np.float32), variance.astype(np.float32), covariance.astype(np.float32),
-            emission)
+            emission, boxcox)
 
 
 def _check_colour(colour: Frame, spp: int, shape: tuple[int, int]):
@@ -301,7 +304,8 @@ def _check_colour(colour: Frame, spp: int, shape: tuple[int, int]):
         raise SceneError("render_frame: colour= has no variance")
     covariance = None if colour.covariance is None else np.asarray(colour.covariance, np.float32)
     emission = None if colour.emission is None else np.asarray(colour.emission, np.float32)
-    return color, variance, covariance, emission
+    boxcox = None if colour.boxcox is None else np.asarray(colour.boxcox, np.float32)
+    return color, variance, covariance, emission, boxcox
 
 
 def _render_features(scene, sensor, integrator, seed: int, spp: int, pixels: int,
@@ -333,6 +337,7 @@ def render_frame(
     feature_spp: int = DEFAULT_FEATURE_SPP,
     colour: Frame | None = None,
     parameters: dict[str, str] | None = None,
+    statistics: bool = False,
 ) -> Frame:
     """Render a Frame: colour, variance of the mean, emission, albedo, normal, depth, position.
 
@@ -366,6 +371,10 @@ def render_frame(
         whose features are re-rendered (``jaxden dataset refeature``). With the seed it was
         rendered with, the result equals a full render_frame call.
       parameters: ``{name: value}`` for ``$name`` in an XML scene (Mitsuba's ``-D``).
+      statistics: also the per-pixel sample statistics StatMC tests with (``Frame.boxcox``:
+        mean, second and third central moments of each sample's Box-Cox(0.5) value, from the
+        same samples as the colour, which stays as without them but for float32 round-off;
+        :func:`jaxden.render.integrators.boxcox_statistics`). 9 more film channels.
 
     Returns:
       A Frame of float32 NumPy arrays without batch dimension: color (H, W, 3) (linear
@@ -398,10 +407,12 @@ def render_frame(
     mi_scene, mi_sensor, (height, width) = _scene_and_sensor(scene, size, crop, sensor,
                                                              parameters)
     if colour is None:
-        color, variance, covariance, emission = _render_colour(
-            mi_scene, mi_sensor, max_depth, seed, spp, (height, width), budget)
+        color, variance, covariance, emission, boxcox = _render_colour(
+            mi_scene, mi_sensor, max_depth, seed, spp, (height, width), budget,
+            bool(statistics))
     else:
-        color, variance, covariance, emission = _check_colour(colour, spp, (height, width))
+        color, variance, covariance, emission, boxcox = _check_colour(colour, spp,
+                                                                      (height, width))
 
     features = _render_features(mi_scene, mi_sensor, _features_integrator(aux),
                                 derive_seed(seed, "aov"), min(spp, feature_spp), height * width,
@@ -422,4 +433,5 @@ def render_frame(
         spp=np.float32(spp),
         covariance=covariance,
         emission=emission,
+        boxcox=boxcox,
     )

@@ -69,6 +69,10 @@ MOMENT_AOVS: tuple[str, ...] = ("m2.R", "m2.G", "m2.B", "m11.RG", "m11.GB", "m11
                                 "e.R", "e.G", "e.B")
 #: Channels of a moment render: m1 (3), m2 (3), m11 (3), emission (3).
 MOMENT_CHANNELS = 3 + len(MOMENT_AOVS)
+#: The AOVs a moment render adds with ``statistics=True``, after MOMENT_AOVS: the first three
+#: raw moments of s = 2 sqrt(L) per channel (s = b + 2 for StatMC's Box-Cox(0.5) value
+#: b = (sqrt(L) - 1) / 0.5; see :func:`boxcox_statistics`).
+STATISTICS_AOVS: tuple[str, ...] = tuple(f"s{k}.{c}" for k in (1, 2, 3) for c in "RGB")
 #: Built-in ``aov`` integrator spec; output channels in this order (10 in all).
 FEATURE_AOVS: str = "albedo:albedo,nn:sh_normal,dd:depth,pp:position"
 FEATURE_CHANNELS: dict[str, slice] = {
@@ -88,6 +92,7 @@ _classes: dict[str, type] = {}  # variant -> MomentIntegrator class of that vari
 
 def _moment_class() -> type:
     """The MomentIntegrator class for the current variant (mi classes are per variant)."""
+    import drjit as dr
     import mitsuba as mi
 
     variant = ensure_variant()
@@ -101,7 +106,9 @@ def _moment_class() -> type:
         Properties: ``inner`` (a nested sampling integrator) or ``max_depth`` (for the default
         ``path`` inner integrator; -1 is unbounded); ``emission`` (default True: the last 3
         AOVs are the emission Le of the first hit, see the module docstring; False: without
-        them, the integrator before the emission existed, kept for tests and benchmarks).
+        them, the integrator before the emission existed, kept for tests and benchmarks);
+        ``statistics`` (default False: True adds STATISTICS_AOVS after the emission, the raw
+        moments StatMC's per-pixel statistics come from; needs ``emission``).
         """
 
         def __init__(self, props: Any) -> None:
@@ -112,6 +119,7 @@ def _moment_class() -> type:
                 inner = mi.load_dict({"type": "path", "max_depth": int(max_depth)})
             self.inner = inner
             self.emission = bool(props.get("emission", True))
+            self.statistics = bool(props.get("statistics", False)) and self.emission
 
         def sample(self, scene, sampler, ray, medium=None, active=True):
             # Only the inner integrator touches the sampler: no extra random numbers.
@@ -122,10 +130,17 @@ def _moment_class() -> type:
             if not self.emission:
                 return radiance, valid, moments
             emitted = first_hit_emission(scene, ray, active, self.inner)
-            return radiance, valid, moments + [emitted[0], emitted[1], emitted[2]]
+            aovs = moments + [emitted[0], emitted[1], emitted[2]]
+            if self.statistics:
+                # s = 2 sqrt(L), the Box-Cox(0.5) value shifted by 2: central moments do not
+                # see the shift, and dark pixels (b near -2) keep their digits in float32.
+                s = [2.0 * mi.Float(dr.sqrt(dr.maximum(radiance[c], 0.0))) for c in range(3)]
+                aovs += s + [v * v for v in s] + [v * v * v for v in s]
+            return radiance, valid, aovs
 
         def aov_names(self):
-            return list(MOMENT_AOVS if self.emission else MOMENT_AOVS[:6])
+            names = list(MOMENT_AOVS if self.emission else MOMENT_AOVS[:6])
+            return names + list(STATISTICS_AOVS) if self.statistics else names
 
         def to_string(self):
             return f"MomentIntegrator[inner={self.inner}]"
@@ -184,14 +199,17 @@ def _construct(cls: type, **properties: Any):
         logger.set_log_level(level)
 
 
-def moment_integrator(inner=None, max_depth: int = DEFAULT_MAX_DEPTH, emission: bool = True):
+def moment_integrator(inner=None, max_depth: int = DEFAULT_MAX_DEPTH, emission: bool = True,
+                      statistics: bool = False):
     """A ``jaxden_moment`` integrator wrapping ``inner`` (an mi.SamplingIntegrator).
 
     With ``inner=None`` it wraps ``path`` with ``max_depth``. Rendered with a box filter, the
     image has 12 channels (MOMENT_CHANNELS): m1 (R, G, B), m2 (R, G, B), m11 (RG, GB, BR),
-    then the emission (R, G, B), see the module docstring; 9 with ``emission=False``.
+    then the emission (R, G, B), see the module docstring; 9 with ``emission=False``; 21 with
+    ``statistics=True`` (STATISTICS_AOVS follow the emission).
     """
-    integrator = _construct(_moment_class(), max_depth=int(max_depth), emission=bool(emission))
+    integrator = _construct(_moment_class(), max_depth=int(max_depth), emission=bool(emission),
+                            statistics=bool(statistics))
     if inner is not None:
         integrator.inner = inner
     return integrator
@@ -321,6 +339,49 @@ def covariance_of_mean(m1, m11, variance, spp: int):
     cross = (np.asarray(m11, dtype=np.float64) - m1 * np.roll(m1, -1, axis=-1)) / (spp - 1)
     bound = covariance_bound(variance)
     return np.clip(cross, -bound, bound)
+
+
+#: Relative round-off of a float32 film's per-pixel average of one raw moment (a sum of up to
+#: MAX_SPP_PER_PASS samples: ~sqrt(1024) x 2^-24 ~ 2e-6, with a margin).
+RAW_MOMENT_ROUNDOFF = 2e-5
+
+
+def boxcox_statistics(s1, s2, s3, count):
+    """``Frame.boxcox`` (..., 9) from the raw moments mean(s^k), k = 1, 2, 3, of the
+    ``count`` samples' s = 2 sqrt(L) (STATISTICS_AOVS, averaged over the passes in float64):
+    the mean of the Box-Cox(0.5) value b = s - 2, and its central moments
+    m2 = mean((b - mean b)^2) = s2 - s1^2 and m3 = mean((b - mean b)^3)
+    = s3 - 3 s1 s2 + 2 s1^3 (M2 / n and M3 / n of Welford's online form).
+
+    Round-off: the raw moments come from float32 films, each good to RAW_MOMENT_ROUNDOFF of
+    its size; m2 is clipped at 0, and m3 is set to 0 where it is below what the cancellation
+    can leave (RAW_MOMENT_ROUNDOFF x (|s3| + 3 |s1 s2| + 2 |s1|^3)) and clipped to the largest
+    skewness ``count`` samples can have, (n - 2) / sqrt(n - 1) (their exact bound), so round-off
+    never makes StatMC's skewness correction large. All in float64; returns float32."""
+    import numpy as np
+
+    s1, s2, s3 = (np.asarray(v, np.float64) for v in (s1, s2, s3))
+    n = np.asarray(count, np.float64)
+    second = np.maximum(s2 - s1 * s1, 0.0)
+    third = s3 - 3.0 * s1 * s2 + 2.0 * s1 ** 3
+    noise = RAW_MOMENT_ROUNDOFF * (np.abs(s3) + 3.0 * np.abs(s1 * s2) + 2.0 * np.abs(s1) ** 3)
+    third = np.where(np.abs(third) <= noise, 0.0, third)
+    largest = np.maximum(n - 2.0, 0.0) / np.sqrt(np.maximum(n - 1.0, 1.0)) * second ** 1.5
+    third = np.clip(third, -largest, largest)
+    return np.concatenate([s1 - 2.0, second, third], axis=-1).astype(np.float32)
+
+
+def boxcox_of_samples(samples, axis: int = 0):
+    """``Frame.boxcox`` (..., 9) of explicit samples of L (..., 3) along ``axis``, in float64:
+    the slow, obvious form (tests, and the statistics of K renders' means, whose samples are
+    the K means: :func:`jaxden.data.merge.merge_renders`)."""
+    import numpy as np
+
+    b = 2.0 * np.sqrt(np.maximum(np.asarray(samples, np.float64), 0.0)) - 2.0
+    mean = b.mean(axis=axis)
+    deviation = b - np.expand_dims(mean, axis)
+    return np.concatenate([mean, np.square(deviation).mean(axis=axis),
+                           (deviation ** 3).mean(axis=axis)], axis=-1).astype(np.float32)
 
 
 def variance_of_mean(m1, m2, spp: int):

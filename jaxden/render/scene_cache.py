@@ -29,6 +29,7 @@ def render_cached(
     feature_spp: int = 16,
     colour: Any = None,
     parameters: dict[str, str] | None = None,
+    statistics: bool = False,
 ) -> Any:
     """:func:`jaxden.render.core.render_frame` with the loaded scene kept between calls (the
     builder's default renderer). ``parameters``: ``$name`` values of an XML scene."""
@@ -44,4 +45,4 @@ def render_cached(
             _SCENE_CACHE.pop(next(iter(_SCENE_CACHE)))
         _SCENE_CACHE[key] = loaded
     return render_frame(loaded, spp, seed=seed, size=size, crop=crop, aux=aux,
-                        feature_spp=feature_spp, colour=colour)
+                        feature_spp=feature_spp, colour=colour, statistics=statistics)
