@@ -59,13 +59,16 @@ step data-pd-test-high-stats $J dataset build experiments/configs/dataset-pd-tes
 # progressive-denoising paper's Fig. 11 on pd-test-high: MC, OIDN, DC, PD(OIDN), PD(DC)
 # (into $H/runs/pd-fig11; `python experiments/pd_fig11.py` tabulates them).
 step dc-oidn-s0 "${X[@]}" $J train experiments/configs/train-dc.toml --workdir "$H/runs/dc-oidn-s0"
-fig11_pd() {  # fig11_pd DENOISER MIXER NAME
-  mkdir -p "$H/runs/pd-fig11"
-  if [ "$2" = closed-form ]; then
-    set -- "$1" "$2" "$3" --mixer-set sure.covariance=true --tstat per_channel=true --probes 1
+pd_eval() {  # pd_eval SET DENOISER MIXER OUT [OPTIONS]: `evaluate pd` on $H/data/SET
+  mkdir -p "$(dirname "$4")"
+  if [ "$3" = closed-form ]; then  # Eq. 9 alone: SURE from the covariance, per-channel t
+    set -- "$@" --mixer-set sure.covariance=true --tstat per_channel=true --probes 1
   fi
-  .venv/bin/python -m jaxden.cli evaluate pd --data "$H/data/pd-test-high" --denoiser "$1" \
-    --mixer "$2" --keep-current --out "$H/runs/pd-fig11/$3" "${@:4}"
+  .venv/bin/python -m jaxden.cli evaluate pd --data "$H/data/$1" --denoiser "$2" \
+    --mixer "$3" --keep-current --out "$4" "${@:5}"
+}
+fig11_pd() {  # fig11_pd DENOISER MIXER NAME
+  pd_eval pd-test-high "$1" "$2" "$H/runs/pd-fig11/$3"
 }
 # The trained baselines of the WSKP paper's tables (NBGD, MR-KP; two seeds each), then the
 # progressive-denoising evaluations of the first DC, then WSKP-6 and KP (rt-main) for the same
@@ -77,6 +80,26 @@ step fig11-pd-oidn-closed-form fig11_pd oidn-jax closed-form pd-oidn-closed-form
 step fig11-pd-oidn fig11_pd oidn-jax oidn-pd pd-oidn
 step dc-oidn-s1 "${X[@]}" $J train experiments/configs/train-dc.toml seed=1 --workdir "$H/runs/dc-oidn-s1"
 step fig11-pd-dc-s1 fig11_pd "$H/runs/dc-oidn-s1" closed-form pd-dc-s1
+# The table of consistent denoisers (experiments/consistent_table.py reads $H/runs/consistent):
+# MC, OIDN, PD(OIDN), PD(WSKP-6), DC and PD(DC), StatMC and its Moon-CI test, on the held-out
+# crops, the stress frames and whole frames, each with StatMC's statistics.
+step data-frames-stats $J dataset build experiments/configs/dataset-frames-stats.toml \
+  --out "$H/data/frames-stats"
+for set in stress-stats pd-test-high-stats frames-stats; do
+  C="$H/runs/consistent/$set"
+  LEVELS=(4 8 16 32 64 128 256 512 1024 2048 4096)
+  if [ "$set" = frames-stats ]; then LEVELS=("${LEVELS[@]:0:9}"); fi
+  step "consistent-$set-statmc" $J evaluate denoise --data "$H/data/$set" --denoiser statmc \
+    --spp "${LEVELS[@]}" --out "$C/statmc"
+  step "consistent-$set-statmc-moon" $J evaluate denoise --data "$H/data/$set" \
+    --denoiser statmc-moon --spp "${LEVELS[@]}" --no-input --out "$C/statmc-moon"
+  step "consistent-$set-pd-oidn" pd_eval "$set" oidn-jax oidn-pd "$C/pd-oidn"
+  step "consistent-$set-pd-wskp6" pd_eval "$set" wskp-6 wskp-6-pd "$C/pd-wskp6"
+  for seed in 0 1; do
+    step "consistent-$set-pd-dc-s$seed" pd_eval "$set" "$H/runs/dc-oidn-s$seed" closed-form \
+      "$C/pd-dc-s$seed"
+  done
+done
 step sweep-rt-main $J sweep experiments/sweeps/rt-main.toml --workdir "$H/runs/sweeps/rt-main"
 step mixer-wskp6-fact "${X[@]}" $J train experiments/configs/mixer-wskp6.toml \
   data.dataset="$H/data/pd-rt4k" model_config.head=f_act model_config.logit_bound=none \
