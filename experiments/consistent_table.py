@@ -173,8 +173,8 @@ def report(home: Path) -> tuple[str, dict]:
         missing = [label for label, result, _, _ in METHODS
                    if label != "MC" and result not in results]
         if not results:
-            lines += [f"No results yet under `{folder}` (experiments/queue.sh, steps "
-                      f"`consistent-{name}-*`).", ""]
+            lines += [(f"No results yet under `{folder}` (experiments/queue.sh, steps "
+                       f"`consistent-{name}-*`)."), ""]
             summary["sets"][name] = {"missing": "all"}
             continue
         entry: dict = {"missing": missing}
@@ -192,8 +192,8 @@ def report(home: Path) -> tuple[str, dict]:
                   "| method | worst | above 1 |", "|---|---:|---:|"]
         for m, r in entry["rmse"]["top_spp_over_mc"].items():
             lines.append(f"| {m} | {r['worst']:.4f} | {r['above']} of {r['images']} |")
-        lines += ["", "Every spp, worst ratio per image to the better of MC and the base "
-                  "(RMSE / relMSE; cells above 1.05):", "",
+        lines += ["", ("Every spp, worst ratio per image to the better of MC and the base "
+                       "(RMSE / relMSE; cells above 1.05):"), "",
                   "| method | vs min(MC, OIDN) | vs min(MC, its base) |", "|---|---:|---:|"]
         for m in entry["rmse"]["every_spp_over_min_mc_oidn"]:
             cells = []
