@@ -48,6 +48,11 @@ step data-test-high-chain $J dataset build experiments/configs/dataset-test-high
 # The mixers' training set, and the paper's f_act mixer over the shipped WSKP-6 (the recipe of
 # wskp-6-pd with the f_act head of the paper's Table 4): measured beside the shipped mixers.
 step data-pd-rt4k $J dataset build experiments/configs/dataset-pd-rt4k.toml --out "$H/data/pd-rt4k"
+# An independent replica of the mixers' training set (same crops, other seeds; its reference
+# at the top input's spp, unused): the second half of each item for the neural James-Stein
+# combiner, whose cross-regression fits one half on the other.
+step data-pd-rt4k-r1 $J dataset build experiments/configs/dataset-pd-rt4k.toml name=pd-rt4k-r1 \
+  replica=1 reference_spp=4096 --out "$H/data/pd-rt4k-r1"
 # StatMC's statistics (Frame.boxcox) on the held-out crops and the stress frames: the same
 # configs, seeds and samples (the colour is that of the sets above), 4..4096 spp.
 STATS="statistics=true spp=[4,8,16,32,64,128,256,512,1024,2048,4096]"

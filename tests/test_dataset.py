@@ -724,3 +724,23 @@ def test_verify_refuses_manifest_paths_outside_the_dataset(tmp_path):
     (directory / "manifest.json").write_text(json.dumps(data))
     with pytest.raises(DatasetError, match="'../outside.exr', which leaves the dataset folder"):
         verify_dataset(directory)
+
+
+def test_a_replica_has_the_same_crops_and_independent_renders():
+    import dataclasses
+
+    from jaxden.data.config import DatasetConfig
+    from jaxden.data.layout import plan_dataset
+
+    config = DatasetConfig(name="r", scenes=("cornell-box",), size=(32, 32), crop_size=8,
+                           crops_per_scene=3, spp=(4, 8), reference_spp=8, seed=2)
+    first = plan_dataset(config)
+    again = plan_dataset(dataclasses.replace(config, replica=0))
+    second = plan_dataset(dataclasses.replace(config, replica=1))
+    third = plan_dataset(dataclasses.replace(config, replica=2))
+    assert [i.seed for i in again.items] == [i.seed for i in first.items]
+    assert [c.window for c in second.crops] == [c.window for c in first.crops]
+    assert [c.split for c in second.crops] == [c.split for c in first.crops]
+    assert [i.path for i in second.items] == [i.path for i in first.items]
+    seeds = [i.seed for plan in (first, second, third) for i in plan.items]
+    assert len(set(seeds)) == len(seeds)

@@ -139,6 +139,11 @@ class DatasetConfig:
     - ``statistics``: also render each item's per-pixel sample statistics (``Frame.boxcox``:
       the Box-Cox(0.5) mean and central moments StatMC's test reads; 9 float32 channels more
       per file, same samples as the colour); False by default.
+    - ``replica``: 0 (default) or the number of an independent replica of the dataset: the
+      same crops, splits and file names, every render from other seeds. Two replicas of a
+      dataset are the two independent halves of each item that cross-validating methods
+      (the neural James-Stein combiner, NFOR) train and run on: their exact combination
+      (:func:`jaxden.data.merge.combine_buffers`) is one render of twice the samples.
     - ``scene_parameters``: ``$name`` values for the XML scenes, as Mitsuba's ``-D``
       (``[scene_parameters]`` table, e.g. ``spp = "64"``); empty by default.
     - ``splits``: see :class:`SplitConfig`.
@@ -157,6 +162,7 @@ class DatasetConfig:
     aux: str = DEFAULT_AUX
     feature_spp: int = bounded(DEFAULT_FEATURE_SPP, low=1, high=2**24)
     statistics: bool = False
+    replica: int = bounded(0, low=0, high=1_000_000)
     scene_parameters: dict[str, str] = dataclasses.field(default_factory=dict)
     splits: SplitConfig = SplitConfig()
 

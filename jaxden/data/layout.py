@@ -382,6 +382,8 @@ def plan_dataset(config: DatasetConfig) -> Manifest:
         scenes.append(
             {"index": index, "id": scene, "dir": scene_dirs[index], "split": scene_split.get(scene)}
         )
+    # A replica: the same crops and splits, independent samples (only the render seeds differ).
+    replica = ("replica", config.replica) if config.replica else ()
     for index, scene, c, crop_id in crop_ids:
         rng = np.random.default_rng(derive_seed(config.seed, "crop", scene, c))
         top = int(rng.integers(0, height - size + 1))
@@ -396,7 +398,7 @@ def plan_dataset(config: DatasetConfig) -> Manifest:
                 path=f"{folder}/{REFERENCE_NAME}",
                 kind="reference",
                 spp=config.reference_spp,
-                seed=derive_seed(config.seed, "render", scene, c, "reference"),
+                seed=derive_seed(config.seed, "render", scene, c, "reference", *replica),
             )
         )
         for spp in config.spp:
@@ -407,7 +409,7 @@ def plan_dataset(config: DatasetConfig) -> Manifest:
                     path=f"{folder}/spp{spp:0{spp_digits}d}.exr",
                     kind="input",
                     spp=spp,
-                    seed=derive_seed(config.seed, "render", scene, c, "spp", spp),
+                    seed=derive_seed(config.seed, "render", scene, c, "spp", spp, *replica),
                 )
             )
     for scene in scenes:  # with by='crop' a scene's split is that of its crops, if they agree
