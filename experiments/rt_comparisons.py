@@ -53,18 +53,63 @@ BENCH_KEYS = {"WSKP-6": "wskp6", "WSKP-3": "wskp3", "KP (13x13)": "kp", "NBGD": 
               "Deep Combiner over OIDN in JAX": "dc"}
 
 
-def score(home: Path) -> dict[str, dict]:
-    """``{key: {"den": summary on rt-test, "seq": summary on rt-seq}}`` of :data:`SCORED`."""
-    from jaxden.evaluate import denoise as report
+#: What a training-free method's scores depend on besides its spec and the data: the code that
+#: denoises and scores (hashed whole; any edit there rescores everything) and OIDN's library.
+SCORING_CODE = ("jaxden/denoise", "jaxden/evaluate/denoise.py", "jaxden/metrics.py",
+                "jaxden/frame.py", "jaxden/io/exr.py", "jaxden/weights")
 
+
+def scoring_key(spec: str, data: list[Path]) -> str:
+    """A digest of everything a score of ``spec`` on ``data`` depends on: the spec, each data
+    folder's manifest, the files of :data:`SCORING_CODE` and the installed OIDN's version."""
+    import hashlib
+    from importlib import metadata
+
+    digest = hashlib.sha256(spec.encode())
+    for folder in data:
+        manifest = folder / "manifest.json"
+        digest.update(manifest.read_bytes() if manifest.is_file() else b"-")
+    for entry in SCORING_CODE:
+        path = REPO / entry
+        for file in sorted(path.rglob("*") if path.is_dir() else [path]):
+            if file.is_file() and "__pycache__" not in file.parts:
+                digest.update(str(file.relative_to(REPO)).encode())
+                digest.update(file.read_bytes())
+    for package in ("pyoidn", "oidn"):
+        try:
+            digest.update(f"{package}={metadata.version(package)}".encode())
+        except metadata.PackageNotFoundError:
+            pass
+    return digest.hexdigest()
+
+
+def score(home: Path, rescore: bool = False) -> dict[str, dict]:
+    """``{key: {"den": summary on rt-test, "seq": summary on rt-seq}}`` of :data:`SCORED`.
+
+    Scores are kept in ``$JAXDEN_HOME/runs/rt-comparisons/scores.json`` under
+    :func:`scoring_key`: a rerun after a training run finishes reuses them (the scoring takes
+    ~25 minutes on two cores, mostly SVGF's sequences); any change of the data or of the
+    scoring code rescores, and so does ``rescore``."""
+    from jaxden.evaluate import denoise as report
+    from jaxden.fileio import atomic_write_text
+
+    cache_path = home / "runs" / "rt-comparisons" / "scores.json"
+    cache = json.loads(cache_path.read_text()) if cache_path.is_file() and not rescore else {}
     out: dict[str, dict] = {}
     test, seq = home / "data" / "rt-test", home / "data" / "rt-seq"
     for key, _, spec in SCORED:
+        fingerprint = scoring_key(spec, [test, seq])
+        if fingerprint in cache:
+            out[key] = cache[fingerprint]
+            continue
         out[key] = {}
         if test.is_dir():
             out[key]["den"] = report.summarize(report.evaluate_denoiser(test, spec, spp=(1,)))
         if seq.is_dir():
             out[key]["seq"] = report.summarize(report.evaluate_sequences(seq, spec))
+        cache[fingerprint] = out[key]
+        cache_path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(cache_path, json.dumps(cache, default=float))
         print(f"scored {spec}", file=sys.stderr, flush=True)
     return out
 
@@ -147,9 +192,11 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--home", default=os.environ.get("JAXDEN_HOME", "~/jaxden-work"))
     parser.add_argument("--out", default=str(REPO / "experiments" / "results" / "rt"))
+    parser.add_argument("--rescore", action="store_true",
+                        help="score the training-free methods afresh (not from the cache)")
     args = parser.parse_args(argv)
     home, out = Path(args.home).expanduser(), Path(args.out)
-    scored = score(home)
+    scored = score(home, args.rescore)
     runs = trained_runs(home)
     per_frame, sequences = rows(scored, runs)
     bench_path = REPO / "experiments" / "results" / "bench" / "bench-denoisers.json"
