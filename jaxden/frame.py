@@ -76,6 +76,11 @@ CHANNELS: dict[str, tuple[str, ...]] = {
 }
 #: The Box-Cox exponent of ``Frame.boxcox`` (StatMC's lambda).
 BOXCOX_LAMBDA = 0.5
+#: How a frame gets a field no renderer writes by default (said when the field is missing).
+FIELD_HINTS: dict[str, str] = {
+    "boxcox": "jaxden renders them with `jaxden render --statistics`, "
+              "render_frame(..., statistics=True) or a dataset config with statistics = true",
+}
 IMAGE_FIELDS: tuple[str, ...] = tuple(CHANNELS)
 NonFinitePolicy = Literal["error", "zero"]
 
@@ -184,6 +189,7 @@ class Frame:
                 f"{who} needs the frame feature(s) {', '.join(missing)}"
                 + (f" (EXR channels {channels})" if channels else "")
                 + f", but the frame has only {', '.join(self.features())}"
+                + "".join(f"; {FIELD_HINTS[n]}" for n in missing if n in FIELD_HINTS)
             )
 
     # ------------------------------------------------------------------ validation

@@ -163,3 +163,17 @@ def test_a_dataset_with_statistics_writes_them_in_every_item(tmp_path):
     for item in manifest.items:
         frame = read_frame(tmp_path / "d" / item.path)
         assert frame.boxcox is not None and frame.statistics_count() == item.spp
+
+
+def test_a_file_without_statistics_says_how_to_render_them(tmp_path, rendered, capsys):
+    from helpers import run_cli
+
+    from jaxden.io.exr import write_frame
+
+    _, plain = rendered
+    write_frame(tmp_path / "f.exr", plain)
+    code, err, _ = run_cli(["denoise", tmp_path / "f.exr", "--model", "statmc", "--out",
+                            tmp_path / "o.exr"], capsys)
+    message = " ".join(err)
+    assert code != 0 and "boxcox.m3.B" in message and "--statistics" in message
+    assert not (tmp_path / "o.exr").exists()

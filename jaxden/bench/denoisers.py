@@ -8,7 +8,10 @@ compiled before timing, with freshly initialised weights (inference time does no
 the weights' values). Each is timed alternately with the others, median of the repeats.
 OIDN in JAX with Intel's weights (``oidnjax``) is timed beside them, and so are the methods
 the two papers compare against: SVGF and BMFR (their single-frame form, and ``svgf_step`` /
-``bmfr_step``: one frame of a sequence with the history of the frame before), the Deep
+``bmfr_step``: one frame of a sequence with the history of the frame before), StatMC and its
+Moon CI variant (``statmc``, ``statmc_moon``; the bench frame carries no Box-Cox statistics,
+so StatMC gets those :func:`jaxden.denoise.statmc.approximate_boxcox` derives from its colour
+and variance: the same arrays and the same work as measured ones), the Deep
 Combiner over OIDN in JAX (``dc``, the base's time included), NBGD and MR-KP (freshly
 initialised, as the models above), and NFOR on two half buffers (``nfor``: the Cornell box at
 2 spp with seeds 11 and 12, or the bench frame twice when it is read from a file; timed once
@@ -31,7 +34,7 @@ MODELS = {"wskp3": "wskp3", "wskp6": "wskp", "wskp_mr": "wskp_mr", "kp": "kp", "
           "kp2": "kp2", "unet": "unet", "nbgd": "nbgd", "mrkp": "mrkp"}
 #: Training-free baselines by spec, timed in their single-frame form; those in TEMPORAL also
 #: as one step of a sequence (``<key>_step``).
-BASELINES = {"svgf": "svgf", "bmfr": "bmfr"}
+BASELINES = {"svgf": "svgf", "bmfr": "bmfr", "statmc": "statmc", "statmc_moon": "statmc-moon"}
 TEMPORAL = ("svgf", "bmfr")
 #: The Deep Combiner over this base (the one experiments/configs/train-dc.toml trains over).
 DC_BASE: str | None = "oidn-jax"
@@ -118,7 +121,9 @@ def _baseline_runners(device_frame) -> dict:
     for key, spec in BASELINES.items():
         denoiser = load_denoiser(spec)
         function = denoiser.function()
-        runners[key] = (lambda f=function: jax.block_until_ready(f(device_frame)))
+        frame = with_statistics(device_frame) if "boxcox" in denoiser.fields_read() \
+            else device_frame
+        runners[key] = (lambda f=function, frame=frame: jax.block_until_ready(f(frame)))
         if key in TEMPORAL:
             _, state = denoiser.step(None, device_frame)  # the history of a frame before
             runners[f"{key}_step"] = (lambda d=denoiser, s=state: jax.block_until_ready(
@@ -130,6 +135,20 @@ def _baseline_runners(device_frame) -> dict:
         function = dc.function()
         runners["dc"] = lambda: jax.block_until_ready(function(device_frame))
     return runners
+
+
+def with_statistics(frame):
+    """``frame`` with Box-Cox statistics (StatMC's input) approximated from its colour and
+    variance where it has none (:func:`jaxden.denoise.statmc.approximate_boxcox`); a frame
+    that has them, as it is."""
+    if frame.boxcox is not None:
+        return frame
+    import jax
+
+    from jaxden.denoise.statmc import approximate_boxcox
+
+    boxcox = approximate_boxcox(frame.color, frame.variance, frame.statistics_count())
+    return frame.replace(boxcox=jax.device_put(boxcox))
 
 
 def _nfor_time(frame, size) -> float:

@@ -5,7 +5,8 @@ per megapixel, at whole-frame sizes (the issue's 1280x720, 1920x1080, 3840x2160,
 The commands (:data:`COMMANDS`): ``progressive``: ``oidn`` (``jaxden denoise --model oidn``,
 the peer), ``pd_oidn`` (``jaxden progressive --denoiser oidn``) and ``pd_wskp6`` (``jaxden
 progressive --denoiser wskp-6 --mixer wskp-6-pd``); ``denoisers``:
-``oidn``, ``wskp6`` and ``oidnjax`` (``jaxden denoise --model wskp-6``, ``--model oidn-jax``).
+``oidn``, ``wskp6``, ``oidnjax``, ``statmc`` and ``statmc_moon`` (``jaxden denoise --model
+wskp-6``, ``--model oidn-jax``, ``--model statmc``, ``--model statmc-moon``).
 
 What is measured, and how: each command runs in its own child process exactly as a user types
 it (``python -m jaxden.cli denoise IN.exr --model oidn --out OUT.exr``, ...), so the numbers
@@ -31,7 +32,10 @@ once by ``jaxden render`` (a child too) at the largest requested size capped at
 :data:`BASE_SIZE`, else (no Mitsuba) :func:`jaxden.render.synthetic.synthetic_render`; tiled
 (whole copies, then cropped) up to each requested size, with every channel the source has
 (colour, variance, albedo, normal, depth, ...), float32 as ``jaxden render`` writes it.
-``frame_source`` in the result says which.
+``frame_source`` in the result says which. The commands of :data:`STATISTICS_COMMANDS`
+(StatMC) read a second file, the same frame with Box-Cox statistics (``boxcox``): the
+source's own, else approximated from its colour and variance
+(:func:`jaxden.bench.denoisers.with_statistics`); the others' file stays as it was.
 
 Keys (``SIZE`` as measured, e.g. ``1920x1080``; ``CMD`` as in :data:`COMMANDS`):
 ``CMD_SIZE_s``, ``_gb``, ``_s_per_mp``, ``_gb_per_mp``, ``_cpu_s``, ``_status`` (the exit
@@ -91,8 +95,12 @@ COMMANDS: dict[str, dict[str, Command]] = {
         PEER: _denoise("oidn"),
         "wskp6": _denoise("wskp-6"),
         "oidnjax": _denoise("oidn-jax"),
+        "statmc": _denoise("statmc"),
+        "statmc_moon": _denoise("statmc-moon"),
     },
 }
+#: Commands that read the frame with its Box-Cox statistics (``Frame.boxcox``).
+STATISTICS_COMMANDS = {"statmc"}
 QUICK_SKIP: set[str] = set()
 #: Runs of each command (the first compiles; the last is reported).
 RUNS, QUICK_RUNS = 2, 1
@@ -316,13 +324,20 @@ def frame_bench(name: str, quick: bool, sizes: Sequence[Size]) -> dict:
         for size in sizes:
             source, out = folder / f"{size_name(size)}.exr", folder / "out.exr"
             write_bench_frame(tile, size, source)
+            statistics = folder / f"{size_name(size)}-statistics.exr"
             for key, command in commands.items():
-                argv = command(str(source), str(out))
+                if key in STATISTICS_COMMANDS and not statistics.exists():
+                    from jaxden.bench.denoisers import with_statistics
+
+                    write_bench_frame(with_statistics(tile), size, statistics)
+                argv = command(str(statistics if key in STATISTICS_COMMANDS else source),
+                               str(out))
                 measured = [measure(argv, env, folder / f"{key}.log", TIMEOUT_S)
                             for _ in range(runs)]
                 _record(result, key, size, measured)
                 out.unlink(missing_ok=True)
             source.unlink(missing_ok=True)
+            statistics.unlink(missing_ok=True)
     _ratios(result, commands, sizes)
     result.update(machine())
     return result
@@ -394,7 +409,8 @@ def table(result: dict) -> list[str]:
     """The result as a table, one row per size and command, then the ratios and settings."""
     sizes = parse_sizes(result["sizes"])
     commands = result["commands"].split(",")
-    header = (f"  {'size':<10} {'command':<9} {'wall s':>8} {'peak GB':>8} {'s/MP':>8} "
+    named = max([9, *(len(key) for key in commands)])
+    header = (f"  {'size':<10} {'command':<{named}} {'wall s':>8} {'peak GB':>8} {'s/MP':>8} "
               f"{'GB/MP':>7} {'cpu s':>8} {'t/' + PEER:>7} {'m/' + PEER:>7}  exit")
     lines = [header]
 
@@ -410,7 +426,7 @@ def table(result: dict) -> list[str]:
             status = result[f"{prefix}_status"]
             exit_ = "0" if status == 0 else f"{status}: {result.get(prefix + '_error', '')}"
             lines.append(
-                f"  {size_name(size):<10} {key:<9} {cell(prefix + '_s', 8, 2)} "
+                f"  {size_name(size):<10} {key:<{named}} {cell(prefix + '_s', 8, 2)} "
                 f"{cell(prefix + '_gb', 8, 3)} {cell(prefix + '_s_per_mp', 8, 2)} "
                 f"{cell(prefix + '_gb_per_mp', 7, 3)} {cell(prefix + '_cpu_s', 8, 1)} "
                 f"{cell(f'{key}_over_{PEER}_time_{size_name(size)}', 7, 2)} "

@@ -2,7 +2,8 @@
 
 ``make_denoiser(name, key=...)`` and ``load_denoiser(spec)`` give a :class:`Denoiser`
 (``denoise(params, frame) -> (..., H, W, 3)``); importing this package registers every
-built-in denoiser (OIDN, the U-Net, WSKP / KP and their variants). Any of them keeps the
+built-in denoiser (OIDN, the U-Net, WSKP / KP and their variants, the training-free
+baselines SVGF, BMFR and StatMC). Any of them keeps the
 directly visible emission out of the filter with the spec option ``:emission=separate``
 (:mod:`jaxden.denoise.emission`).
 """
@@ -14,6 +15,7 @@ from jaxden.denoise import (  # noqa: F401  (registration)
     oidn,
     oidn_jax,
     rt_baselines,
+    statmc,
     svgf,
 )
 from jaxden.denoise.emission import EMISSION_MODES, separate_emission

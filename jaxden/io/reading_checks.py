@@ -125,13 +125,15 @@ def missing_message(path, fields, mapping, present, convention, layer=None) -> s
     """One line: the missing fields, the channels each needs (or a convention's candidates
     and how to make the renderer write them), a case-insensitive or close match where there
     is one, and the channels the file has."""
+    from jaxden.frame import FIELD_HINTS
     from jaxden.io.conventions import CONVENTIONS, case_hints
 
     details, wanted = [], []
     for field in fields:
         if field in mapping:
             names = [c for c in mapping[field] if c not in present]
-            details.append(f"{field} needs {', '.join(names)}")
+            hint = f": {FIELD_HINTS[field]}" if field in FIELD_HINTS else ""
+            details.append(f"{field} needs {', '.join(names)}{hint}")
             wanted += names
         else:
             rule = CONVENTIONS[convention]
