@@ -48,6 +48,9 @@ def test_gradients_analytic():
         # the Deep Combiner's (jaxden.denoise.deep_combiner): the target's channel mean squared
         # in the denominator, here one channel
         "relmse_dc": 2 * (x - y) / (y**2 + 0.01) / n,
+        # the neural James-Stein combiner's: relMSE of sign(v) log1p(|v|) of both images
+        # (x, y > 0 here), the target's transformed channel mean squared in the denominator
+        "relmse_njs": 2 * (np.log1p(x) - np.log1p(y)) / (1 + x) / (np.log1p(y) ** 2 + 0.01) / n,
         # d/dx |x-y| / (|x|+|y|+eps) = sign(x-y)/D - |x-y| sign(x) / D^2
         "smape": (
             np.sign(x - y) / (np.abs(x) + np.abs(y) + 0.01)

@@ -43,8 +43,8 @@ class OptimConfig:
     learning_rate: float = bounded(1e-3, low=0, low_open=True, high=10)  # the peak of the one-cycle schedule
     schedule: Literal["onecycle", "constant"] = "onecycle"
     warmup_fraction: float = bounded(0.05, low=0, high=0.99)
-    # A registered loss (jaxden.train.losses: smape, relmse, relmse_sg, l1, l2, and those of
-    # plugins, register_loss).
+    # A registered loss (jaxden.train.losses: smape, relmse, relmse_sg, relmse_dc, relmse_njs,
+    # l1, l2, and those of plugins, register_loss).
     loss: str = "smape"
     # How the per-image losses of a batch become one number: "mean" (the plain mean over
     # every pixel) or "log_ratio" (the mean of log(loss_i / loss_i(baseline)), the baseline

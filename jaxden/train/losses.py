@@ -64,10 +64,36 @@ def smape_loss(prediction, target, eps: float = metrics.EPS):
     return jnp.mean(metrics.smape(prediction, target, eps))
 
 
+def signed_log(x):
+    """``sign(x) log(1 + |x|)``: a logarithmic range compression that keeps the sign (the
+    Neural James-Stein combiner's training transform). Its JAX derivative at 0 is 0 (that of
+    ``sign`` times ``log1p |x|``, as TensorFlow's, which the authors trained with)."""
+    return jnp.sign(x) * jnp.log1p(jnp.abs(x))
+
+
+def _relmse_njs_per_image(prediction, target, eps: float = metrics.EPS):
+    pred, target = metrics._pair(prediction, target, "relmse_njs")
+    pred, target = signed_log(pred), signed_log(target)
+    scale = jnp.square(jnp.mean(target, axis=-1, keepdims=True)) + eps
+    return jnp.mean(jnp.square(pred - target) / scale, axis=(-3, -2, -1))
+
+
+def relmse_njs_loss(prediction, target, eps: float = metrics.EPS):
+    """Mean of (x' - y')^2 / (mean_c(y')^2 + eps) with x' = :func:`signed_log` of the prediction,
+    y' of the target, and mean_c the mean over the channels (one value per pixel): scalar.
+
+    The training loss of the Neural James-Stein combiner (Gu et al. 2022, ``main.py``
+    ``train_step``): relMSE with the target's channel mean in the denominator, as the Deep
+    Combiner's ``relmse_dc``, on log-compressed images (a firefly costs about its log).
+    """
+    return jnp.mean(_relmse_njs_per_image(prediction, target, eps))
+
+
 # Short aliases (jaxden.train looks losses up as losses.smape, losses.relmse, ...).
 l1 = l1_loss
 l2 = l2_loss
 relmse = relmse_loss
+relmse_njs = relmse_njs_loss
 relmse_sg = relmse_sg_loss
 smape = smape_loss
 
@@ -112,6 +138,7 @@ def get_loss(name: str, where: str = "loss") -> Callable:
 for _name, _loss, _per_image in (("l1", l1_loss, metrics.mae), ("l2", l2_loss, metrics.mse),
                                  ("relmse", relmse_loss, metrics.relmse),
                                  ("relmse_sg", relmse_sg_loss, _relmse_sg_per_image),
+                                 ("relmse_njs", relmse_njs_loss, _relmse_njs_per_image),
                                  ("smape", smape_loss, metrics.smape)):
     register_loss(_name, _per_image, _loss, owner=__name__)
 del _name, _loss, _per_image
@@ -148,8 +175,11 @@ __all__ = [
     "register_loss",
     "relmse",
     "relmse_loss",
+    "relmse_njs",
+    "relmse_njs_loss",
     "relmse_sg",
     "relmse_sg_loss",
+    "signed_log",
     "smape",
     "smape_loss",
 ]
