@@ -90,6 +90,17 @@ step fig11-pd-dc-s1 fig11_pd "$H/runs/dc-oidn-s1" closed-form pd-dc-s1
 # crops, the stress frames and whole frames, each with StatMC's statistics.
 step data-frames-stats $J dataset build experiments/configs/dataset-frames-stats.toml \
   --out "$H/data/frames-stats"
+# Replicas of the three sets (same crops, other seeds; references at the top input's spp,
+# unused): the second halves the neural James-Stein combiner needs; NJS at 2s spp combines
+# the set's and the replica's s-spp items.
+R1="replica=1 statistics=false reference_spp=4096 spp=[4,8,16,32,64,128,256,512,1024,2048,4096]"
+step data-stress-stats-r1 $J dataset build experiments/configs/dataset-stress.toml \
+  name=stress-stats-r1 $R1 --out "$H/data/stress-stats-r1"
+step data-pd-test-high-stats-r1 $J dataset build experiments/configs/dataset-pd-test-high.toml \
+  name=pd-test-high-stats-r1 $R1 --out "$H/data/pd-test-high-stats-r1"
+step data-frames-stats-r1 $J dataset build experiments/configs/dataset-frames-stats.toml \
+  name=frames-stats-r1 replica=1 statistics=false reference_spp=1024 \
+  --out "$H/data/frames-stats-r1"
 for set in stress-stats pd-test-high-stats frames-stats; do
   C="$H/runs/consistent/$set"
   LEVELS=(4 8 16 32 64 128 256 512 1024 2048 4096)
