@@ -867,7 +867,7 @@ def test_rt_comparisons_rows_seeds_and_claims(tmp_path, monkeypatch):
 
     scored = {key: {"den": summary(20.0), "seq": summary(21.0, seq=key == "svgf")}
               for key, _, _ in rt.SCORED}
-    monkeypatch.setattr(rt, "score", lambda home: scored)
+    monkeypatch.setattr(rt, "score", lambda home, rescore=False: scored)
     for sweep, model, seed, psnr in (("rt-main", "wskp", 0, 26.6), ("rt-main", "wskp", 1, 26.8),
                                      ("rt-main", "kp", 0, 26.1), ("rt-main", "kp", 1, 26.3),
                                      ("rt-baselines", "nbgd", 0, 25.0)):
@@ -889,3 +889,38 @@ def test_rt_comparisons_rows_seeds_and_claims(tmp_path, monkeypatch):
     assert ("- WSKP-6 comparable to KP at about half its time: PSNR 26.70 against 26.20 dB "
             "(margin +0.50 dB, seed-to-seed standard deviation 0.14 dB)") in text
     assert "- WSKP-6 better than NBGD at equal time: PSNR 26.70 against 25.00 dB" in text
+
+
+def test_consistent_table_ratios_and_missing_methods(tmp_path):
+    """Per-image ratios: the top spp over MC, the every-spp worst over the better of MC and the
+    base; methods without results are named, none is filled in."""
+    table = load_script("consistent_table")
+    folder = tmp_path / "runs" / "consistent" / "stress-stats"
+    folder.mkdir(parents=True)
+
+    def rows(kind):
+        out = []
+        for crop, scale in (("a", 1.0), ("b", 2.0)):
+            for spp in (4, 64):
+                mc = scale / spp ** 0.5
+                row = {"crop": crop, "scene": crop, "spp": spp}
+                if kind == "pd":
+                    row |= {"mc_rmse": mc, "denoiser_rmse": 0.5 * mc if spp == 4 else 2 * mc,
+                            "pd_rmse": 0.6 * mc if spp == 4 else 0.9 * mc}
+                else:
+                    row |= {"mc_rmse": mc, "den_rmse": 1.2 * mc}
+                out.append(row)
+        return {"rows": out}
+
+    (folder / "pd-oidn.json").write_text(json.dumps(rows("pd")))
+    (folder / "statmc.json").write_text(json.dumps(rows("den")))
+    text, summary = table.report(tmp_path)
+    entry = summary["sets"]["stress-stats"]["rmse"]
+    top = entry["top_spp_over_mc"]
+    assert top["PD(OIDN)"]["worst"] == pytest.approx(0.9) and top["PD(OIDN)"]["above"] == 0
+    assert top["StatMC"]["worst"] == pytest.approx(1.2) and top["StatMC"]["above"] == 2
+    # at 4 spp the base is the better (0.5 MC): PD at 0.6 MC is 1.2x it
+    bar = entry["every_spp_over_min_mc_base"]["PD(OIDN)"]
+    assert bar["worst"] == pytest.approx(1.2) and bar["over_1_05"] == 2 and bar["cells"] == 4
+    assert "Not in this set yet: WSKP-6" in text and "NJS(OIDN)" in text
+    assert "No results yet" in text  # the other two sets
