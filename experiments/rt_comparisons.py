@@ -54,9 +54,17 @@ BENCH_KEYS = {"WSKP-6": "wskp6", "WSKP-3": "wskp3", "KP (13x13)": "kp", "NBGD": 
 
 
 #: What a training-free method's scores depend on besides its spec and the data: the code that
-#: denoises and scores (hashed whole; any edit there rescores everything) and OIDN's library.
-SCORING_CODE = ("jaxden/denoise", "jaxden/evaluate/denoise.py", "jaxden/metrics.py",
-                "jaxden/frame.py", "jaxden/io/exr.py", "jaxden/weights")
+#: scores and runs any denoiser, and each method's own modules (their bytes are hashed; an
+#: edit there rescores that method; ``--rescore`` redoes all), and OIDN's library.
+SCORING_CODE = ("jaxden/evaluate/denoise.py", "jaxden/metrics.py", "jaxden/frame.py",
+                "jaxden/io/exr.py", "jaxden/tiling.py", "jaxden/denoise/registry.py",
+                "jaxden/denoise/temporal.py", "jaxden/denoise/tiled.py",
+                "jaxden/denoise/emission.py")
+METHOD_CODE = {"oidn": ("jaxden/denoise/oidn.py",), "svgf": ("jaxden/denoise/svgf.py",),
+               "bmfr": ("jaxden/denoise/bmfr.py",),
+               "wskp": ("jaxden/denoise/models.py", "jaxden/denoise/kernels.py",
+                        "jaxden/denoise/nn/wskp.py", "jaxden/denoise/nn/layers.py",
+                        "jaxden/weights")}
 
 
 def scoring_key(spec: str, data: list[Path]) -> str:
@@ -69,7 +77,8 @@ def scoring_key(spec: str, data: list[Path]) -> str:
     for folder in data:
         manifest = folder / "manifest.json"
         digest.update(manifest.read_bytes() if manifest.is_file() else b"-")
-    for entry in SCORING_CODE:
+    method = spec.split(":")[0].split("-")[0]
+    for entry in SCORING_CODE + METHOD_CODE.get(method, ("jaxden/denoise",)):
         path = REPO / entry
         for file in sorted(path.rglob("*") if path.is_dir() else [path]):
             if file.is_file() and "__pycache__" not in file.parts:
