@@ -332,10 +332,8 @@ def test_every_shipped_experiment_config_loads(path):
 
         assert load_sequence_config(path).frames >= 2
         return
-    from jaxden.denoise.registry import get_definition
-    from jaxden.progressive.mixer import MixerConfig
     from jaxden.train.config import load_train_config
+    from jaxden.train.tasks import get_trainable
 
     config = load_train_config(path)
-    schema = MixerConfig if config.model == "mixer" else get_definition(config.model).config_cls
-    load_config(dict(config.model_config), schema)
+    load_config(dict(config.model_config), get_trainable(config.model).config_cls)

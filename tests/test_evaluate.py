@@ -40,7 +40,8 @@ def tiny(tmp_path_factory):
 
 # ---------------------------------------------------------------------------- the registry
 def test_evaluators_by_name_share_one_shape():
-    assert set(EVALUATORS) == {"pd", "oracle", "sure", "sure-buffers", "denoise", "sequences"}
+    assert set(EVALUATORS) == {"pd", "oracle", "sure", "sure-buffers", "denoise", "sequences",
+                              "njs"}
     for name, evaluator in EVALUATORS.items():
         assert evaluator.name == name and evaluator.description
         assert dataclasses.is_dataclass(evaluator.options)

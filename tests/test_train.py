@@ -267,7 +267,7 @@ def test_one_table_of_trainable_models(tmp_path):
     from jaxden.train.tasks import get_trainable, trainables
 
     table = trainables()
-    assert set(table) == set(REGISTRY) | {"mixer"}
+    assert set(table) == set(REGISTRY) | {"mixer", "njs"}
     assert all(table[name].config_cls is REGISTRY[name].config_cls for name in REGISTRY)
     assert (get_trainable("mixer").config_cls, get_trainable("mixer").kind) == (MixerConfig, "mixer")
     assert {table[name].kind for name in REGISTRY} == {"denoiser"}

@@ -65,13 +65,14 @@ def cmd_denoise(args: argparse.Namespace) -> int:
     import numpy as np
 
     from jaxden.cli.options import convention_options
-    from jaxden.denoise.nfor import BUFFER_DENOISERS
+    from jaxden.denoise.nfor import BUFFER_DENOISERS, buffer_denoiser
     from jaxden.denoise.registry import load_denoiser
     from jaxden.denoise.tiled import denoise_frame
     from jaxden.io.exr import read_frame, write_image
 
-    if args.buffers or args.model in BUFFER_DENOISERS:
-        return _denoise_buffers(args, BUFFER_DENOISERS)
+    found = buffer_denoiser(args.model)  # a name of one, or a trained one's run (NJS)
+    if args.buffers or found is not None:
+        return _denoise_buffers(args, BUFFER_DENOISERS, found)
     inputs = list(args.input)
     targets = batch_outputs(inputs, ("--out", args.out), ("--out-dir", args.out_dir))
     make = args.out_dir is not None and output_folder("--out-dir", args.out_dir)
@@ -143,14 +144,16 @@ def cmd_denoise(args: argparse.Namespace) -> int:
     return 0
 
 
-def _denoise_buffers(args: argparse.Namespace, registry) -> int:
+def _denoise_buffers(args: argparse.Namespace, registry, found) -> int:
     """``jaxden denoise IN --model nfor --buffers B1.exr .. BK.exr --out OUT.exr``: a denoiser
     of K >= 2 independent sub-buffers whose mean is IN (checked as ``progressive --buffers``
-    checks them), each read with the features it needs."""
+    checks them), each read with the features it needs. ``found``: ``(definition, config)``
+    of ``--model`` (:func:`jaxden.denoise.nfor.buffer_denoiser`; a trained one's run, e.g.
+    NJS's, gives its config), None when it names no sub-buffer denoiser."""
     from jaxden.cli.options import convention_options
     from jaxden.io.exr import read_frame, write_image
 
-    definition = registry.get(args.model)
+    definition, config = found or (None, None)
     if definition is None:
         raise ConfigError(f"--buffers: {args.model} denoises a single frame; the denoisers of "
                           f"K >= 2 sub-buffers are {', '.join(registry)} (drop --buffers)")
@@ -166,7 +169,6 @@ def _denoise_buffers(args: argparse.Namespace, registry) -> int:
     source = args.input[0]
     (out,) = exr_outputs(("--out", args.out), inputs=(source, *args.buffers),
                          overwrite_input=args.overwrite_input)
-    config = definition.config_cls()
     mapping = channel_map(args) or {}
     mean = read_frame(source, require=("color",), nonfinite=args.nonfinite, keep=("color",),
                       channel_map=mapping or None, **convention_options(args))

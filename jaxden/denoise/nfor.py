@@ -42,7 +42,8 @@ Tungsten solves each system by column-pivoted Householder QR instead, without a 
 
 API: :func:`nfor` (two half-buffer Frames), :func:`nfor_frames` (K >= 2 sub-buffers),
 :func:`nfor_core` on :class:`NFORInputs`, :func:`denoise_buffers` (tiled, NumPy out; what a
-CLI calls), :func:`nfor_radius` (the receptive field), :data:`BUFFER_DENOISERS`. Shapes:
+CLI calls), :func:`nfor_radius` (the receptive field), :data:`BUFFER_DENOISERS` (NFOR and
+the trained neural James-Stein combiner) and :func:`buffer_denoiser`. Shapes:
 ``(H, W, C)`` single images (no batch dimensions); linear radiance; pixels.
 """
 
@@ -58,6 +59,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxden.config import bounded, check_fields
+from jaxden.denoise.njs_model import (
+    NJS_KIND,
+    NJS_MODEL,
+    NJSModel,
+    load_njs,
+    njs_denoise_buffers,
+    njs_radius,
+    njs_required,
+)
 from jaxden.denoise.nl_means import (
     collaborative_regression,
     nl_means,
@@ -380,7 +390,10 @@ class BufferDenoiserDef:
     """A denoiser of K >= ``min_buffers`` independent sub-buffers of one image (not a
     single-frame :class:`jaxden.denoise.registry.DenoiserDef`): ``denoise(buffers, config,
     tile=, limit=, progress=) -> (H, W, 3)`` NumPy float32; ``required(config)``: the fields
-    every buffer needs; ``radius(config)``: its receptive field."""
+    every buffer needs; ``radius(config)``: its receptive field. ``load``: for a trained
+    one, ``load(spec) -> config`` (its weights inside) from a run folder or weights file
+    whose checkpoints record ``kind = "buffer-denoiser"`` and this ``name`` as their model
+    (:func:`buffer_denoiser`); None: the config is ``config_cls()``."""
 
     name: str
     description: str
@@ -389,6 +402,7 @@ class BufferDenoiserDef:
     denoise: Callable[..., np.ndarray]
     radius: Callable[[Any], int]
     min_buffers: int = 2
+    load: Callable[[Any], Any] | None = None
 
 
 #: Sub-buffer denoisers by name (``jaxden denoise --model nfor --buffers A.exr B.exr``).
@@ -402,4 +416,45 @@ BUFFER_DENOISERS: dict[str, BufferDenoiserDef] = {
         denoise=denoise_buffers,
         radius=nfor_radius,
     ),
+    NJS_MODEL: BufferDenoiserDef(
+        name=NJS_MODEL,
+        description="the neural James-Stein combiner (Gu et al. 2022) over a frozen base: "
+                    "two half buffers, cross-regressed base outputs, trained (`jaxden train "
+                    "experiments/configs/train-njs.toml`; --model names the run folder)",
+        config_cls=NJSModel,
+        required=njs_required,
+        denoise=njs_denoise_buffers,
+        radius=njs_radius,
+        load=load_njs,
+    ),
 }
+
+
+def buffer_denoiser(spec) -> tuple[BufferDenoiserDef, Any] | None:
+    """The sub-buffer denoiser ``spec`` (``--model``) names and its config: a name of
+    :data:`BUFFER_DENOISERS` (its default config; ConfigError for a trained one, which
+    needs its run), or a run folder / weights file whose meta record says ``kind =
+    "buffer-denoiser"`` (the entry of its ``model``, the config its ``load`` reads); None
+    for anything else (a single-frame denoiser's spec, or a path that holds none)."""
+    from pathlib import Path
+
+    from jaxden.errors import CheckpointError
+
+    definition = BUFFER_DENOISERS.get(str(spec))
+    if definition is not None:
+        if definition.load is not None:
+            raise ConfigError(f"{spec} is trained: --model names its run folder (or weights "
+                              f"file), not {spec!r}")
+        return definition, definition.config_cls()
+    if not Path(spec).exists():
+        return None
+    from jaxden.checkpoint import read_checkpoint_meta
+
+    try:
+        meta = read_checkpoint_meta(spec)
+    except CheckpointError:
+        return None
+    definition = BUFFER_DENOISERS.get(str(meta.get("model")))
+    if meta.get("kind") != NJS_KIND or definition is None or definition.load is None:
+        return None
+    return definition, definition.load(spec)

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from jaxden.errors import ConfigError
-from jaxden.evaluate import denoise, oracle, pd, sure, sure_buffers
+from jaxden.evaluate import denoise, njs, oracle, pd, sure, sure_buffers
 from jaxden.evaluate.evaluator import Evaluator
 from jaxden.registry import Registry
 
@@ -97,7 +97,8 @@ def get_evaluator(name: str) -> Evaluator:
 
 for _module, _evaluator in ((pd, pd.EVALUATOR), (oracle, oracle.EVALUATOR),
                            (sure, sure.EVALUATOR), (sure_buffers, sure_buffers.EVALUATOR),
-                           (denoise, denoise.DENOISE), (denoise, denoise.SEQUENCES)):
+                           (denoise, denoise.DENOISE), (denoise, denoise.SEQUENCES),
+                           (njs, njs.EVALUATOR)):
     register_evaluator(_evaluator, owner=_module.__name__)
 del _module, _evaluator
 

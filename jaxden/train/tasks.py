@@ -1,5 +1,6 @@
 """What ``model = NAME`` trains: one name -> :class:`Trainable` table over every registered
-denoiser (:mod:`jaxden.denoise.registry`) and the progressive-denoising mixer over a SURE cache.
+denoiser (:mod:`jaxden.denoise.registry`), the progressive-denoising mixer over a SURE cache and
+the neural James-Stein combiner over its cache (``njs``: :mod:`jaxden.train.njs_task`).
 
 A :class:`Trainable` is a config class for ``[model_config]``, a training task (init and
 predict through :class:`~jaxden.train.task.Task`), the kind of checkpoint it writes, and
@@ -19,12 +20,14 @@ from typing import Any
 import jax
 import numpy as np
 
+from jaxden.denoise.njs_model import NJS_KIND, NJS_MODEL, NJSModelConfig
 from jaxden.errors import ConfigError, FrameError
 from jaxden.progressive.inputs import swap_inputs
 from jaxden.progressive.mixer_checkpoints import MIXER_KIND, MIXER_MODEL, mixer_meta
 from jaxden.progressive.mixer_config import CLOSED_FORM_SPEC, MixerConfig
 from jaxden.progressive.network import mixer_apply, mixer_init
 from jaxden.registry import Registry
+from jaxden.train.njs_task import njs_model_apply, njs_model_init, njs_shared_data, njs_task
 from jaxden.train.task import Task
 
 
@@ -45,8 +48,9 @@ class Trainable:
     model's pure functions (a denoiser's ``apply(params, config, frame) -> image``, the
     mixer's :func:`~jaxden.progressive.mixer.mixer_apply`); ``task(train_config) -> Task``
     trains it; ``kind``: what its checkpoints hold (their meta record's ``kind``:
-    ``"denoiser"`` or ``"mixer"``); ``shared_data(train_config, model_config)``: the
-    :class:`SharedData` the run reads, or None (None: the model never has any)."""
+    ``"denoiser"``, ``"mixer"`` or ``"buffer-denoiser"``); ``shared_data(train_config,
+    model_config)``: the :class:`SharedData` the run reads, or None (None: the model never
+    has any)."""
 
     name: str
     kind: str
@@ -273,3 +277,14 @@ def mixer_shared_data(train_config, config: MixerConfig) -> SharedData | None:
 MIXER = register_trainable(
     Trainable(MIXER_MODEL, MIXER_KIND, MixerConfig, mixer_init, mixer_apply, mixer_task,
               mixer_shared_data), owner=__name__)
+
+
+def _njs_shared_data(train_config, config: NJSModelConfig) -> SharedData | None:
+    """The neural James-Stein combiner's cache (:func:`jaxden.train.njs_task.njs_shared_data`)."""
+    shared = njs_shared_data(train_config, config)
+    return None if shared is None else SharedData(*shared)
+
+
+NJS = register_trainable(
+    Trainable(NJS_MODEL, NJS_KIND, NJSModelConfig, njs_model_init, njs_model_apply, njs_task,
+              _njs_shared_data), owner="jaxden.train.njs_task")

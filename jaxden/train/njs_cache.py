@@ -1,0 +1,499 @@
+"""The NJS training cache: the neural James-Stein combiner's inputs for every input item of a
+dataset and its replica.
+
+NJS trains on (combined colour, its variance, olsA, olsB) -> reference. The cross regressions
+are input preparation (the authors' loader computes them once per image), and the base
+denoiser is frozen, so they are computed once per item by :func:`build_njs_cache` and read
+back by :class:`NJSCache`, as the mixer's SURE cache (:mod:`jaxden.progressive.cache`).
+
+An item of the training dataset at spp level s is half A; the same item of its replica
+(``jaxden dataset build ... replica=1``: the same crops, splits and file names, other
+seeds) is half B; :func:`jaxden.denoise.njs_model.njs_inputs_from_halves` gives the
+combined frame (2 s samples, exact pooled variance), the base on each half and the cross
+regressions (with the per-pixel bandwidth by default, as the authors train). The reference
+is the dataset's own (the loader reads it with the batch); the replica's is not used.
+
+Layout (default folder ``DATASET/derived/njs-<base>-<key>``, :func:`default_cache_dir`: the
+key is the cache's identity, so other settings, another replica or a changed base or code
+get another folder)::
+
+    CACHE/njs-cache.json                         identity, per-item checksums
+    CACHE/s000-cornell-box/c000/spp00002.exr     one EXR per input item, same relative path
+
+Each item EXR holds, float32, (H, W) of the dataset crop: ``R,G,B`` the combined colour,
+``variance.R/G/B`` its variance of the mean, ``olsA.R/G/B``, ``olsB.R/G/B`` the cross
+regressions, ``baseA.R/G/B``, ``baseB.R/G/B`` the base on each half. Header attributes:
+``jaxden.item``, ``jaxden.cache_key``, ``jaxden.source_sha256`` (half A's file),
+``jaxden.replica_sha256`` (half B's), ``jaxden.spp`` (of the combination).
+
+Identity: the two datasets (:func:`jaxden.progressive.cache.cache_dataset_identity` of each
+manifest), the base (:func:`jaxden.progressive.cache.denoiser_identity`: name, config,
+weights, code) and the settings (bandwidth, window, ridge and the code of
+:mod:`jaxden.denoise.njs`). A folder holding another identity is refused, naming the
+differences.
+
+Resuming, as the SURE cache: every EXR is written atomically and the manifest saved every few
+seconds and at the end; on a rerun an item counts as finished when its file matches the
+recorded checksum and both its source files are unchanged, or (finished after the last save)
+when its header names this cache's key, the item and both sources and it reads back whole.
+"""
+
+from __future__ import annotations
+
+import inspect
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from jaxden.errors import DatasetError, ExrError, FrameError
+from jaxden.fileio import folder_lock
+
+CACHE_MANIFEST = "njs-cache.json"
+CACHE_FORMAT = "jaxden-njs-cache"
+CACHE_VERSION = 1
+LOCK_NAME = ".njs-cache.lock"
+SAVE_INTERVAL_S = 5.0
+MEMORY_LIMIT_BYTES = 2 << 30
+#: The stored images: name -> its three EXR channels.
+CHANNELS = {
+    "noisy": ("R", "G", "B"),
+    "variance": ("variance.R", "variance.G", "variance.B"),
+    "ols_a": ("olsA.R", "olsA.G", "olsA.B"),
+    "ols_b": ("olsB.R", "olsB.G", "olsB.B"),
+    "denoised_a": ("baseA.R", "baseA.G", "baseA.B"),
+    "denoised_b": ("baseB.R", "baseB.G", "baseB.B"),
+}
+#: What a training batch takes of an item (the network's inputs).
+NETWORK_INPUTS = ("noisy", "variance", "ols_a", "ols_b")
+_MANIFEST_FIELDS = {"format": str, "format_version": int, "identity": dict, "cache_key": str,
+                    "items": dict, "complete?": bool, "created?": str}
+_RECORD_FIELDS = {"path": str, "sha256": str, "bytes": int, "source_sha256": str,
+                  "replica_sha256": str, "seconds?": float}
+
+
+# ---------------------------------------------------------------------------- the halves
+def eligible_items(manifest) -> list:
+    """Input items of at least 2 spp (each half needs a variance)."""
+    return [item for item in manifest.items if item.kind == "input" and item.spp >= 2]
+
+
+def check_replica(dataset_dir, replica_dir):
+    """``(manifest, replica manifest)`` of two complete datasets that are replicas of one
+    another: the same crops (ids, scenes, windows, splits) and input items (ids, paths, spp),
+    each input rendered from other seeds. DatasetError naming the first difference."""
+    from jaxden.data.layout import load_manifest
+
+    manifests = []
+    for folder in (dataset_dir, replica_dir):
+        manifest = load_manifest(folder)
+        if not manifest.complete:
+            done = sum(item.done for item in manifest.items)
+            raise DatasetError(f"dataset {folder} is incomplete ({done} of "
+                               f"{len(manifest.items)} files built): finish it with `jaxden "
+                               f"dataset build` first")
+        manifests.append(manifest)
+    first, second = manifests
+    where = f"{replica_dir} is not a replica of {dataset_dir} (build it from the same config " \
+            f"with replica=1)"
+    crops = {c.id: c for c in second.crops}
+    for crop in first.crops:
+        other = crops.get(crop.id)
+        if other is None or (other.scene, tuple(other.window), other.split) != (
+                crop.scene, tuple(crop.window), crop.split):
+            raise DatasetError(f"{where}: crop {crop.id} differs or is missing")
+    items = {item.id: item for item in eligible_items(second)}
+    for item in eligible_items(first):
+        other = items.get(item.id)
+        if other is None or (other.path, other.spp) != (item.path, item.spp):
+            raise DatasetError(f"{where}: input {item.id} differs or is missing")
+        if other.seed == item.seed:
+            raise DatasetError(f"{where}: input {item.id} has the same render seed in both "
+                               f"(the halves must be independent renders)")
+    return first, second
+
+
+# ------------------------------------------------------------------------------ identity
+def cache_identity(manifest, replica, base, *, bandwidth, window, ridge) -> dict[str, Any]:
+    """What the cache's content depends on (module docstring)."""
+    from jaxden.denoise import njs
+    from jaxden.denoise.identity import code_text_sha256
+    from jaxden.progressive.cache import cache_dataset_identity, denoiser_identity
+
+    return {
+        "dataset": cache_dataset_identity(manifest),
+        "replica": cache_dataset_identity(replica),
+        "base": denoiser_identity(base),
+        "settings": {"bandwidth": bandwidth, "ols_window": int(window),
+                     "ols_ridge": float(ridge),
+                     "code_sha256": code_text_sha256(inspect.getsource(njs))},
+    }
+
+
+def default_cache_dir(dataset_dir, base, identity: dict) -> Path:
+    """``DATASET/derived/njs-<base slug>-<first 8 of the identity key>``."""
+    from jaxden.progressive.cache import DERIVED_DIR, denoiser_slug, identity_key
+
+    return (Path(dataset_dir) / DERIVED_DIR
+            / f"njs-{denoiser_slug(base)}-{identity_key(identity)[:8]}")
+
+
+def _settings(config) -> dict[str, Any]:
+    return {"bandwidth": config.train_bandwidth, "window": config.ols_window,
+            "ridge": config.ols_ridge}
+
+
+# -------------------------------------------------------------------------------- files
+def write_item(path, inputs, attributes: dict) -> None:
+    """The arrays of :class:`jaxden.denoise.njs_model.NJSInputs` as one EXR (atomic)."""
+    from jaxden import __version__
+    from jaxden.io.exr import write_channels
+
+    channels = {}
+    for name, names in CHANNELS.items():
+        array = np.asarray(getattr(inputs, name), np.float32)
+        for index, channel in enumerate(names):
+            channels[channel] = array[..., index]
+    write_channels(path, channels, attributes={"version": __version__, **attributes})
+
+
+def read_item(path) -> dict[str, np.ndarray]:
+    """``{name: (H, W, 3) float32}`` for every name of :data:`CHANNELS`."""
+    from jaxden.io.exr import read_channels
+
+    data, _ = read_channels(path, [c for names in CHANNELS.values() for c in names])
+    return {name: np.stack([data[c] for c in names], -1) for name, names in CHANNELS.items()}
+
+
+def load_cache_manifest(directory: Path) -> dict[str, Any] | None:
+    """The manifest of ``directory`` (None when there is none); DatasetError when it is
+    unreadable or of another format."""
+    from jaxden.data.layout import inside_folder
+    from jaxden.fileio import check_json_fields, read_json
+
+    path = directory / CACHE_MANIFEST
+    if not path.exists():
+        return None
+    what = "the NJS cache manifest"
+    data = read_json(path, what, error=DatasetError)
+    if data.get("format") != CACHE_FORMAT:
+        raise DatasetError(f"{path}: not a jaxden NJS cache manifest (no format "
+                           f"'{CACHE_FORMAT}'); delete it to rebuild the cache")
+    check_json_fields(data, _MANIFEST_FIELDS, f"{path}: {what}", DatasetError)
+    if data["format_version"] != CACHE_VERSION:
+        raise DatasetError(f"{path}: NJS cache format version {data['format_version']} is not "
+                           f"supported (this jaxden reads {CACHE_VERSION}); rebuild it")
+    for item_id, record in data["items"].items():
+        where = f"{path}: {what}, item {item_id!r}"
+        check_json_fields(record, _RECORD_FIELDS, where, DatasetError)
+        if not inside_folder(record["path"]):
+            raise DatasetError(f"{where}: path {record['path']!r} leaves the cache folder")
+    return data
+
+
+def _item_state(path: Path, record, item, replica_item, cache_key: str):
+    """('done' | 'recovered' | 'pending', record) for one cached item."""
+    from jaxden.data.layout import sha256_file
+
+    if not path.is_file():
+        return "pending", None
+    sources = (item.sha256, replica_item.sha256)
+    if record is not None:
+        if ((record.get("source_sha256"), record.get("replica_sha256")) == sources
+                and path.stat().st_size == record.get("bytes")
+                and sha256_file(path) == record.get("sha256")):
+            return "done", record
+        return "pending", None
+    from jaxden.io.exr import read_header
+
+    try:
+        header = read_header(path)
+        if (header.get("item"), header.get("cache_key"), header.get("source_sha256"),
+                header.get("replica_sha256")) != (item.id, cache_key, *sources):
+            return "pending", None
+        read_item(path)
+    except ExrError:
+        return "pending", None
+    return "recovered", {"path": item.path, "sha256": sha256_file(path),
+                         "bytes": path.stat().st_size, "source_sha256": item.sha256,
+                         "replica_sha256": replica_item.sha256}
+
+
+# -------------------------------------------------------------------------------- build
+def build_njs_cache(dataset_dir, replica_dir, base_spec, out_dir=None, *,
+                    bandwidth: str = "pixel", window: int = 51, ridge: float = 0.1,
+                    progress: bool = True) -> NJSCache:
+    """Compute (or finish) the NJS cache of a dataset and its replica over a base.
+
+    ``base_spec``: a denoiser spec or :class:`jaxden.denoise.Denoiser`; ``out_dir``: the
+    cache folder (default :func:`default_cache_dir`); ``bandwidth``, ``window``, ``ridge``:
+    of the cross regressions. Resumable and locked (module docstring); returns the opened
+    :class:`NJSCache`. DatasetError when a dataset is incomplete, they are not replicas of
+    one another, or the folder holds another cache or other files."""
+    from jaxden import __version__
+    from jaxden.config import config_diff
+    from jaxden.data.layout import sha256_file
+    from jaxden.denoise.njs_model import njs_inputs_from_halves
+    from jaxden.denoise.registry import as_denoiser
+    from jaxden.io.exr import read_frame
+
+    dataset_dir, replica_dir = Path(dataset_dir), Path(replica_dir)
+    manifest, replica = check_replica(dataset_dir, replica_dir)
+    base = as_denoiser(base_spec, "the NJS base")
+    identity = cache_identity(manifest, replica, base, bandwidth=bandwidth, window=window,
+                              ridge=ridge)
+    from jaxden.progressive.cache import identity_key
+
+    cache_key = identity_key(identity)
+    directory = Path(out_dir) if out_dir else default_cache_dir(dataset_dir, base, identity)
+    if directory.exists() and not directory.is_dir():
+        raise DatasetError(f"{directory} exists and is not a folder")
+    directory.mkdir(parents=True, exist_ok=True)
+    items = eligible_items(manifest)
+    replica_items = replica.item_by_id()
+    if _finished(directory, items, replica_items, identity, cache_key):
+        return NJSCache(dataset_dir, replica_dir, directory)
+
+    with folder_lock(directory, LOCK_NAME, "NJS cache build"):
+        stored = load_cache_manifest(directory)
+        if stored is not None:
+            differences = config_diff(stored.get("identity", {}), identity)
+            if differences:
+                raise DatasetError(
+                    f"{directory / CACHE_MANIFEST} holds an NJS cache of other data, base or "
+                    f"settings; differences (stored -> given): " + "; ".join(differences)
+                    + ". Write into another folder (model_config.cache), or delete it.")
+            records, created = dict(stored["items"]), stored.get("created")
+        else:
+            foreign = [p.name for p in directory.iterdir()
+                       if p.name != LOCK_NAME and not p.name.startswith(".")]
+            if foreign:
+                raise DatasetError(f"{directory} is not empty ({', '.join(sorted(foreign)[:5])})"
+                                   f" and has no {CACHE_MANIFEST}: refusing to write an NJS "
+                                   f"cache into it")
+            records, created = {}, None
+        created = created or time.strftime("%Y-%m-%dT%H:%M:%S%z")
+        kept, pending = {}, []
+        for item in items:
+            state, record = _item_state(directory / item.path, records.get(item.id), item,
+                                        replica_items[item.id], cache_key)
+            if state == "pending":
+                (directory / item.path).unlink(missing_ok=True)
+                pending.append(item)
+            else:
+                kept[item.id] = record
+        records = kept
+
+        def save() -> None:
+            from jaxden.progressive.cache import save_cache_manifest
+
+            save_cache_manifest(directory / CACHE_MANIFEST, {
+                "format": CACHE_FORMAT, "format_version": CACHE_VERSION,
+                "jaxden_version": __version__, "identity": identity, "cache_key": cache_key,
+                "base_spec": str(base_spec) if isinstance(base_spec, str) else base.name,
+                "created": created, "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                "complete": len(records) == len(items), "items_done": len(records),
+                "items_total": len(items),
+                "items": {i.id: records[i.id] for i in items if i.id in records},
+            })
+
+        save()
+        bar = None
+        if progress and pending:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=len(items), initial=len(items) - len(pending), unit=" items",
+                       desc=f"NJS cache {base.name}", dynamic_ncols=True)
+        last_save = time.monotonic()
+        try:
+            for item in pending:
+                start = time.perf_counter()
+                other = replica_items[item.id]
+                halves = [read_frame(folder / item.path, require=("color", "variance",
+                                                                   "albedo", "normal",
+                                                                   "depth"))
+                          for folder in (dataset_dir, replica_dir)]
+                try:
+                    inputs = njs_inputs_from_halves(base, *halves, bandwidth=bandwidth,
+                                                    window=window, ridge=ridge)
+                except FrameError as error:
+                    raise DatasetError(f"{dataset_dir / item.path} and its replica: "
+                                       f"{error}") from None
+                path = directory / item.path
+                path.parent.mkdir(parents=True, exist_ok=True)
+                write_item(path, inputs, {"item": item.id, "cache_key": cache_key,
+                                          "source_sha256": item.sha256,
+                                          "replica_sha256": other.sha256,
+                                          "spp": 2 * item.spp})
+                records[item.id] = {"path": item.path, "sha256": sha256_file(path),
+                                    "bytes": path.stat().st_size,
+                                    "source_sha256": item.sha256,
+                                    "replica_sha256": other.sha256,
+                                    "seconds": round(time.perf_counter() - start, 4)}
+                if bar is not None:
+                    bar.update(1)
+                if time.monotonic() - last_save > SAVE_INTERVAL_S:
+                    save()
+                    last_save = time.monotonic()
+        finally:
+            if bar is not None:
+                bar.close()
+            save()
+    return NJSCache(dataset_dir, replica_dir, directory)
+
+
+def _finished(directory: Path, items, replica_items, identity, cache_key) -> bool:
+    """Whether ``directory`` holds this exact cache, complete, every file matching (read
+    only: runs that share a finished cache never take its lock)."""
+    from jaxden.config import config_diff
+
+    stored = load_cache_manifest(directory)
+    if stored is None or not stored.get("complete") or config_diff(
+            stored.get("identity", {}), identity):
+        return False
+    records = stored["items"]
+    return all(_item_state(directory / item.path, records.get(item.id), item,
+                           replica_items[item.id], cache_key)[0] == "done" for item in items)
+
+
+def open_njs_cache(dataset_dir, config, *, progress: bool = True) -> NJSCache:
+    """The cache an :class:`jaxden.denoise.njs_model.NJSModelConfig` trains on over
+    ``dataset_dir`` (its ``replica``, base and cross-regression settings), built or finished
+    first when ``config.build_cache``; else it must exist, complete, with this identity."""
+    from jaxden.config import config_diff
+    from jaxden.denoise.njs_model import checked_base
+
+    if not config.replica:
+        raise DatasetError("model_config.replica must name the replica of data.dataset "
+                           "(`jaxden dataset build CONFIG replica=1 --out DIR`): NJS trains "
+                           "on two independent halves of every item")
+    base = checked_base(config)
+    if config.build_cache:
+        return build_njs_cache(dataset_dir, config.replica, base, config.cache or None,
+                               progress=progress, **_settings(config))
+    manifest, replica = check_replica(dataset_dir, config.replica)
+    identity = cache_identity(manifest, replica, base, **_settings(config))
+    directory = (Path(config.cache) if config.cache
+                 else default_cache_dir(dataset_dir, base, identity))
+    cache = NJSCache(dataset_dir, config.replica, directory)
+    if cache.identity != identity:
+        raise DatasetError(f"{directory}: the NJS cache was built with other data, base or "
+                           f"settings (stored -> wanted): "
+                           f"{'; '.join(config_diff(cache.identity, identity))}")
+    if not cache.complete:
+        raise DatasetError(f"{directory}: the NJS cache lacks {len(cache.missing)} item(s) "
+                           f"(e.g. {cache.missing[0]}); set model_config.build_cache = true")
+    return cache
+
+
+# ------------------------------------------------------------------------------ reading
+class NJSCache:
+    """A built NJS cache, opened for reading: ``missing`` lists the eligible items without a
+    valid record, ``identity`` is the recorded one; :meth:`crops_for` cuts a batch's inputs.
+    Decoded items are kept in memory up to ``memory_limit`` bytes."""
+
+    def __init__(self, dataset_dir, replica_dir, cache_dir, *,
+                 memory_limit: int = MEMORY_LIMIT_BYTES):
+        from jaxden.progressive.cache import cache_dataset_identity
+
+        self.dataset_dir, self.replica_dir = Path(dataset_dir), Path(replica_dir)
+        self.directory = Path(cache_dir)
+        self.dataset, self.replica = check_replica(self.dataset_dir, self.replica_dir)
+        data = load_cache_manifest(self.directory)
+        if data is None:
+            raise DatasetError(f"{self.directory} holds no NJS cache ({CACHE_MANIFEST} "
+                               f"missing): train with model_config.build_cache = true")
+        self.identity, self.cache_key = data["identity"], data["cache_key"]
+        for key, manifest, folder in (("dataset", self.dataset, self.dataset_dir),
+                                      ("replica", self.replica, self.replica_dir)):
+            if self.identity.get(key) != cache_dataset_identity(manifest):
+                raise DatasetError(f"{self.directory}: the NJS cache was computed from another "
+                                   f"{key} ({self.identity.get(key)}), not {folder}")
+        self.records: dict[str, dict] = data["items"]
+        self._items = {item.id: item for item in self.dataset.items}
+        self._replica_items = self.replica.item_by_id()
+        self.memory_limit = memory_limit
+        self._memory: dict[str, dict[str, np.ndarray]] = {}
+        self._bytes = 0
+
+    @property
+    def missing(self) -> list[str]:
+        """Eligible items whose record is absent or was computed from other source files."""
+        return [item.id for item in eligible_items(self.dataset)
+                if (self.records.get(item.id, {}).get("source_sha256"),
+                    self.records.get(item.id, {}).get("replica_sha256"))
+                != (item.sha256, self._replica_items[item.id].sha256)]
+
+    @property
+    def complete(self) -> bool:
+        return not self.missing
+
+    def read(self, item_id: str) -> dict[str, np.ndarray]:
+        """Every stored image of one item (:data:`CHANNELS`), (H, W, 3) float32."""
+        record = self.records.get(item_id)
+        if record is None:
+            raise DatasetError(f"{self.directory}: item {item_id} is not in the NJS cache "
+                               f"(spp 1, or not built)")
+        try:
+            return read_item(self.directory / record["path"])
+        except ExrError as error:
+            raise DatasetError(f"{error} (rebuild the NJS cache to repair it)") from None
+
+    def _full(self, item_id: str) -> dict[str, np.ndarray]:
+        """An item's network inputs and ``key`` (half A's colour and variance, (H, W, 6))."""
+        found = self._memory.get(item_id)
+        if found is not None:
+            return found
+        from jaxden.io.exr import read_frame
+
+        item = self._items.get(item_id)
+        if item is None:
+            raise DatasetError(f"{self.dataset_dir}: no item {item_id!r} in the dataset")
+        frame = read_frame(self.dataset_dir / item.path, require=("color", "variance"))
+        cached = self.read(item_id)
+        entry = {"key": np.concatenate([frame.color, frame.variance], -1),
+                 **{name: cached[name] for name in NETWORK_INPUTS}}
+        size = sum(a.nbytes for a in entry.values())
+        if self._bytes + size <= self.memory_limit:
+            self._memory[item_id] = entry
+            self._bytes += size
+        return entry
+
+    def crops_for(self, batch) -> dict[str, np.ndarray]:
+        """The network inputs (:data:`NETWORK_INPUTS`, each (B, h, w, 3) float32) cut like the
+        loader cut ``batch`` (its input: half A's colour and variance): each sample's window
+        and symmetry are found by exact matching
+        (:func:`jaxden.progressive.cache.locate_crop`)."""
+        from jaxden.data.loader import dihedral
+        from jaxden.progressive.cache import locate_crop
+
+        if batch.input.variance is None:
+            raise FrameError("NJS cache crops_for: the batch has no input variance")
+        color, variance = np.asarray(batch.input.color), np.asarray(batch.input.variance)
+        out: dict[str, list] = {name: [] for name in NETWORK_INPUTS}
+        for index, item_id in enumerate(batch.items):
+            entry = self._full(item_id)
+            crop = np.concatenate([color[index], variance[index]], -1)
+            top, left, symmetry = locate_crop(entry["key"], crop, where=f"item {item_id}")
+            h, w = crop.shape[:2] if symmetry % 2 == 0 else crop.shape[1::-1]
+            for name in NETWORK_INPUTS:
+                out[name].append(dihedral(entry[name][top:top + h, left:left + w], symmetry))
+        return {name: np.ascontiguousarray(np.stack(images), np.float32)
+                for name, images in out.items()}
+
+
+__all__ = [
+    "CACHE_MANIFEST",
+    "CHANNELS",
+    "NETWORK_INPUTS",
+    "NJSCache",
+    "build_njs_cache",
+    "cache_identity",
+    "check_replica",
+    "default_cache_dir",
+    "eligible_items",
+    "open_njs_cache",
+    "read_item",
+    "write_item",
+]
