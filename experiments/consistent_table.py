@@ -11,7 +11,10 @@ Reads what the queue writes under ``$JAXDEN_HOME/runs/consistent/<set>/`` (exper
 queue.sh, steps ``consistent-*``; each one command): ``jaxden evaluate pd`` of OIDN in JAX with
 the shipped ``oidn-pd`` mixer (MC, OIDN, PD(OIDN)), of WSKP-6 with ``wskp-6-pd``, of the Deep
 Combiner runs ``dc-oidn-s{0,1}`` under the closed-form mixer (Eq. 9 alone: no mixer was
-trained on DC); ``jaxden evaluate denoise`` of ``statmc`` and ``statmc-moon``. Times at
+trained on DC); ``jaxden evaluate denoise`` of ``statmc`` and ``statmc-moon``; ``jaxden
+evaluate njs`` of the neural James-Stein combiner runs ``njs-oidn-s{0,1}`` over OIDN in JAX
+(``train-njs.toml``), whose row at 2s spp combines the set's and its replica's s-spp items
+(the same number of samples as MC's row at 2s, from other renders). Times at
 1280 x 720 come from the committed benchmarks (``bench-denoisers.json``,
 ``bench-progressive.json``), each a ratio to OIDN measured in the same run.
 
@@ -42,11 +45,13 @@ METHODS = (("MC", "pd-oidn", "mc", None), ("OIDN", "pd-oidn", "denoiser", None),
            ("WSKP-6", "pd-wskp6", "denoiser", None), ("PD(WSKP-6)", "pd-wskp6", "pd", "WSKP-6"),
            ("DC s0", "pd-dc-s0", "denoiser", None), ("PD(DC s0)", "pd-dc-s0", "pd", "DC s0"),
            ("DC s1", "pd-dc-s1", "denoiser", None), ("PD(DC s1)", "pd-dc-s1", "pd", "DC s1"),
-           ("StatMC", "statmc", "den", None), ("StatMC (Moon CI)", "statmc-moon", "den", None))
+           ("StatMC", "statmc", "den", None), ("StatMC (Moon CI)", "statmc-moon", "den", None),
+           ("NJS(OIDN) s0", "njs-s0", "den", "OIDN"), ("NJS(OIDN) s1", "njs-s1", "den", "OIDN"))
 METRICS = (("rmse", "RMSE"), ("relmse", "relMSE"), ("flip", "FLIP"))
 #: Not measured on these sets yet, with why (named in every table's notes).
-NOT_RUN = {"NJS(OIDN)": "the neural James-Stein combiner needs half-buffer training data "
-                        "jaxden's datasets do not hold yet (issue 50)"}
+NOT_RUN = {"Neural kernel regression (SIGGRAPH Asia 2024)":
+           "only its abstract is public (no code, architecture, bandwidth constraint or "
+           "training recipe; docs/results.md, \"Consistent denoisers\")"}
 
 
 def load(folder: Path) -> dict[str, list[dict]]:

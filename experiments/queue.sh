@@ -116,6 +116,19 @@ for set in stress-stats pd-test-high-stats frames-stats; do
       "$C/pd-dc-s$seed"
   done
 done
+# The neural James-Stein combiner over OIDN in JAX (train-njs.toml), two seeds on pd-rt4k and
+# its replica (the first run builds the cross-regression cache, ~15 min), then NJS at 2s spp
+# from the s-spp items of each set and its replica, for the consistent table.
+step njs-oidn-s0 "${X[@]}" $J train experiments/configs/train-njs.toml --workdir "$H/runs/njs-oidn-s0"
+step njs-oidn-s1 "${X[@]}" $J train experiments/configs/train-njs.toml seed=1 \
+  --workdir "$H/runs/njs-oidn-s1"
+for set in pd-test-high-stats stress-stats frames-stats; do
+  for seed in 0 1; do
+    step "consistent-$set-njs-s$seed" $J evaluate njs --data "$H/data/$set" \
+      --replica "$H/data/$set-r1" --denoiser "$H/runs/njs-oidn-s$seed" \
+      --out "$H/runs/consistent/$set/njs-s$seed"
+  done
+done
 step sweep-rt-main $J sweep experiments/sweeps/rt-main.toml --workdir "$H/runs/sweeps/rt-main"
 step mixer-wskp6-fact "${X[@]}" $J train experiments/configs/mixer-wskp6.toml \
   data.dataset="$H/data/pd-rt4k" model_config.head=f_act model_config.logit_bound=none \

@@ -922,5 +922,5 @@ def test_consistent_table_ratios_and_missing_methods(tmp_path):
     # at 4 spp the base is the better (0.5 MC): PD at 0.6 MC is 1.2x it
     bar = entry["every_spp_over_min_mc_base"]["PD(OIDN)"]
     assert bar["worst"] == pytest.approx(1.2) and bar["over_1_05"] == 2 and bar["cells"] == 4
-    assert "Not in this set yet: WSKP-6" in text and "NJS(OIDN)" in text
+    assert "Not in this set yet: WSKP-6" in text and "NJS(OIDN) s0" in text
     assert "No results yet" in text  # the other two sets
