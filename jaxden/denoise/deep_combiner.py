@@ -40,16 +40,18 @@ Training loss: ``relmse_dc`` (registered here), the authors' relMSE
 from __future__ import annotations
 
 import dataclasses
-import functools
-import hashlib
-import json
-from pathlib import Path
 from typing import Literal
 
 import jax
 import jax.numpy as jnp
 
 from jaxden.config import bounded, check_fields
+from jaxden.denoise.frozen_base import (
+    BaseMismatchError,
+    base_sha256,
+    load_base,
+    mismatch_error,
+)
 from jaxden.denoise.nn.combiner import (
     HIDDEN_WIDTHS,
     INPUT_CHANNELS,
@@ -57,8 +59,8 @@ from jaxden.denoise.nn.combiner import (
     CombinerNet,
     combiner_output,
 )
-from jaxden.denoise.registry import Denoiser, DenoiserDef, load_denoiser, register
-from jaxden.errors import ConfigError, FrameError, JaxdenError
+from jaxden.denoise.registry import Denoiser, DenoiserDef, register
+from jaxden.errors import ConfigError, FrameError
 from jaxden.frame import Frame
 
 #: The registered name.
@@ -72,66 +74,17 @@ LOSS_NAME = "relmse_dc"
 RELMSE_EPS = 0.01
 
 
-class BaseMismatchError(ConfigError):
-    """A Deep Combiner's recorded base digest differs from the base its config names now."""
-
-
-# -------------------------------------------------------------------------------- base
-def base_sha256(base: Denoiser) -> str:
-    """Digest of what a base computes with: its definition's name, its config and its
-    weights (paths, dtypes, shapes, bytes; ``None`` for a denoiser without parameters)."""
-    from jaxden.config import config_to_dict
-
-    digest = hashlib.sha256()
-    config = (config_to_dict(base.config) if dataclasses.is_dataclass(base.config)
-              else repr(base.config))
-    digest.update(json.dumps([base.name, config], sort_keys=True, default=str).encode())
-    from jaxden.progressive.cache import hash_params
-
-    if base.params is not None:
-        hash_params(digest, base.params)
-    return digest.hexdigest()
-
-
-def _version(spec: str):
-    """What changes when the file or folder a spec names changes (None: a plain name)."""
-    from jaxden.denoise.registry import split_spec
-    from jaxden.paths import resolve_weights
-
-    path = resolve_weights(split_spec(spec)[0])
-    if path is None:
-        return None
-    stat = Path(path).stat()
-    return str(Path(path).resolve()), stat.st_mtime_ns, stat.st_size
-
-
-@functools.lru_cache(maxsize=8)
-def _read_base(spec: str, version) -> tuple[Denoiser, str]:
-    try:
-        base = load_denoiser(spec)
-    except JaxdenError as error:
-        raise ConfigError(f"{MODEL_NAME}: base {spec!r} does not load: {error}") from None
+def resolve_base(spec: str) -> tuple[Denoiser, str]:
+    """``(base, base_sha256(base))`` for a base spec, read once per process and per version
+    of the file it names (:func:`jaxden.denoise.frozen_base.load_base`). ConfigError when it
+    does not load or is not differentiable JAX."""
+    base, digest = load_base(spec, MODEL_NAME)
     if not base.differentiable:
         raise ConfigError(
             f"{MODEL_NAME}: base {spec!r} is a black box (NumPy in, NumPy out); the Deep "
             f"Combiner runs its base inside JAX (training, SURE by jvp): use a JAX denoiser, "
             f"e.g. 'oidn-jax' for OIDN")
-    return base, base_sha256(base)
-
-
-def resolve_base(spec: str) -> tuple[Denoiser, str]:
-    """``(base, base_sha256(base))`` for a base spec, read once per process and per version
-    of the file it names (a retrained or replaced file is read again). ConfigError when it
-    does not load or is not differentiable JAX."""
-    return _read_base(spec, _version(spec))
-
-
-def _mismatch(spec: str, recorded: str, current: str) -> BaseMismatchError:
-    return BaseMismatchError(
-        f"{MODEL_NAME}: this Deep Combiner was trained over base {spec!r} with weights "
-        f"base_sha256 {recorded[:16]}..., but {spec!r} now loads other weights or config "
-        f"(base_sha256 {current[:16]}...); a combiner's weights fit only the base it was "
-        f"trained with: restore that base, or train a Deep Combiner over this one")
+    return base, digest
 
 
 # ------------------------------------------------------------------------------ config
@@ -170,7 +123,8 @@ class DeepCombinerConfig:
         if not self.base_sha256:
             object.__setattr__(self, "base_sha256", current)
         elif self.base_sha256 != current:
-            raise _mismatch(self.base, self.base_sha256, current)
+            raise mismatch_error(self.base, self.base_sha256, current, MODEL_NAME,
+                                 "a Deep Combiner")
 
 
 # ---------------------------------------------------------------------- model functions
@@ -190,7 +144,8 @@ def checked_base(config: DeepCombinerConfig) -> Denoiser:
     the recorded one."""
     base, current = resolve_base(config.base)
     if current != config.base_sha256:
-        raise _mismatch(config.base, config.base_sha256, current)
+        raise mismatch_error(config.base, config.base_sha256, current, MODEL_NAME,
+                             "a Deep Combiner")
     return base
 
 

@@ -22,7 +22,7 @@ all four.
 **The base.** ``NJSModelConfig.base`` is a denoiser spec for
 :func:`jaxden.denoise.load_denoiser` (default ``oidn-jax``, Intel's OIDN weights in JAX; a
 black box such as ``oidn`` works too: NJS never differentiates through its base).
-``base_sha256`` (:func:`jaxden.denoise.deep_combiner.base_sha256`: the base's name, config
+``base_sha256`` (:func:`jaxden.denoise.frozen_base.base_sha256`: the base's name, config
 and weights) is filled in when the config is validated and checked whenever it loads again,
 as the Deep Combiner does: a run folder of ``njs`` is a whole model, and a run over other base
 weights than the base now named is refused (:class:`BaseMismatchError`).
@@ -39,7 +39,6 @@ pixels and the depth is normalised per image, so NJS runs on whole frames (the b
 from __future__ import annotations
 
 import dataclasses
-import functools
 import os
 from pathlib import Path
 from typing import Any, Literal, NamedTuple
@@ -49,6 +48,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxden.config import bounded, check_fields
+from jaxden.denoise.frozen_base import BaseMismatchError, check_base, load_base
 from jaxden.denoise.njs import (
     OLS_RIDGE,
     OLS_WINDOW,
@@ -60,7 +60,7 @@ from jaxden.denoise.njs import (
     njs_init,
 )
 from jaxden.denoise.nn.njs import KERNEL_SIZE, WIDTHS
-from jaxden.errors import CheckpointError, ConfigError, FrameError, JaxdenError
+from jaxden.errors import CheckpointError, ConfigError, FrameError
 from jaxden.frame import Frame
 
 #: The trainable model's name (``model = "njs"``) and its checkpoints' ``model``.
@@ -73,47 +73,11 @@ DEFAULT_BASE = "oidn-jax"
 HALF_FIELDS = ("color", "variance", "albedo", "normal", "depth")
 
 
-class BaseMismatchError(ConfigError):
-    """An NJS run's recorded base digest differs from the base its config names now."""
-
-
-# ---------------------------------------------------------------------------------- base
-def _version(spec: str):
-    """What changes when the file or folder a spec names changes (None: a plain name)."""
-    from jaxden.denoise.registry import split_spec
-    from jaxden.paths import resolve_weights
-
-    path = resolve_weights(split_spec(spec)[0])
-    if path is None:
-        return None
-    stat = Path(path).stat()
-    return str(Path(path).resolve()), stat.st_mtime_ns, stat.st_size
-
-
-@functools.lru_cache(maxsize=8)
-def _read_base(spec: str, version):
-    from jaxden.denoise.deep_combiner import base_sha256
-    from jaxden.denoise.registry import load_denoiser
-
-    try:
-        base = load_denoiser(spec)
-    except JaxdenError as error:
-        raise ConfigError(f"{NJS_MODEL}: base {spec!r} does not load: {error}") from None
-    return base, base_sha256(base)
-
-
 def resolve_base(spec: str):
     """``(base Denoiser, its digest)`` for a base spec, read once per process and per version
-    of the file it names. ConfigError when it does not load."""
-    return _read_base(spec, _version(spec))
-
-
-def _mismatch(spec: str, recorded: str, current: str) -> BaseMismatchError:
-    return BaseMismatchError(
-        f"{NJS_MODEL}: this combiner was trained over base {spec!r} with base_sha256 "
-        f"{recorded[:16]}..., but {spec!r} now loads other weights or config (base_sha256 "
-        f"{current[:16]}...); its network fits only the base it was trained with: restore "
-        f"that base, or train NJS over this one")
+    of the file it names (:func:`jaxden.denoise.frozen_base.load_base`). ConfigError when it
+    does not load."""
+    return load_base(spec, NJS_MODEL)
 
 
 # -------------------------------------------------------------------------------- config
@@ -157,8 +121,8 @@ class NJSModelConfig:
         _, current = resolve_base(self.base)
         if not self.base_sha256:
             object.__setattr__(self, "base_sha256", current)
-        elif self.base_sha256 != current:
-            raise _mismatch(self.base, self.base_sha256, current)
+        else:
+            check_base(self.base, self.base_sha256, NJS_MODEL, "NJS")
 
     def njs(self, bandwidth: str = "image") -> NJSConfig:
         """The combiner's :class:`~jaxden.denoise.njs.NJSConfig` (``bandwidth``: of the cross
@@ -171,9 +135,7 @@ class NJSModelConfig:
 def checked_base(config: NJSModelConfig):
     """The base ``config`` names, refused (:class:`BaseMismatchError`) unless its digest is
     the recorded one."""
-    base, current = resolve_base(config.base)
-    if current != config.base_sha256:
-        raise _mismatch(config.base, config.base_sha256, current)
+    base = check_base(config.base, config.base_sha256, NJS_MODEL, "NJS")
     return base
 
 
