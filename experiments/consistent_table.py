@@ -72,13 +72,15 @@ def per_image(rows: list[dict], prefix: str, metric: str) -> dict[tuple[str, int
 
 def method_values(results: dict, metric: str) -> dict[str, dict[tuple[str, int], float]]:
     """``{method: {(crop, spp): value}}`` for the methods whose results exist. MC comes from
-    the first ``evaluate pd`` result present (every one scores the same noisy input)."""
+    the first ``evaluate pd`` result present, else StatMC's ``evaluate denoise`` (every one
+    scores the same noisy input)."""
     out = {}
     for label, name, prefix, _ in METHODS:
         if label == "MC":
-            for source in ("pd-oidn", "pd-wskp6", "pd-dc-s0", "pd-dc-s1"):
-                if source in results:
-                    out[label] = per_image(results[source], "mc", metric)
+            for source in ("pd-oidn", "pd-wskp6", "pd-dc-s0", "pd-dc-s1", "statmc"):
+                values = per_image(results.get(source, []), "mc", metric)
+                if values:
+                    out[label] = values
                     break
             continue
         if name in results:
