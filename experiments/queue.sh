@@ -275,6 +275,9 @@ step sweep-rt-noise2noise $J sweep experiments/sweeps/rt-noise2noise.toml --work
 step sweep-rt-ablation $J sweep experiments/sweeps/rt-ablation.toml --workdir "$H/runs/sweeps/rt-ablation"
 # The remaining real-time models (WSKP-3, KP-1, KP-2, WSKP-MR, U-Net, WSKP-6+1x1), about 3 h.
 step sweep-rt-variants $J sweep experiments/sweeps/rt-variants.toml --workdir "$H/runs/sweeps/rt-variants"
+# The error guard's variants on textured scenes at low spp (pd-guard-textured.md), ~2 h.
+step pd-guard-textured .venv/bin/python experiments/pd_guard_textured.py --run \
+  --out experiments/results/pd/pd-guard-textured
 for extra in "$H"/queue.d/*.sh; do   # ad-hoc steps of this machine, outside the checkout
   [ -e "$extra" ] && source "$extra"
 done

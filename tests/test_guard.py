@@ -52,8 +52,11 @@ def reference_guard(alpha, x, y, var, cfg: P.TStatConfig, spp=None) -> np.ndarra
     sum_b s_b(p) s_b(q) of tent bins over the level L = clip(log2 sd - mean log2 sd, +-16) /
     width (sd from the channel mean of var; pixels with var = 0 take no part), width =
     max(stops, 3 x RMS of L - its local mean over members where that is < 8); used where the
-    stratum's share of the window weight is >= 0.3. alpha'' = min(alpha, gamma / chi_sp^2)
-    Phi(-a (max(chi_sp, chi_st) - c))."""
+    stratum's share of the window weight is >= 0.3. With ``guard_cap_spp`` m and d = max(spp
+    - 1, 1) < m - 1, the cap's chi_sp^2 is the smaller of it and the same spatial chi^2 over a
+    window of sigma guard_sigma sqrt((m - 1) / d) (its bound from its own N_eff). alpha'' =
+    min(alpha, gamma / chi_sp^2) Phi(-a (max(chi_sp, chi_st) - c)), chi_sp in the significance
+    factor always the guard_sigma window's."""
     alpha, x, y, var = (np.asarray(a, np.float64) for a in (alpha, x, y, var))
     radius = max(1, math.ceil(3 * cfg.guard_sigma))
     offsets = np.arange(-radius, radius + 1)
@@ -68,6 +71,21 @@ def reference_guard(alpha, x, y, var, cfg: P.TStatConfig, spp=None) -> np.ndarra
         variance = variance.sum(-1, keepdims=True)
     chi2_cap = _chi2(_local_sum(residual, pairs), _local_sum(variance, pairs))
     chi2_test = chi2_cap
+    dof = None if spp is None else max(spp - 1, 1)
+    if cfg.guard_cap_spp is not None and dof is not None and dof < cfg.guard_cap_spp - 1:
+        # the cap's widened window: sigma sqrt((m - 1) / d), its own N_eff and bound
+        wide = dataclasses.replace(
+            cfg, guard_sigma=cfg.guard_sigma * math.sqrt((cfg.guard_cap_spp - 1) / dof))
+        wide_radius = max(1, math.ceil(3 * wide.guard_sigma))
+        wide_offsets = np.arange(-wide_radius, wide_radius + 1)
+        wide_window = np.exp(-(wide_offsets[:, None] ** 2 + wide_offsets[None, :] ** 2)
+                             / (2 * wide.guard_sigma ** 2))
+        wide_n_eff = wide_window.sum() ** 2 / np.square(wide_window).sum()
+        wide_inflation = 1 + cfg.guard_confidence * math.sqrt(2 / (dof * wide_n_eff))
+        wide_pairs = _pair_window(x.shape[:2], wide)
+        wide_variance = (var if cfg.per_channel else var.sum(-1, keepdims=True)) * wide_inflation
+        chi2_cap = np.minimum(chi2_cap, _chi2(_local_sum(residual, wide_pairs),
+                                              _local_sum(wide_variance, wide_pairs)))
     if cfg.guard_strata is not None:
         sd = np.sqrt(var.mean(-1))
         member = sd > 0
@@ -86,7 +104,7 @@ def reference_guard(alpha, x, y, var, cfg: P.TStatConfig, spp=None) -> np.ndarra
         ones = np.ones(x.shape[:2] + (1,))
         support = _local_sum(ones, strata_pairs) / _local_sum(ones, pairs)
         strata = _chi2(_local_sum(residual, strata_pairs), _local_sum(variance, strata_pairs))
-        chi2_test = np.maximum(chi2_cap, np.where(support >= 0.3, strata, 0))
+        chi2_test = np.maximum(chi2_test, np.where(support >= 0.3, strata, 0))
     with np.errstate(divide="ignore"):
         cap = np.where(chi2_cap > 0, cfg.guard_gamma / chi2_cap, np.inf)
     return np.minimum(alpha, cap) * norm.cdf(-cfg.a * (np.sqrt(chi2_test) - cfg.c))
@@ -113,7 +131,10 @@ def scene(seed, height=9, width=11, bias=3.0, zero_var_pixels=4):
     (P.TStatConfig(guard_strata=1.0), 16),
     (P.TStatConfig(guard_gamma=0.5, guard_sigma=2.5, a=3.0, c=3.0, guard_confidence=3.0,
                    guard_strata=4.0), 64),
-], ids=["default", "spp4", "per_channel_strata_spp1", "strata_spp16", "options_spp64"])
+    (P.TStatConfig(guard_cap_spp=16.0), 4),
+    (P.TStatConfig(per_channel=True, guard_cap_spp=8.0, guard_strata=1.0), 2),
+], ids=["default", "spp4", "per_channel_strata_spp1", "strata_spp16", "options_spp64",
+        "cap_spp16_spp4", "per_channel_strata_cap_spp8_spp2"])
 def test_guard_matches_numpy_reference(cfg, spp):
     alpha, x, y, var = scene(seed=3, bias=6.0)
     got = np.asarray(P.error_guard(alpha, x, y, var, cfg, spp=spp))
@@ -195,6 +216,65 @@ def test_guard_trusts_an_unbiased_denoiser_at_2_spp_given_the_sample_count():
     assert left(None) > 0.03 and left(2) < 0.015
 
 
+def test_cap_spp_changes_nothing_from_its_sample_count_on_or_without_one():
+    """guard_cap_spp = 16 leaves the guard bit for bit as it is at 16 spp and above, where the
+    sample count is unknown, and per image in a batch (a 4-spp image beside a 64-spp one)."""
+    alpha, x, y, var = scene(seed=3, bias=6.0)
+    for spp in (16, 64, None):
+        np.testing.assert_array_equal(
+            np.asarray(P.error_guard(alpha, x, y, var, spp=spp, guard_cap_spp=16.0)),
+            np.asarray(P.error_guard(alpha, x, y, var, spp=spp)))
+    batch = [np.stack([a, a]) for a in (alpha, x, y, var)]
+    both = np.asarray(P.error_guard(*batch, spp=np.array([4.0, 64.0]), guard_cap_spp=16.0))
+    np.testing.assert_array_equal(both[1], np.asarray(P.error_guard(alpha, x, y, var, spp=64)))
+    np.testing.assert_allclose(
+        both[0], np.asarray(P.error_guard(alpha, x, y, var, spp=4, guard_cap_spp=16.0)),
+        rtol=1e-6)
+    assert not np.array_equal(both[0], both[1])
+
+
+def heavy_tailed_render(seed, spp=4, p=0.2, shape=(96, 96)):
+    """x the mean of ``spp`` samples per pixel, each mu (0.2 + 0.8 B / p), B ~ Bernoulli(p)
+    shared by R, G, B (a bright reflection found or not: a rough conductor under soft boxes),
+    var their sample variance / spp; (x, var, mu, the true standard error of x)."""
+    rng = np.random.default_rng(seed)
+    mu = rng.uniform(0.2, 2.0, shape + (3,))
+    found = rng.uniform(size=(spp,) + shape + (1,)) < p
+    samples = mu * (0.2 + 0.8 * found / p)
+    true_se = mu * 0.8 * math.sqrt((1 - p) / p / spp)
+    return (samples.mean(0).astype(np.float32),
+            (samples.var(0, ddof=1) / spp).astype(np.float32), mu.astype(np.float32),
+            true_se.astype(np.float32))
+
+
+def test_cap_spp_keeps_an_unbiased_denoiser_at_4_spp_and_still_caps_a_biased_one():
+    """At 4 spp of heavy-tailed samples with y = mu exactly (a perfect denoiser, alpha 1: any
+    cut is pure loss), the 1-pixel cap pulls windows whose x is off by more than its 3-degree
+    variance says towards x and leaves 0.63 % of MC's MSE over the 96 x 96 frame; with
+    guard_cap_spp = 16 the cap also reads a window of the degrees of freedom of 16 spp and
+    leaves < 0.01 % (seed 21; never a smaller alpha than today's). With y biased by 5 true
+    standard errors of x everywhere the option caps as today: the mix's error (1.36x MC's; y's
+    is 25x) and its mean alpha within 1 % of today's."""
+    x, var, mu, true_se = heavy_tailed_render(seed=21)
+    alpha = np.ones_like(x)
+    mc = np.mean((x - mu) ** 2)
+
+    def left(y, **options):
+        guarded = np.asarray(P.error_guard(alpha, x, y, var, spp=4, **options))
+        return guarded, np.mean((x + guarded * (y - x) - mu) ** 2) / mc
+
+    today, today_left = left(mu)
+    option, option_left = left(mu, guard_cap_spp=16.0)
+    assert np.all(option >= today) and np.all(option <= alpha)
+    assert today_left > 0.005 and option_left < 1e-4
+    biased = mu + 5.0 * true_se
+    today, today_left = left(biased)
+    option, option_left = left(biased, guard_cap_spp=16.0)
+    assert np.mean((biased - mu) ** 2) / mc > 20.0 and option_left < 1.5
+    assert option_left == pytest.approx(today_left, rel=0.01)
+    assert option.mean() == pytest.approx(today.mean(), rel=0.01)
+
+
 def lamp_with_bleed(seed=13):
     """A 15 x 15 dark floor (mu 0.05, variance 1e-4) with a 3 x 3 lamp rim (mu 500, variance
     1e5) whose denoised image smears 40 onto the ring of dark pixels around it (the bleed of
@@ -270,7 +350,7 @@ def test_guard_catches_a_small_alpha_over_a_far_off_y_that_the_t_test_passes(per
 
 def test_guard_config_is_checked():
     for bad in (dict(guard_gamma=0.0), dict(guard_sigma=-1.0), dict(guard="yes"),
-                dict(guard_confidence=-1.0), dict(guard_strata=0.0)):
+                dict(guard_confidence=-1.0), dict(guard_strata=0.0), dict(guard_cap_spp=1.0)):
         with pytest.raises(ConfigError):
             P.TStatConfig(**bad)
     alpha, x, y, var = scene(seed=1)

@@ -5,6 +5,7 @@ bound the measured ones, and the memory plan refuses what cannot fit in one line
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax
@@ -115,6 +116,31 @@ def test_tiles_equal_the_whole_frame_and_a_short_overlap_shows(small_kp):
                                          **options)
     assert _rel(short["denoised"], whole["denoised"]) > 1e-3
     assert _rel(short["sure"], whole["sure"]) > 1e-3
+
+
+def test_tile_halo_covers_the_widened_guard_cap_window(small_kp):
+    """With ``tstat.guard_cap_spp`` = 16 the guard's cap at 2 spp also reads a window of sigma
+    sqrt(15) (12 pixels each side): where y is off x by ~10 standard errors on a 9 x 9 block (the
+    cap binds on the wide window too), the guard's alpha at the block's centre reads the
+    variance 12 pixels away, and the halo grows from 15 to 4 + 6 + 12; at 32 spp and without a
+    sample count (the option does nothing) the guard reads its own 3. (y differs from x
+    everywhere: where the residual is exactly 0 the ratio's gradient is NaN.)"""
+    from jaxden.progressive.tstat import error_guard
+
+    _, config = closed_form_mixer("closed-form:sigma=2")
+    tstat = dataclasses.replace(config.tstat, guard_cap_spp=16.0)
+    assert tile_halo(small_kp, config, config.tstat) == 4 + 6 + 5
+    assert tile_halo(small_kp, config, tstat) == 4 + 6 + 12 and tstat_radius(tstat) == 12
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0.5, 1.5, (40, 40, 3)).astype(np.float32)
+    var = np.full_like(x, 0.01)
+    y = x + 0.01 * rng.standard_normal(x.shape).astype(np.float32)
+    y[16:25, 16:25] += 0.316
+    alpha = np.ones_like(x)
+    for spp, radius in ((2.0, 12), (32.0, 3), (None, 3)):
+        measured = _support(lambda v: error_guard(alpha, x, y, v, tstat, spp=spp), var,
+                            (20, 20))
+        assert measured == radius, (spp, measured)
 
 
 @pytest.mark.slow

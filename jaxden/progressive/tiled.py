@@ -107,7 +107,9 @@ def tstat_radius(tstat: TStatConfig | None) -> int:
         return 0
     radius = tstat.window // 2
     if tstat.guard:
-        radius = max(radius, taps_radius(tstat.guard_sigma))
+        from jaxden.progressive.guard import cap_window_radius
+
+        radius = max(radius, cap_window_radius(tstat))
     return radius
 
 

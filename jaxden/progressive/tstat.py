@@ -65,6 +65,16 @@ class TStatConfig:
         pixel beside it onto which the denoiser smeared the lamp. A trade, off by default: it
         cuts relMSE on emitters in view at 4..64 spp and costs RMSE where a lamp is seen
         through a diffuser at 4 spp (:mod:`jaxden.progressive.guard`).
+      guard_cap_spp: None (the default: the cap reads the ``guard_sigma`` window alone) or a
+        sample count m: below m samples per pixel (d < m - 1 degrees of freedom of the
+        variance, where the sample count or ``variance_dof`` is known) the cap also pools over
+        a window widened by sqrt((m - 1) / d), which holds about the degrees of freedom the
+        ``guard_sigma`` window holds at m samples, and takes the looser of the two caps (the
+        smaller chi^2), so that the cap pulls towards x only where a window of enough samples
+        also finds y off. At m samples and above the guard is unchanged. An option, off by
+        default: at m = 16 it keeps PD(OIDN) within 1 % of OIDN at 4 and 16 spp on the
+        textured out-of-distribution scenes, where today's cap costs up to 3 % at 4 spp
+        (experiments/results/pd/pd-guard-textured.md; :mod:`jaxden.progressive.guard`).
     """
 
     window: int = bounded(11, low=1, high=255, unit='pixels')
@@ -85,6 +95,7 @@ class TStatConfig:
     guard_sigma: float = bounded(1.0, low=0, low_open=True, high=64, unit='pixels')
     guard_confidence: float = bounded(2.0, low=0, high=100)
     guard_strata: float | None = bounded(None, low=0.0625, high=16, unit='stops')  # >= 1/16 stop
+    guard_cap_spp: float | None = bounded(None, low=2, high=1e6, unit='samples')
 
     def __post_init__(self):
         from jaxden.config import check_fields
@@ -311,9 +322,9 @@ def error_guard(alpha, x, y, var, config: TStatConfig | None = None, *, spp=None
     Args: alpha (..., H, W, 3) or (..., H, W, 1); x noisy colour, y denoised colour, var the
     variance of the pixel mean of x, all (..., H, W, 3). ``config``/``overrides``:
     :class:`TStatConfig` fields (``guard_gamma``, ``guard_sigma``, ``guard_confidence``,
-    ``a``, ``c``, ``squash``, ``per_channel``). ``spp``: samples per pixel that ``var`` was
-    estimated from (scalar or one per leading index); None: unknown, the variance is taken
-    as exact.
+    ``guard_strata``, ``guard_cap_spp``, ``a``, ``c``, ``squash``, ``per_channel``). ``spp``:
+    samples per pixel that ``var`` was estimated from (scalar or one per leading index); None:
+    unknown, the variance is taken as exact (and ``guard_cap_spp`` does nothing).
     """
     config = _resolve_config(config, overrides)
     shape = check_same("error_guard", x=x, y=y, var=var)
