@@ -46,7 +46,8 @@ METHODS = (("MC", "pd-oidn", "mc", None), ("OIDN", "pd-oidn", "denoiser", None),
            ("DC s0", "pd-dc-s0", "denoiser", None), ("PD(DC s0)", "pd-dc-s0", "pd", "DC s0"),
            ("DC s1", "pd-dc-s1", "denoiser", None), ("PD(DC s1)", "pd-dc-s1", "pd", "DC s1"),
            ("StatMC", "statmc", "den", None), ("StatMC (Moon CI)", "statmc-moon", "den", None),
-           ("NJS(OIDN) s0", "njs-s0", "den", "OIDN"), ("NJS(OIDN) s1", "njs-s1", "den", "OIDN"))
+           ("NJS(OIDN) s0", "njs-s0", "den", "OIDN"), ("NJS(OIDN) s1", "njs-s1", "den", "OIDN"),
+           ("NJS(WSKP-6) s0", "njs-wskp6-s0", "den", "WSKP-6"))
 METRICS = (("rmse", "RMSE"), ("relmse", "relMSE"), ("flip", "FLIP"))
 #: Not measured on these sets yet, with why (named in every table's notes).
 NOT_RUN = {"Neural kernel regression (SIGGRAPH Asia 2024)":

@@ -129,6 +129,14 @@ for set in pd-test-high-stats stress-stats frames-stats; do
       --out "$H/runs/consistent/$set/njs-s$seed"
   done
 done
+# NJS over WSKP-6 (the second base): one seed, on the held-out crops and the stress frames.
+step njs-wskp6-s0 "${X[@]}" $J train experiments/configs/train-njs.toml \
+  model_config.base=wskp-6 --workdir "$H/runs/njs-wskp6-s0"
+for set in pd-test-high-stats stress-stats; do
+  step "consistent-$set-njs-wskp6-s0" $J evaluate njs --data "$H/data/$set" \
+    --replica "$H/data/$set-r1" --denoiser "$H/runs/njs-wskp6-s0" \
+    --out "$H/runs/consistent/$set/njs-wskp6-s0"
+done
 step sweep-rt-main $J sweep experiments/sweeps/rt-main.toml --workdir "$H/runs/sweeps/rt-main"
 step mixer-wskp6-fact "${X[@]}" $J train experiments/configs/mixer-wskp6.toml \
   data.dataset="$H/data/pd-rt4k" model_config.head=f_act model_config.logit_bound=none \
