@@ -22,6 +22,7 @@ import pytest
 from jaxden.config import load_config
 from jaxden.data.builder import build_dataset
 from jaxden.data.config import DatasetConfig
+from jaxden.data.item_cache import inverse_dihedral, locate_crop
 from jaxden.data.layout import load_manifest
 from jaxden.data.loader import DatasetLoader, dihedral
 from jaxden.denoise.registry import Denoiser, DenoiserDef, make_denoiser
@@ -286,13 +287,13 @@ def test_inverse_dihedral_and_locate_crop():
     full = rng.normal(size=(9, 8, 6)).astype(np.float32)
     for symmetry in range(8):
         window = full[2:7, 1:6]
-        np.testing.assert_array_equal(pdcache.inverse_dihedral(dihedral(window, symmetry),
-                                                                symmetry), window)
-        assert pdcache.locate_crop(full, dihedral(window, symmetry)) == (2, 1, symmetry)
+        np.testing.assert_array_equal(inverse_dihedral(dihedral(window, symmetry), symmetry),
+                                      window)
+        assert locate_crop(full, dihedral(window, symmetry)) == (2, 1, symmetry)
     # Ties (a window repeated exactly, here everywhere) go to symmetry 0, first position.
-    assert pdcache.locate_crop(np.zeros((9, 8, 6)), np.zeros((4, 4, 6))) == (0, 0, 0)
+    assert locate_crop(np.zeros((9, 8, 6)), np.zeros((4, 4, 6))) == (0, 0, 0)
     with pytest.raises(DatasetError, match="not a window"):
-        pdcache.locate_crop(full, full[2:6, 1:5] + 1)
+        locate_crop(full, full[2:6, 1:5] + 1)
 
 
 def test_read_errors_name_the_item(oidn_cache):

@@ -54,8 +54,8 @@ from typing import Any
 import jax
 import numpy as np
 
+from jaxden.data.item_cache import CacheKind, ItemCacheReader, read_manifest
 from jaxden.errors import DatasetError, ExrError, FrameError
-from jaxden.fileio import atomic_write_text
 from jaxden.sure.denoiser import resolve_denoiser
 from jaxden.sure.settings import SureSettings
 
@@ -63,7 +63,6 @@ CACHE_MANIFEST = "sure-cache.json"
 CACHE_FORMAT = "jaxden-sure-cache"
 CACHE_VERSION = 1
 LOCK_NAME = ".sure-cache.lock"
-SAVE_INTERVAL_S = 5.0
 DERIVED_DIR = "derived"
 SURE_CHANNELS = ("sure.R", "sure.G", "sure.B")
 DIVERGENCE_CHANNELS = ("divergence.R", "divergence.G", "divergence.B")
@@ -194,47 +193,14 @@ def identity_key(identity: dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:20]
 
 
-def save_cache_manifest(path: Path, data: dict) -> None:
-    atomic_write_text(path, json.dumps(data, indent=1))
-
-
-#: Fields of the cache manifest that jaxden reads (checked on load; ``?``: optional).
-_MANIFEST_FIELDS = {"format": str, "format_version": int, "identity": dict, "cache_key": str,
-                    "items": dict, "complete?": bool, "created?": str}
-_IDENTITY_FIELDS = {"dataset": dict, "denoiser": dict, "settings": dict}
-_RECORD_FIELDS = {"path": str, "sha256": str, "bytes": int, "source_sha256": str,
-                  "seed?": int, "seconds?": float}
-
-
-def load_cache_manifest(directory: Path) -> dict[str, Any] | None:
-    """The cache manifest of ``directory`` (None when there is none); DatasetError naming the
-    file and the field when it is unreadable, malformed, wrongly typed or of another format."""
-    from jaxden.data.layout import inside_folder
-    from jaxden.fileio import check_json_fields, read_json
-
-    path = directory / CACHE_MANIFEST
-    if not path.exists():
-        return None
-    what = "the SURE cache manifest"
-    data = read_json(path, what, error=DatasetError)
-    if data.get("format") != CACHE_FORMAT:
-        raise DatasetError(f"{path}: not a jaxden SURE cache manifest (no format "
-                           f"'{CACHE_FORMAT}'); delete it to rebuild the cache")
-    check_json_fields(data, _MANIFEST_FIELDS, f"{path}: {what}", DatasetError)
-    if data["format_version"] != CACHE_VERSION:
-        raise DatasetError(
-            f"{path}: SURE cache format version {data.get('format_version')} is not supported "
-            f"(this jaxden reads version {CACHE_VERSION}); rebuild into another folder"
-        )
-    check_json_fields(data["identity"], _IDENTITY_FIELDS, f"{path}: {what}, field 'identity'",
-                      DatasetError)
-    for item_id, record in data["items"].items():
-        where = f"{path}: {what}, item {item_id!r}"
-        check_json_fields(record, _RECORD_FIELDS, where, DatasetError)
-        if not inside_folder(record["path"]):
-            raise DatasetError(f"{where}: path {record['path']!r} leaves the cache folder (item "
-                               f"paths must be relative, without '..')")
-    return data
+#: The SURE cache's files (:mod:`jaxden.data.item_cache`).
+CACHE_KIND = CacheKind(
+    name="SURE", article="a", manifest=CACHE_MANIFEST, lock=LOCK_NAME, format=CACHE_FORMAT,
+    version=CACHE_VERSION,
+    record_fields={"path": str, "sha256": str, "bytes": int, "source_sha256": str,
+                   "seed?": int, "seconds?": float},
+    identity_fields={"dataset": dict, "denoiser": dict, "settings": dict},
+)
 
 
 def eligible_items(manifest) -> list:
@@ -243,49 +209,7 @@ def eligible_items(manifest) -> list:
 
 
 # ------------------------------------------------------------------------------- reading
-def inverse_dihedral(image: np.ndarray, index: int) -> np.ndarray:
-    """Undo :func:`jaxden.data.loader.dihedral` (flip back, then turn back)."""
-    out = np.asarray(image)
-    if index >= 4:
-        out = np.flip(out, axis=-2)
-    return np.rot90(out, k=-(index % 4), axes=(-3, -2))
-
-
-def locate_crop(full: np.ndarray, crop: np.ndarray, where: str = "crop") -> tuple[int, int, int]:
-    """Find ``(top, left, symmetry)`` with ``dihedral(full[top:top+h, left:left+w], symmetry)
-    == crop`` exactly; ``full`` (H, W, C), ``crop`` (h, w, C).
-
-    Candidates are screened on a 5 x 5 grid of pixels, then checked in full. Symmetries are
-    tried in order 0..7 and positions in row-major order; the first exact match wins. Only a
-    crop whose window is repeated exactly elsewhere in the item (a constant, noise-free region,
-    all C channels equal) can match more than one window; those windows then hold identical
-    inputs. Raises DatasetError when nothing matches (the data changed under the cache).
-    """
-    full = np.asarray(full)
-    crop = np.asarray(crop)
-    height, width = full.shape[:2]
-    for symmetry in range(8):
-        window = inverse_dihedral(crop, symmetry)
-        h, w = window.shape[:2]
-        if h > height or w > width:
-            continue
-        rows, cols = height - h + 1, width - w + 1
-        ok = np.ones((rows, cols), bool)
-        for dy in np.unique(np.linspace(0, h - 1, 5).astype(int)):
-            for dx in np.unique(np.linspace(0, w - 1, 5).astype(int)):
-                ok &= np.all(full[dy : dy + rows, dx : dx + cols] == window[dy, dx], axis=-1)
-            if not ok.any():
-                break
-        for top, left in np.argwhere(ok):
-            if np.array_equal(full[top : top + h, left : left + w], window):
-                return int(top), int(left), symmetry
-    raise DatasetError(
-        f"{where}: the batch crop is not a window of the dataset item (did the dataset change "
-        f"since the loader read it?)"
-    )
-
-
-class SureCache:
+class SureCache(ItemCacheReader):
     """A built SURE cache, opened for reading (see the module docstring for the layout).
 
     ``SureCache(dataset_dir, cache_dir)`` checks that the cache was computed from this dataset.
@@ -294,13 +218,15 @@ class SureCache:
     ``memory_limit`` bytes.
     """
 
+    NAMES = ("denoised", "sure")
+
     def __init__(self, dataset_dir, cache_dir, *, memory_limit: int = MEMORY_LIMIT_BYTES):
         from jaxden.data.layout import load_manifest
 
         self.dataset_dir = Path(dataset_dir)
         self.directory = Path(cache_dir)
         self.dataset = load_manifest(self.dataset_dir)
-        data = load_cache_manifest(self.directory)
+        data = read_manifest(self.directory, CACHE_KIND)
         if data is None:
             raise DatasetError(
                 f"{self.directory} holds no SURE cache ({CACHE_MANIFEST} missing): build it with "
@@ -318,9 +244,7 @@ class SureCache:
         self._items = {item.id: item for item in self.dataset.items}
         crops = self.dataset.crop_by_id()
         self._split = {item.id: crops[item.crop].split for item in self.dataset.items}
-        self.memory_limit = memory_limit
-        self._memory: dict[str, dict[str, np.ndarray]] = {}
-        self._bytes = 0
+        super().__init__(memory_limit)
 
     @property
     def missing(self) -> list[str]:
@@ -351,59 +275,17 @@ class SureCache:
         except ExrError as error:
             raise DatasetError(f"{error} (rebuild the SURE cache to repair it)") from None
 
-    def _full(self, item_id: str) -> dict[str, np.ndarray]:
-        """The whole item: ``key`` (colour and variance from the dataset, (H, W, 6)), the cached
-        ``denoised`` and ``sure``."""
-        found = self._memory.get(item_id)
-        if found is not None:
-            return found
-        from jaxden.io.exr import read_frame
-
-        item = self._items.get(item_id)
-        if item is None:
-            raise DatasetError(f"{self.dataset_dir}: no item {item_id!r} in the dataset")
-        frame = read_frame(self.dataset_dir / item.path, require=("color", "variance"))
-        cached = self.read(item_id)
-        entry = {
-            "key": np.concatenate([frame.color, frame.variance], axis=-1),
-            "denoised": cached["denoised"],
-            "sure": cached["sure"],
-        }
-        size = sum(a.nbytes for a in entry.values())
-        if self._bytes + size <= self.memory_limit:
-            self._memory[item_id] = entry
-            self._bytes += size
-        return entry
-
     def crops_for(self, batch) -> tuple[np.ndarray, np.ndarray, list[tuple[int, int, int]]]:
         """The cached denoised image and SURE cut like the loader cut ``batch``.
 
         ``batch``: a :class:`jaxden.data.loader.Batch` with input colour and variance
         (B, h, w, 3). The loader does not report its crop windows, so each sample's window and
         symmetry are recovered by exact matching of its colour and variance against the item
-        (:func:`locate_crop`); the result is a pure function of the batch.
+        (:func:`jaxden.data.item_cache.locate_crop`); the result is a pure function of the
+        batch.
 
         Returns ``(denoised, sure, windows)``: (B, h, w, 3) float32 arrays and
         ``(top, left, symmetry)`` per sample.
         """
-        from jaxden.data.loader import dihedral
-
-        color = np.asarray(batch.input.color)
-        variance = batch.input.variance
-        if variance is None:
-            raise FrameError("crops_for: the batch has no input variance")
-        variance = np.asarray(variance)
-        denoised, sure_maps, windows = [], [], []
-        for index, item_id in enumerate(batch.items):
-            entry = self._full(item_id)
-            crop = np.concatenate([color[index], variance[index]], axis=-1)
-            top, left, symmetry = locate_crop(entry["key"], crop, where=f"item {item_id}")
-            h, w = crop.shape[:2] if symmetry % 2 == 0 else crop.shape[1::-1]
-            for out, name in ((denoised, "denoised"), (sure_maps, "sure")):
-                out.append(dihedral(entry[name][top : top + h, left : left + w], symmetry))
-            windows.append((top, left, symmetry))
-        return (
-            np.ascontiguousarray(np.stack(denoised), np.float32),
-            np.ascontiguousarray(np.stack(sure_maps), np.float32),
-            windows,
-        )
+        cut, windows = self._cut(batch, "crops_for")
+        return cut["denoised"], cut["sure"], windows

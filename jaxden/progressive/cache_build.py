@@ -7,20 +7,18 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
 import jax
 
-from jaxden.errors import DatasetError, ExrError
+from jaxden.data.item_cache import build_items, file_record, finished, item_state, read_manifest
+from jaxden.errors import DatasetError
 from jaxden.fileio import folder_lock
 from jaxden.progressive.cache import (
-    CACHE_FORMAT,
+    CACHE_KIND,
     CACHE_MANIFEST,
-    CACHE_VERSION,
     LOCK_NAME,
-    SAVE_INTERVAL_S,
     SureCache,
     cache_dataset_identity,
     default_cache_dir,
@@ -28,9 +26,7 @@ from jaxden.progressive.cache import (
     eligible_items,
     identity_key,
     item_seed,
-    load_cache_manifest,
     read_sure_exr,
-    save_cache_manifest,
     write_sure_exr,
 )
 from jaxden.sure.denoiser import denoise_with_sure, for_denoiser, resolve_denoiser
@@ -39,34 +35,6 @@ from jaxden.sure.settings import SureSettings, resolve_settings
 
 def _lock(directory: Path):
     return folder_lock(directory, LOCK_NAME, "SURE cache build")
-
-
-def _item_state(path: Path, record: dict | None, item, cache_key: str) -> tuple[str, dict | None]:
-    """('done' | 'recovered' | 'pending', record) for one cached item."""
-    from jaxden.data.layout import sha256_file
-
-    if not path.is_file():
-        return "pending", None
-    if record is not None:
-        if (record.get("source_sha256") == item.sha256
-                and path.stat().st_size == record.get("bytes")
-                and sha256_file(path) == record.get("sha256")):
-            return "done", record
-        return "pending", None
-    from jaxden.io.exr import read_header
-
-    try:
-        header = read_header(path)
-        if (header.get("item") != item.id or header.get("cache_key") != cache_key
-                or header.get("source_sha256") != item.sha256):
-            return "pending", None
-        read_sure_exr(path)
-    except ExrError:
-        return "pending", None
-    return "recovered", {
-        "path": item.path, "sha256": sha256_file(path), "bytes": path.stat().st_size,
-        "source_sha256": item.sha256, "seed": header.get("seed"), "seconds": None,
-    }
 
 
 #: Fields of the SURE settings that do not change a cache's maps (probe_batch: memory only;
@@ -124,9 +92,8 @@ def build_sure_cache(dataset_dir, denoiser_spec, out_dir=None, *,
     the folder holds a cache of another dataset / denoiser / setting (naming the
     differences) or unrelated files; ConfigError for bad options.
     """
-    from jaxden import __version__
     from jaxden.config import config_diff
-    from jaxden.data.layout import load_manifest, sha256_file
+    from jaxden.data.layout import load_manifest
     from jaxden.io.exr import read_frame
     from jaxden.progressive.mixer_config import MIXER_SURE
 
@@ -152,12 +119,19 @@ def build_sure_cache(dataset_dir, denoiser_spec, out_dir=None, *,
     if directory.exists() and not directory.is_dir():
         raise DatasetError(f"{directory} exists and is not a folder")
     directory.mkdir(parents=True, exist_ok=True)
-    if _finished(directory, manifest, identity, cache_key):
+    items = eligible_items(manifest)
+
+    def state(item, record: dict | None) -> tuple[str, dict | None]:
+        return item_state(directory, item, record, cache_key, {"source_sha256": item.sha256},
+                          read_sure_exr, lambda header: {"seed": header.get("seed"),
+                                                         "seconds": None})
+
+    if finished(directory, CACHE_KIND, items, identity, state):
         # Only read: no lock, so runs sharing a finished cache (a sweep) never block each other.
         return SureCache(dataset_dir, directory)
 
     with _lock(directory):
-        stored = load_cache_manifest(directory)
+        stored = read_manifest(directory, CACHE_KIND)
         if stored is not None:
             differences = config_diff(stored.get("identity", {}), identity)
             if differences and not config_diff(_without_code(stored.get("identity", {})),
@@ -176,96 +150,37 @@ def build_sure_cache(dataset_dir, denoiser_spec, out_dir=None, *,
                     + "; ".join(differences)
                     + ". Write into another folder (out_dir / --out), or delete it to rebuild."
                 )
-            records = dict(stored.get("items", {}))
-            created = stored.get("created")
-        else:
-            foreign = [p.name for p in directory.iterdir()
-                       if p.name != LOCK_NAME and not p.name.startswith(".")]
-            if foreign:
-                raise DatasetError(
-                    f"{directory} is not empty ({', '.join(sorted(foreign)[:5])}) and has no "
-                    f"{CACHE_MANIFEST}: refusing to write a SURE cache into it"
-                )
-            records, created = {}, None
-        created = created or time.strftime("%Y-%m-%dT%H:%M:%S%z")
-        items = eligible_items(manifest)
         skipped = [item.id for item in manifest.items if item.kind == "input" and item.spp < 2]
-        new_records: dict[str, dict] = {}
-        pending = []
-        for item in items:
-            state, record = _item_state(
-                directory / item.path, records.get(item.id), item, cache_key
+
+        def compute(item) -> dict[str, Any]:
+            frame = read_frame(dataset_dir / item.path, require=("color", "variance"))
+            if settings.covariance and frame.covariance is None:
+                raise DatasetError(
+                    f"{dataset_dir / item.path}: no colour covariance (channels "
+                    f"covariance.RG/GB/BR), which SURE from the covariance needs "
+                    f"(sure.covariance = true); rebuild the dataset with this jaxden, "
+                    f"which records it, or turn sure.covariance off")
+            seed_i = item_seed(settings.seed, item.id)
+            result, _ = denoise_with_sure(
+                denoiser, frame, jax.random.PRNGKey(seed_i), sure=settings,
+                where=str(dataset_dir / item.path),
             )
-            if state == "pending":
-                (directory / item.path).unlink(missing_ok=True)
-                pending.append(item)
-            else:
-                new_records[item.id] = record
-        records = new_records
-
-        def save() -> None:
-            save_cache_manifest(directory / CACHE_MANIFEST, {
-                "format": CACHE_FORMAT,
-                "format_version": CACHE_VERSION,
-                "jaxden_version": __version__,
-                "identity": identity,
-                "cache_key": cache_key,
-                "info": _runtime_info(denoiser, denoiser_spec),
-                "created": created,
-                "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-                "complete": len(records) == len(items),
-                "items_done": len(records),
-                "items_total": len(items),
-                "skipped_no_variance": skipped,
-                "items": {item.id: records[item.id] for item in items if item.id in records},
+            path = directory / item.path
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_sure_exr(path, result, half=half, attributes={
+                "item": item.id, "cache_key": cache_key, "source_sha256": item.sha256,
+                "denoiser": denoiser.name, "probes": settings.probes,
+                "method": settings.method,
+                "eps": -1.0 if settings.eps is None else float(settings.eps),
+                "seed": seed_i, "spp": item.spp,
             })
+            return {**file_record(directory, item.path), "source_sha256": item.sha256,
+                    "seed": seed_i}
 
-        save()
-        bar = None
-        if progress and pending:
-            from tqdm.auto import tqdm
-
-            bar = tqdm(total=len(items), initial=len(items) - len(pending), unit=" items",
-                       desc=f"SURE cache {denoiser.name}", dynamic_ncols=True)
-        last_save = time.monotonic()
-        try:
-            for item in pending:
-                start = time.perf_counter()
-                frame = read_frame(dataset_dir / item.path, require=("color", "variance"))
-                if settings.covariance and frame.covariance is None:
-                    raise DatasetError(
-                        f"{dataset_dir / item.path}: no colour covariance (channels "
-                        f"covariance.RG/GB/BR), which SURE from the covariance needs "
-                        f"(sure.covariance = true); rebuild the dataset with this jaxden, "
-                        f"which records it, or turn sure.covariance off")
-                seed_i = item_seed(settings.seed, item.id)
-                result, _ = denoise_with_sure(
-                    denoiser, frame, jax.random.PRNGKey(seed_i), sure=settings,
-                    where=str(dataset_dir / item.path),
-                )
-                path = directory / item.path
-                path.parent.mkdir(parents=True, exist_ok=True)
-                write_sure_exr(path, result, half=half, attributes={
-                    "item": item.id, "cache_key": cache_key, "source_sha256": item.sha256,
-                    "denoiser": denoiser.name, "probes": settings.probes,
-                    "method": settings.method,
-                    "eps": -1.0 if settings.eps is None else float(settings.eps),
-                    "seed": seed_i, "spp": item.spp,
-                })
-                records[item.id] = {
-                    "path": item.path, "sha256": sha256_file(path), "bytes": path.stat().st_size,
-                    "source_sha256": item.sha256, "seed": seed_i,
-                    "seconds": round(time.perf_counter() - start, 4),
-                }
-                if bar is not None:
-                    bar.update(1)
-                if time.monotonic() - last_save > SAVE_INTERVAL_S:
-                    save()
-                    last_save = time.monotonic()
-        finally:
-            if bar is not None:
-                bar.close()
-            save()
+        build_items(directory, CACHE_KIND, items, stored, state, compute, {
+            "identity": identity, "cache_key": cache_key,
+            "info": _runtime_info(denoiser, denoiser_spec), "skipped_no_variance": skipped,
+        }, progress=progress, label=f"SURE cache {denoiser.name}")
     return SureCache(dataset_dir, directory)
 
 
@@ -275,21 +190,6 @@ def _without_code(identity: dict) -> dict:
     denoiser = {k: v for k, v in dict(identity.get("denoiser") or {}).items()
                 if k != "code_sha256"}
     return {**identity, "denoiser": denoiser}
-
-
-def _finished(directory: Path, manifest, identity: dict, cache_key: str) -> bool:
-    """Whether ``directory`` holds this exact cache, complete, every file matching its
-    checksum (read only; a writer replaces files atomically, so this never sees half a file)."""
-    from jaxden.config import config_diff
-
-    stored = load_cache_manifest(directory)
-    if stored is None or not stored.get("complete") or config_diff(
-            stored.get("identity", {}), identity):
-        return False
-    records = stored.get("items", {})
-    return all(
-        _item_state(directory / item.path, records.get(item.id), item, cache_key)[0] == "done"
-        for item in eligible_items(manifest))
 
 
 def _runtime_info(denoiser, spec) -> dict[str, Any]:

@@ -41,12 +41,20 @@ when its header names this cache's key, the item and both sources and it reads b
 from __future__ import annotations
 
 import inspect
-import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from jaxden.data.item_cache import (
+    CacheKind,
+    ItemCacheReader,
+    build_items,
+    file_record,
+    finished,
+    item_state,
+    read_manifest,
+)
 from jaxden.errors import DatasetError, ExrError, FrameError
 from jaxden.fileio import folder_lock
 
@@ -54,7 +62,6 @@ CACHE_MANIFEST = "njs-cache.json"
 CACHE_FORMAT = "jaxden-njs-cache"
 CACHE_VERSION = 1
 LOCK_NAME = ".njs-cache.lock"
-SAVE_INTERVAL_S = 5.0
 MEMORY_LIMIT_BYTES = 2 << 30
 #: The stored images: name -> its three EXR channels.
 CHANNELS = {
@@ -67,10 +74,13 @@ CHANNELS = {
 }
 #: What a training batch takes of an item (the network's inputs).
 NETWORK_INPUTS = ("noisy", "variance", "ols_a", "ols_b")
-_MANIFEST_FIELDS = {"format": str, "format_version": int, "identity": dict, "cache_key": str,
-                    "items": dict, "complete?": bool, "created?": str}
-_RECORD_FIELDS = {"path": str, "sha256": str, "bytes": int, "source_sha256": str,
-                  "replica_sha256": str, "seconds?": float}
+#: The NJS cache's files (:mod:`jaxden.data.item_cache`).
+CACHE_KIND = CacheKind(
+    name="NJS", article="an", manifest=CACHE_MANIFEST, lock=LOCK_NAME, format=CACHE_FORMAT,
+    version=CACHE_VERSION,
+    record_fields={"path": str, "sha256": str, "bytes": int, "source_sha256": str,
+                   "replica_sha256": str, "seconds?": float},
+)
 
 
 # ---------------------------------------------------------------------------- the halves
@@ -166,60 +176,6 @@ def read_item(path) -> dict[str, np.ndarray]:
     return {name: np.stack([data[c] for c in names], -1) for name, names in CHANNELS.items()}
 
 
-def load_cache_manifest(directory: Path) -> dict[str, Any] | None:
-    """The manifest of ``directory`` (None when there is none); DatasetError when it is
-    unreadable or of another format."""
-    from jaxden.data.layout import inside_folder
-    from jaxden.fileio import check_json_fields, read_json
-
-    path = directory / CACHE_MANIFEST
-    if not path.exists():
-        return None
-    what = "the NJS cache manifest"
-    data = read_json(path, what, error=DatasetError)
-    if data.get("format") != CACHE_FORMAT:
-        raise DatasetError(f"{path}: not a jaxden NJS cache manifest (no format "
-                           f"'{CACHE_FORMAT}'); delete it to rebuild the cache")
-    check_json_fields(data, _MANIFEST_FIELDS, f"{path}: {what}", DatasetError)
-    if data["format_version"] != CACHE_VERSION:
-        raise DatasetError(f"{path}: NJS cache format version {data['format_version']} is not "
-                           f"supported (this jaxden reads {CACHE_VERSION}); rebuild it")
-    for item_id, record in data["items"].items():
-        where = f"{path}: {what}, item {item_id!r}"
-        check_json_fields(record, _RECORD_FIELDS, where, DatasetError)
-        if not inside_folder(record["path"]):
-            raise DatasetError(f"{where}: path {record['path']!r} leaves the cache folder")
-    return data
-
-
-def _item_state(path: Path, record, item, replica_item, cache_key: str):
-    """('done' | 'recovered' | 'pending', record) for one cached item."""
-    from jaxden.data.layout import sha256_file
-
-    if not path.is_file():
-        return "pending", None
-    sources = (item.sha256, replica_item.sha256)
-    if record is not None:
-        if ((record.get("source_sha256"), record.get("replica_sha256")) == sources
-                and path.stat().st_size == record.get("bytes")
-                and sha256_file(path) == record.get("sha256")):
-            return "done", record
-        return "pending", None
-    from jaxden.io.exr import read_header
-
-    try:
-        header = read_header(path)
-        if (header.get("item"), header.get("cache_key"), header.get("source_sha256"),
-                header.get("replica_sha256")) != (item.id, cache_key, *sources):
-            return "pending", None
-        read_item(path)
-    except ExrError:
-        return "pending", None
-    return "recovered", {"path": item.path, "sha256": sha256_file(path),
-                         "bytes": path.stat().st_size, "source_sha256": item.sha256,
-                         "replica_sha256": replica_item.sha256}
-
-
 # -------------------------------------------------------------------------------- build
 def build_njs_cache(dataset_dir, replica_dir, base_spec, out_dir=None, *,
                     bandwidth: str = "pixel", window: int = 51, ridge: float = 0.1,
@@ -231,9 +187,7 @@ def build_njs_cache(dataset_dir, replica_dir, base_spec, out_dir=None, *,
     of the cross regressions. Resumable and locked (module docstring); returns the opened
     :class:`NJSCache`. DatasetError when a dataset is incomplete, they are not replicas of
     one another, or the folder holds another cache or other files."""
-    from jaxden import __version__
     from jaxden.config import config_diff
-    from jaxden.data.layout import sha256_file
     from jaxden.denoise.njs_model import njs_inputs_from_halves
     from jaxden.denoise.registry import as_denoiser
     from jaxden.io.exr import read_frame
@@ -252,11 +206,17 @@ def build_njs_cache(dataset_dir, replica_dir, base_spec, out_dir=None, *,
     directory.mkdir(parents=True, exist_ok=True)
     items = eligible_items(manifest)
     replica_items = replica.item_by_id()
-    if _finished(directory, items, replica_items, identity, cache_key):
+
+    def state(item, record: dict | None) -> tuple[str, dict | None]:
+        sources = {"source_sha256": item.sha256,
+                   "replica_sha256": replica_items[item.id].sha256}
+        return item_state(directory, item, record, cache_key, sources, read_item)
+
+    if finished(directory, CACHE_KIND, items, identity, state):
         return NJSCache(dataset_dir, replica_dir, directory)
 
     with folder_lock(directory, LOCK_NAME, "NJS cache build"):
-        stored = load_cache_manifest(directory)
+        stored = read_manifest(directory, CACHE_KIND)
         if stored is not None:
             differences = config_diff(stored.get("identity", {}), identity)
             if differences:
@@ -264,97 +224,31 @@ def build_njs_cache(dataset_dir, replica_dir, base_spec, out_dir=None, *,
                     f"{directory / CACHE_MANIFEST} holds an NJS cache of other data, base or "
                     f"settings; differences (stored -> given): " + "; ".join(differences)
                     + ". Write into another folder (model_config.cache), or delete it.")
-            records, created = dict(stored["items"]), stored.get("created")
-        else:
-            foreign = [p.name for p in directory.iterdir()
-                       if p.name != LOCK_NAME and not p.name.startswith(".")]
-            if foreign:
-                raise DatasetError(f"{directory} is not empty ({', '.join(sorted(foreign)[:5])})"
-                                   f" and has no {CACHE_MANIFEST}: refusing to write an NJS "
-                                   f"cache into it")
-            records, created = {}, None
-        created = created or time.strftime("%Y-%m-%dT%H:%M:%S%z")
-        kept, pending = {}, []
-        for item in items:
-            state, record = _item_state(directory / item.path, records.get(item.id), item,
-                                        replica_items[item.id], cache_key)
-            if state == "pending":
-                (directory / item.path).unlink(missing_ok=True)
-                pending.append(item)
-            else:
-                kept[item.id] = record
-        records = kept
 
-        def save() -> None:
-            from jaxden.progressive.cache import save_cache_manifest
+        def compute(item) -> dict[str, Any]:
+            other = replica_items[item.id]
+            halves = [read_frame(folder / item.path, require=("color", "variance", "albedo",
+                                                               "normal", "depth"))
+                      for folder in (dataset_dir, replica_dir)]
+            try:
+                inputs = njs_inputs_from_halves(base, *halves, bandwidth=bandwidth,
+                                                window=window, ridge=ridge)
+            except FrameError as error:
+                raise DatasetError(f"{dataset_dir / item.path} and its replica: "
+                                   f"{error}") from None
+            path = directory / item.path
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_item(path, inputs, {"item": item.id, "cache_key": cache_key,
+                                      "source_sha256": item.sha256,
+                                      "replica_sha256": other.sha256, "spp": 2 * item.spp})
+            return {**file_record(directory, item.path), "source_sha256": item.sha256,
+                    "replica_sha256": other.sha256}
 
-            save_cache_manifest(directory / CACHE_MANIFEST, {
-                "format": CACHE_FORMAT, "format_version": CACHE_VERSION,
-                "jaxden_version": __version__, "identity": identity, "cache_key": cache_key,
-                "base_spec": str(base_spec) if isinstance(base_spec, str) else base.name,
-                "created": created, "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-                "complete": len(records) == len(items), "items_done": len(records),
-                "items_total": len(items),
-                "items": {i.id: records[i.id] for i in items if i.id in records},
-            })
-
-        save()
-        bar = None
-        if progress and pending:
-            from tqdm.auto import tqdm
-
-            bar = tqdm(total=len(items), initial=len(items) - len(pending), unit=" items",
-                       desc=f"NJS cache {base.name}", dynamic_ncols=True)
-        last_save = time.monotonic()
-        try:
-            for item in pending:
-                start = time.perf_counter()
-                other = replica_items[item.id]
-                halves = [read_frame(folder / item.path, require=("color", "variance",
-                                                                   "albedo", "normal",
-                                                                   "depth"))
-                          for folder in (dataset_dir, replica_dir)]
-                try:
-                    inputs = njs_inputs_from_halves(base, *halves, bandwidth=bandwidth,
-                                                    window=window, ridge=ridge)
-                except FrameError as error:
-                    raise DatasetError(f"{dataset_dir / item.path} and its replica: "
-                                       f"{error}") from None
-                path = directory / item.path
-                path.parent.mkdir(parents=True, exist_ok=True)
-                write_item(path, inputs, {"item": item.id, "cache_key": cache_key,
-                                          "source_sha256": item.sha256,
-                                          "replica_sha256": other.sha256,
-                                          "spp": 2 * item.spp})
-                records[item.id] = {"path": item.path, "sha256": sha256_file(path),
-                                    "bytes": path.stat().st_size,
-                                    "source_sha256": item.sha256,
-                                    "replica_sha256": other.sha256,
-                                    "seconds": round(time.perf_counter() - start, 4)}
-                if bar is not None:
-                    bar.update(1)
-                if time.monotonic() - last_save > SAVE_INTERVAL_S:
-                    save()
-                    last_save = time.monotonic()
-        finally:
-            if bar is not None:
-                bar.close()
-            save()
+        build_items(directory, CACHE_KIND, items, stored, state, compute, {
+            "identity": identity, "cache_key": cache_key,
+            "base_spec": str(base_spec) if isinstance(base_spec, str) else base.name,
+        }, progress=progress, label=f"NJS cache {base.name}")
     return NJSCache(dataset_dir, replica_dir, directory)
-
-
-def _finished(directory: Path, items, replica_items, identity, cache_key) -> bool:
-    """Whether ``directory`` holds this exact cache, complete, every file matching (read
-    only: runs that share a finished cache never take its lock)."""
-    from jaxden.config import config_diff
-
-    stored = load_cache_manifest(directory)
-    if stored is None or not stored.get("complete") or config_diff(
-            stored.get("identity", {}), identity):
-        return False
-    records = stored["items"]
-    return all(_item_state(directory / item.path, records.get(item.id), item,
-                           replica_items[item.id], cache_key)[0] == "done" for item in items)
 
 
 def open_njs_cache(dataset_dir, config, *, progress: bool = True) -> NJSCache:
@@ -388,10 +282,12 @@ def open_njs_cache(dataset_dir, config, *, progress: bool = True) -> NJSCache:
 
 
 # ------------------------------------------------------------------------------ reading
-class NJSCache:
+class NJSCache(ItemCacheReader):
     """A built NJS cache, opened for reading: ``missing`` lists the eligible items without a
     valid record, ``identity`` is the recorded one; :meth:`crops_for` cuts a batch's inputs.
     Decoded items are kept in memory up to ``memory_limit`` bytes."""
+
+    NAMES = NETWORK_INPUTS
 
     def __init__(self, dataset_dir, replica_dir, cache_dir, *,
                  memory_limit: int = MEMORY_LIMIT_BYTES):
@@ -400,7 +296,7 @@ class NJSCache:
         self.dataset_dir, self.replica_dir = Path(dataset_dir), Path(replica_dir)
         self.directory = Path(cache_dir)
         self.dataset, self.replica = check_replica(self.dataset_dir, self.replica_dir)
-        data = load_cache_manifest(self.directory)
+        data = read_manifest(self.directory, CACHE_KIND)
         if data is None:
             raise DatasetError(f"{self.directory} holds no NJS cache ({CACHE_MANIFEST} "
                                f"missing): train with model_config.build_cache = true")
@@ -413,9 +309,7 @@ class NJSCache:
         self.records: dict[str, dict] = data["items"]
         self._items = {item.id: item for item in self.dataset.items}
         self._replica_items = self.replica.item_by_id()
-        self.memory_limit = memory_limit
-        self._memory: dict[str, dict[str, np.ndarray]] = {}
-        self._bytes = 0
+        super().__init__(memory_limit)
 
     @property
     def missing(self) -> list[str]:
@@ -440,47 +334,12 @@ class NJSCache:
         except ExrError as error:
             raise DatasetError(f"{error} (rebuild the NJS cache to repair it)") from None
 
-    def _full(self, item_id: str) -> dict[str, np.ndarray]:
-        """An item's network inputs and ``key`` (half A's colour and variance, (H, W, 6))."""
-        found = self._memory.get(item_id)
-        if found is not None:
-            return found
-        from jaxden.io.exr import read_frame
-
-        item = self._items.get(item_id)
-        if item is None:
-            raise DatasetError(f"{self.dataset_dir}: no item {item_id!r} in the dataset")
-        frame = read_frame(self.dataset_dir / item.path, require=("color", "variance"))
-        cached = self.read(item_id)
-        entry = {"key": np.concatenate([frame.color, frame.variance], -1),
-                 **{name: cached[name] for name in NETWORK_INPUTS}}
-        size = sum(a.nbytes for a in entry.values())
-        if self._bytes + size <= self.memory_limit:
-            self._memory[item_id] = entry
-            self._bytes += size
-        return entry
-
     def crops_for(self, batch) -> dict[str, np.ndarray]:
         """The network inputs (:data:`NETWORK_INPUTS`, each (B, h, w, 3) float32) cut like the
         loader cut ``batch`` (its input: half A's colour and variance): each sample's window
         and symmetry are found by exact matching
-        (:func:`jaxden.progressive.cache.locate_crop`)."""
-        from jaxden.data.loader import dihedral
-        from jaxden.progressive.cache import locate_crop
-
-        if batch.input.variance is None:
-            raise FrameError("NJS cache crops_for: the batch has no input variance")
-        color, variance = np.asarray(batch.input.color), np.asarray(batch.input.variance)
-        out: dict[str, list] = {name: [] for name in NETWORK_INPUTS}
-        for index, item_id in enumerate(batch.items):
-            entry = self._full(item_id)
-            crop = np.concatenate([color[index], variance[index]], -1)
-            top, left, symmetry = locate_crop(entry["key"], crop, where=f"item {item_id}")
-            h, w = crop.shape[:2] if symmetry % 2 == 0 else crop.shape[1::-1]
-            for name in NETWORK_INPUTS:
-                out[name].append(dihedral(entry[name][top:top + h, left:left + w], symmetry))
-        return {name: np.ascontiguousarray(np.stack(images), np.float32)
-                for name, images in out.items()}
+        (:func:`jaxden.data.item_cache.locate_crop`)."""
+        return self._cut(batch, "NJS cache crops_for")[0]
 
 
 __all__ = [
