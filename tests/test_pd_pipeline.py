@@ -856,6 +856,38 @@ def test_cli_progressive_closed_form_mixer(tmp_path, capsys):
         mixer_task(load_train_config(TINY_MIXER, ["model_config.kind='closed_form'"]))
 
 
+def test_cli_progressive_tstat_overrides(tmp_path, capsys):
+    """`jaxden progressive --tstat KEY=VALUE` sets fields of the mixer's TStatConfig: the
+    same z as progressive_denoise with that config, recorded in the header; a wrong key or
+    value, or --tstat beside --no-tstat, is a one-line error that writes nothing."""
+    from jaxden.io.exr import read_header
+
+    frame = small_frame(seed=13)
+    source, out = tmp_path / "in.exr", tmp_path / "out.exr"
+    write_frame(source, frame)
+    words = ["c=0.5", "guard_gamma=1"]
+    code, _, stderr = run_cli(["progressive", source, "--denoiser", "oidn", "--mixer",
+                               "closed-form", "--out", out, "--seed", 3,
+                               *(w for word in words for w in ("--tstat", word))], capsys)
+    assert code == 0, stderr
+    params, config = P.load_mixer("closed-form")
+    tuned = dataclasses.replace(config, tstat=dataclasses.replace(
+        config.tstat, c=0.5, guard_gamma=1.0))
+    for cfg, same in ((tuned, True), (config, False)):
+        z, _, _ = P.progressive_denoise(frame, "oidn", params, cfg, jax.random.PRNGKey(3))
+        close = np.allclose(read_image(out), np.asarray(z), rtol=1e-6, atol=1e-6)
+        assert close == same, cfg.tstat
+    assert read_header(out)["tstat_overrides"] == " ".join(words)
+    for extra, message in ((["--tstat", "guard_gama=1"], "guard_gama"),
+                           (["--tstat", "guard_gamma=-1"], "guard_gamma"),
+                           (["--tstat", "guard_gamma=3", "--no-tstat"], "--no-tstat")):
+        target = tmp_path / "bad.exr"
+        code, _, stderr = run_cli(["progressive", source, "--denoiser", "oidn", "--mixer",
+                                   "closed-form", "--out", target, *extra], capsys)
+        assert code == 2 and message in stderr and "Traceback" not in stderr, stderr
+        assert not target.exists()
+
+
 def test_probes_default_to_the_mixers_training_probes(tmp_path, capsys):
     """Without ``sure`` / --probes, PD takes as many SURE probes as the mixer was trained
     with (its ``sure.probes``: the noise level of the SURE input it learned on); an explicit

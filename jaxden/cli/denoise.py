@@ -341,6 +341,7 @@ def _memory_limit(args: argparse.Namespace) -> int | None:
 def cmd_progressive(args: argparse.Namespace) -> int:
     """``jaxden progressive IN [IN ...] --denoiser NAME|CKPT --mixer CKPT (--out OUT.exr |
     --out-dir DIR)``: the mixer and the denoiser loaded once, each input run in turn."""
+    import dataclasses
     import warnings
 
     import jax
@@ -388,6 +389,15 @@ def cmd_progressive(args: argparse.Namespace) -> int:
         params, config = shipped  # a twin's with its SURE settings (TWIN_SURE)
     else:
         params, config = load_mixer(args.mixer)
+    if args.tstat:
+        if args.no_tstat:
+            raise ConfigError("jaxden progressive: --tstat sets fields of the t-statistic "
+                              "that --no-tstat turns off; give one of them")
+        from jaxden.config import load_config
+        from jaxden.progressive.tstat import TStatConfig
+
+        config = dataclasses.replace(config, tstat=load_config(
+            config.tstat, TStatConfig, overrides=list(args.tstat)))
     settings = sure_settings(args).over(config.sure)  # an unset option: the mixer's
     base = load_denoiser(args.denoiser)  # first: a spec that cannot load is the error
     if several:
@@ -440,6 +450,8 @@ def cmd_progressive(args: argparse.Namespace) -> int:
                       "mixer": str(args.mixer), "probes": settings.probes,
                       "probe_dist": settings.probe_dist, "seed": settings.seed,
                       "tstat": int(not args.no_tstat), "swap_average": int(swap_average)}
+        if args.tstat:
+            attributes["tstat_overrides"] = " ".join(args.tstat)
         message = f"wrote {out} (progressive denoising: {denoiser.name} + mixer {args.mixer}"
         if buffers is None:
             message += ")"
@@ -528,6 +540,11 @@ def add_commands(sub) -> None:
                         "method=buffers")
     p.add_argument("--no-tstat", action="store_true",
                    help="skip the t-statistic scaling (the paper's 'w/o t-test' ablation)")
+    p.add_argument("--tstat", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a field of the mixer's t-statistic and error-guard config "
+                        "(jaxden.progressive.TStatConfig), e.g. guard_cap_spp=16 (the guard's "
+                        "wider cap below 16 spp: docs/results.md); repeatable; recorded in "
+                        "the output's header")
     p.add_argument("--swap-average", action=argparse.BooleanOptionalAction, default=None,
                    help="average alpha with 1 - alpha of the swapped inputs (a second mixer "
                         "call); default: the mixer's config (on for oidn-pd)")
