@@ -156,7 +156,8 @@ def timings() -> dict[str, float]:
         oidn = d.get("oidn_s") or (d["wskp6_s"] * d["oidn_over_wskp6"]
                                    if "oidn_over_wskp6" in d else None)
         for label, key in (("WSKP-6", "wskp6_s"), ("DC s0", "dc_s"), ("StatMC", "statmc_s"),
-                           ("StatMC (Moon CI)", "statmc_moon_s")):
+                           ("StatMC (Moon CI)", "statmc_moon_s"),
+                           ("NJS(OIDN), per image of two half buffers", "njs_s")):
             if oidn and key in d:
                 out[label] = d[key] / oidn
     progressive = bench / "bench-progressive.json"

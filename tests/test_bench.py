@@ -102,6 +102,7 @@ def test_denoisers_bench_one_model(tiny, capsys, monkeypatch):
     monkeypatch.setattr(denoisers, "BASELINES", {})
     monkeypatch.setattr(denoisers, "DC_BASE", None)
     monkeypatch.setattr(denoisers, "NFOR", False)
+    monkeypatch.setattr(denoisers, "NJS_BASE", None)
     result = run_json("denoisers", capsys)
     assert_ratios(result, ["kp_over_oidn"])
     assert (result["width"], result["height"]) == FRAME_SIZE
@@ -116,8 +117,10 @@ def test_denoisers_bench_times_the_comparisons_against_wskp6(tiny, capsys, monke
     monkeypatch.setattr(denoisers, "MODELS", {"wskp6": "wskp"})
     monkeypatch.setattr(denoisers, "OIDN_JAX", False)
     monkeypatch.setattr(denoisers, "DC_BASE", "wskp-6")
+    monkeypatch.setattr(denoisers, "NJS_BASE", "wskp-6")
     result = run_json("denoisers", capsys)
-    keys = ("svgf", "svgf_step", "bmfr", "bmfr_step", "dc", "nfor", "oidn")
+    keys = ("svgf", "svgf_step", "bmfr", "bmfr_step", "dc", "nfor", "njs", "statmc",
+            "statmc_moon", "oidn")
     assert_ratios(result, [f"{key}_over_wskp6" for key in keys])
     for key in keys:
         assert result[f"{key}_over_wskp6"] == pytest.approx(result[f"{key}_s"]

@@ -15,7 +15,10 @@ and variance: the same arrays and the same work as measured ones), the Deep
 Combiner over OIDN in JAX (``dc``, the base's time included), NBGD and MR-KP (freshly
 initialised, as the models above), and NFOR on two half buffers (``nfor``: the Cornell box at
 2 spp with seeds 11 and 12, or the bench frame twice when it is read from a file; timed once
-after a call that compiles it, minutes at 1280 x 720 on a CPU). ``<key>_over_wskp6`` = its
+after a call that compiles it, minutes at 1280 x 720 on a CPU) and the neural James-Stein
+combiner over OIDN in JAX on the same halves (``njs``: the base on each half and on their
+mean, the cross regressions and the freshly initialised network; timed as NFOR is).
+``<key>_over_wskp6`` = its
 time / WSKP-6's, the comparisons' tables' unit. Keys
 ``<model>_over_oidn`` = model time / OIDN time, ``<model>_over_kp`` = model time / KP's
 (the WSKP paper's target: WSKP-6 <= 0.5 KP) and ``wskp6_network_over_kp``: WSKP-6's
@@ -40,6 +43,9 @@ TEMPORAL = ("svgf", "bmfr")
 DC_BASE: str | None = "oidn-jax"
 #: Time NFOR on two half buffers (once, after a compiling call).
 NFOR = True
+#: Time the neural James-Stein combiner over this base on the same two half buffers (once,
+#: after a compiling call; freshly initialised network; None: not timed).
+NJS_BASE: str | None = "oidn-jax"
 #: Also time OIDN in JAX (Intel's weights, :mod:`jaxden.denoise.oidn_jax`) against pyoidn,
 #: the same network and inputs (albedo, normal, clean features, quality high).
 OIDN_JAX = True
@@ -77,8 +83,14 @@ def bench_denoisers(quick: bool) -> dict:
         runners["wskp6_network"] = lambda: jax.block_until_ready(network(device_frame))
     runners |= _baseline_runners(device_frame)
     median = median_times(runners, repeats)
-    if NFOR:
-        median["nfor"] = _nfor_time(frame, size)
+    if NFOR or NJS_BASE is not None:
+        halves = _half_buffers(frame, size)
+        if NFOR:
+            from jaxden.denoise.nfor import nfor
+
+            median["nfor"] = _once_time(lambda: jax.block_until_ready(nfor(*halves)))
+        if NJS_BASE is not None:
+            median["njs"] = _njs_time(halves, NJS_BASE)
     result: dict = {f"{key}_over_oidn": median[key] / median["oidn"]
                     for key in (*MODELS, *(["oidnjax"] if OIDN_JAX else []))}
     if "wskp6" in median:
@@ -151,23 +163,48 @@ def with_statistics(frame):
     return frame.replace(boxcox=jax.device_put(boxcox))
 
 
-def _nfor_time(frame, size) -> float:
-    """Seconds of one NFOR call on two half buffers of ``size``, after a compiling call."""
+def _half_buffers(frame, size) -> list:
+    """Two independent half buffers of ``size``: the Cornell box at 2 spp with seeds 11 and
+    12, or the bench frame twice when it is read from a file."""
     import os
-    import time
-
-    import jax
 
     from jaxden.bench import BENCH_FRAME_ENV
-    from jaxden.denoise.nfor import nfor
 
     if os.environ.get(BENCH_FRAME_ENV):
-        halves = [frame, frame]
-    else:
-        from jaxden.render.core import render_frame
+        return [frame, frame]
+    from jaxden.render.core import render_frame
 
-        halves = [render_frame("cornell-box", 2, seed=seed, size=size) for seed in (11, 12)]
-    jax.block_until_ready(nfor(*halves))
+    return [render_frame("cornell-box", 2, seed=seed, size=size) for seed in (11, 12)]
+
+
+def _once_time(run) -> float:
+    """Seconds of one call of ``run`` after a first (compiling) call."""
+    import time
+
+    run()
     start = time.perf_counter()
-    jax.block_until_ready(nfor(*halves))
+    run()
     return time.perf_counter() - start
+
+
+def _njs_time(halves, base: str) -> float:
+    """Seconds of the neural James-Stein combiner over ``base`` on the two half buffers (the
+    base on each half and on their mean, the cross regressions, the network), after a
+    compiling call; the network freshly initialised. (The authors' 51 x 51 regression window,
+    narrowed only on frames under 26 pixels a side, which it does not fit.)"""
+    import jax
+
+    from jaxden.denoise.njs import OLS_WINDOW
+    from jaxden.denoise.njs_model import (
+        NJSModel,
+        NJSModelConfig,
+        checked_base,
+        njs_denoise,
+        njs_model_init,
+    )
+
+    height, width = halves[0].color.shape[-3:-1]
+    radius = min(OLS_WINDOW // 2, min(height, width) - 1)
+    config = NJSModelConfig(base=base, ols_window=2 * radius + 1)
+    model = NJSModel(njs_model_init(jax.random.PRNGKey(0), config), config, checked_base(config))
+    return _once_time(lambda: njs_denoise(model, *halves))
