@@ -138,6 +138,7 @@ for set in pd-test-high-stats stress-stats; do
     --out "$H/runs/consistent/$set/njs-wskp6-s0"
 done
 step sweep-rt-main $J sweep experiments/sweeps/rt-main.toml --workdir "$H/runs/sweeps/rt-main"
+step sweep-rt-wskp3 $J sweep experiments/sweeps/rt-wskp3.toml --workdir "$H/runs/sweeps/rt-wskp3"
 step mixer-wskp6-fact "${X[@]}" $J train experiments/configs/mixer-wskp6.toml \
   data.dataset="$H/data/pd-rt4k" model_config.head=f_act model_config.logit_bound=none \
   model_config.logit_eps=0.001 --workdir "$H/runs/mixer-wskp6-fact"

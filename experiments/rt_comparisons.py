@@ -8,9 +8,9 @@ Scores here, on the held-out sets the real-time tables use (``data/rt-test``: 24
 that needs no training run of this machine: the noisy input, the temporally accumulated input,
 OIDN, SVGF (the paper's and Falcor's settings), BMFR and the shipped WSKP-6 and WSKP-3 (the
 ``train-rt.toml`` recipe, seed 0: runs ``wskp6-s0`` of rt-main and ``wskp3`` of rt-variants);
-reads the trained runs that have finished (``runs/sweeps/{rt-main,rt-variants,rt-baselines}/
-*/result.json``: WSKP-6 and KP with two seeds, NBGD and MR-KP with two seeds; a method whose runs
-are missing says so) and the time ratios of ``experiments/results/bench/bench-denoisers.json``
+reads the trained runs that have finished (``runs/sweeps/{rt-main,rt-wskp3,rt-variants,
+rt-baselines}/*/result.json``: WSKP-6, KP, WSKP-3, NBGD and MR-KP with two seeds each; a method
+whose runs are missing says so) and the time ratios of ``experiments/results/bench/bench-denoisers.json``
 (1280 x 720, every method in one run, as ratios to WSKP-6). Writes ``rt-comparisons.md`` and
 ``.json``.
 
@@ -34,7 +34,7 @@ from pathlib import Path
 from jaxden.evaluate.seeds import METRICS, group, single, stats, table
 
 REPO = Path(__file__).resolve().parent.parent
-SWEEPS = ("rt-main", "rt-variants", "rt-baselines")
+SWEEPS = ("rt-main", "rt-wskp3", "rt-variants", "rt-baselines")
 #: Methods scored here: (key, label, denoiser spec).
 SCORED = (("oidn", "OIDN 2 (pretrained, 'high')", "oidn"),
           ("svgf", "SVGF (paper settings)", "svgf"),
@@ -125,11 +125,17 @@ def score(home: Path, rescore: bool = False) -> dict[str, dict]:
 
 def trained_runs(home: Path) -> dict[str, list[dict]]:
     """``{model: [result.json, ...]}`` of the finished runs of :data:`SWEEPS` (WSKP runs with
-    a 1 x 1 kernel among their sizes are another model and left out)."""
-    results = []
+    a 1 x 1 kernel among their sizes are another model and left out; a run whose whole config
+    another sweep's run already has, seed included, is counted once)."""
+    results, configs = [], set()
     for sweep in SWEEPS:
         folder = home / "runs" / "sweeps" / sweep
-        results += [json.loads(p.read_text()) for p in sorted(folder.glob("*/result.json"))]
+        for path in sorted(folder.glob("*/result.json")):
+            result = json.loads(path.read_text())
+            key = json.dumps(result["config"], sort_keys=True)
+            if key not in configs:
+                configs.add(key)
+                results.append(result)
     plain = [r for r in results
              if 1 not in (r["config"].get("model_config", {}).get("kernel_sizes") or [])]
     return group(plain, lambda r: r["config"]["model"])
@@ -217,7 +223,7 @@ def main(argv=None) -> int:
             "sequences `data/rt-seq` (sequences-rt-test.toml: 6 camera paths of 16 frames at "
             "128 x 128, 1 spp, 512-spp references; first frame of each left out). Trained "
             "methods: recipe `train-rt.toml` (4000 steps, batch 8 of 64 x 64 crops, SMAPE) on "
-            "`data/rt`, sweeps rt-main (WSKP-6, KP), rt-variants (WSKP-3) and rt-baselines "
+            "`data/rt`, sweeps rt-main (WSKP-6, KP), rt-wskp3 and rt-variants (WSKP-3) and rt-baselines "
             "(NBGD, MR-KP), mean ± standard deviation over seeds. PSNR and SSIM tone-mapped "
             "(clip, gamma 2.2), relMSE and FLIP linear HDR. Training-free methods run here; "
             "`accumulated` = the method on the temporally accumulated input (the papers' "

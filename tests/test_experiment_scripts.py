@@ -870,7 +870,9 @@ def test_rt_comparisons_rows_seeds_and_claims(tmp_path, monkeypatch):
     monkeypatch.setattr(rt, "score", lambda home, rescore=False: scored)
     for sweep, model, seed, psnr in (("rt-main", "wskp", 0, 26.6), ("rt-main", "wskp", 1, 26.8),
                                      ("rt-main", "kp", 0, 26.1), ("rt-main", "kp", 1, 26.3),
-                                     ("rt-baselines", "nbgd", 0, 25.0)):
+                                     ("rt-baselines", "nbgd", 0, 25.0),
+                                     ("rt-wskp3", "wskp3", 0, 26.0), ("rt-wskp3", "wskp3", 1, 26.4),
+                                     ("rt-variants", "wskp3", 0, 26.0)):  # the same run again
         folder = tmp_path / "home" / "runs" / "sweeps" / sweep / f"{model}-s{seed}"
         folder.mkdir(parents=True)
         result = {"run": folder.name, "config": {"model": model, "seed": seed},
@@ -883,6 +885,7 @@ def test_rt_comparisons_rows_seeds_and_claims(tmp_path, monkeypatch):
     text = (out / "rt-comparisons.md").read_text()
     assert "| WSKP-6, trained here (runs: 2) | 26.70 ± 0.14 (2 seeds) |" in text
     assert "| NBGD, trained here (runs: 1) | 25.00 |" in text
+    assert "| WSKP-3, trained here (runs: 2) | 26.20 ± 0.28 (2 seeds) |" in text
     assert "| MR-KP, trained here (runs: 0) | not run |" in text
     assert "| SVGF (paper settings), own history | 30.00 |" in text
     assert "BMFR, own history" not in text
