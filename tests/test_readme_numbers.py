@@ -62,7 +62,8 @@ def _pd(file: str, ratio: str, *metrics: str):
 
 
 def _rt(label: str, metric: str):
-    """The mean over seeds of ``metric`` of ``label`` at 1 spp in rt-table1.json."""
+    """The mean over seeds of ``metric`` of ``label`` at 1 spp (rt-table1.json's and
+    rt-comparisons.json's ``per_frame``)."""
     def get(data):
         return data["per_frame"][label][metric][0]
     get.path = f"per_frame/{label}/{metric}[0]"
@@ -92,11 +93,14 @@ HEADLINE = {
         _pd("pd-wskp6-test-high.json", "pd_over_denoiser", "rmse", "relmse", "flip"),
     ("the same, without the error guard", "a held-out 256 x 256 frame, 2..4096 spp"):
         _pd("pd-wskp6-sequence.json", "pd_over_denoiser", "rmse", "relmse", "flip"),
-    ("PSNR (dB) at 1 spp: WSKP-6 (2 seeds), KP 13 x 13 (2 seeds), OIDN 2",
+    ("PSNR (dB) at 1 spp: WSKP-6; WSKP-3; KP 13 x 13; NBGD; MR-KP (each 2 seeds); OIDN 2",
      "rt-test: 24 held-out crops"): [
-        ("rt-table1.json", _rt("WSKP-6", "psnr")),
-        ("rt-table1.json", _rt("KP (13x13)", "psnr")),
-        ("rt-table1.json", _rt("OIDN 2 (pretrained, 'high')", "psnr"))],
+        ("rt-comparisons.json", _rt("WSKP-6, trained here (runs: 2)", "psnr")),
+        ("rt-comparisons.json", _rt("WSKP-3, trained here (runs: 2)", "psnr")),
+        ("rt-comparisons.json", _rt("KP (13x13), trained here (runs: 2)", "psnr")),
+        ("rt-comparisons.json", _rt("NBGD, trained here (runs: 2)", "psnr")),
+        ("rt-comparisons.json", _rt("MR-KP, trained here (runs: 2)", "psnr")),
+        ("rt-comparisons.json", _rt("OIDN 2 (pretrained, 'high')", "psnr"))],
     ("inference time, 1280 x 720: WSKP-6 / KP; WSKP-6 / OIDN", "one frame"): [
         ("bench-denoisers.json", _key("wskp6_over_kp")),
         ("bench-denoisers.json", _key("wskp6_over_oidn"))],
@@ -108,6 +112,11 @@ HEADLINE = {
         ("bench-denoisers.json", _key("mrkp_over_wskp6")),
         ("bench-denoisers.json", _key("dc_over_wskp6")),
         ("bench-denoisers.json", _key("nfor_over_wskp6"))],
+    ("inference time, 1280 x 720, over OIDN's in the same run: StatMC; its Moon-CI test; NJS "
+     "over OIDN in JAX (two half buffers)", "one frame"): [
+        ("bench-denoisers.json", lambda d: d["statmc_s"] / d["oidn_s"]),
+        ("bench-denoisers.json", lambda d: d["statmc_moon_s"] / d["oidn_s"]),
+        ("bench-denoisers.json", lambda d: d["njs_s"] / d["oidn_s"])],
     ("offline, 64 spp, whole frames: RMSE of NFOR, OIDN, PD(OIDN) / MC's (scene means)",
      "8 held-out 256 x 256 frames (lamps, glints)"): [
         ("offline-nfor.json", lambda d: d["means"]["NFOR"]["rmse"] / d["means"]["MC"]["rmse"]),
