@@ -18,6 +18,7 @@ again.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import time
 from collections.abc import Callable
@@ -318,3 +319,77 @@ class ItemCacheReader:
             windows.append((top, left, symmetry))
         return ({name: np.ascontiguousarray(np.stack(images), np.float32)
                  for name, images in out.items()}, windows)
+
+
+# --------------------------------------------------------------------------- identities
+#: The folder of a dataset that holds its derived caches (``DATASET/derived/<slug>``).
+DERIVED_DIR = "derived"
+
+
+def params_sha256(params: Any) -> str | None:
+    """SHA-256 over the parameter pytree (paths, dtypes, shapes, bytes); None for no params."""
+    if params is None:
+        return None
+    digest = hashlib.sha256()
+    hash_params(digest, params)
+    return digest.hexdigest()
+
+
+def hash_params(digest, params: Any) -> None:
+    """Feed ``params`` into the hashlib object ``digest``: each leaf's path, dtype, shape and
+    bytes, in path order."""
+    import jax
+
+    leaves = jax.tree_util.tree_leaves_with_path(params)
+    for path, leaf in sorted(leaves, key=lambda pair: jax.tree_util.keystr(pair[0])):
+        array = np.ascontiguousarray(np.asarray(leaf))
+        digest.update(jax.tree_util.keystr(path).encode())
+        digest.update(f"{array.dtype.str}{array.shape}".encode())
+        digest.update(array.tobytes())
+
+
+def _plain(value: Any) -> Any:
+    from jaxden.config import config_to_dict
+
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return config_to_dict(value)
+    return repr(value)
+
+
+def denoiser_identity(denoiser) -> dict[str, Any]:
+    """What makes two denoisers the same for the cache: name, config, parameters and code
+    (:func:`jaxden.denoise.identity.code_sha256`: a changed denoiser never reuses what the
+    old code computed)."""
+    from jaxden.denoise.identity import code_sha256
+
+    return {
+        "name": denoiser.name,
+        "config": _plain(denoiser.config),
+        "params_sha256": params_sha256(denoiser.params),
+        "code_sha256": code_sha256(denoiser),
+    }
+
+
+def denoiser_slug(denoiser) -> str:
+    """Folder name for a denoiser: its name, plus a parameter hash for trained weights, plus a
+    config hash for a denoiser with spec options run with other than its default config
+    (``oidn:quality=fast``, ``oidn-jax:precision=bfloat16``: another output, another cache;
+    the default config keeps the plain name)."""
+    slug = denoiser.name
+    definition = getattr(denoiser, "definition", None)
+    if definition is not None and definition.options and \
+            denoiser.config != definition.config_cls():
+        text = json.dumps(_plain(denoiser.config), sort_keys=True, default=str)
+        slug += "-c" + hashlib.sha256(text.encode()).hexdigest()[:8]
+    digest = params_sha256(denoiser.params)
+    return slug if digest is None else f"{slug}-{digest[:10]}"
+
+
+def cache_dataset_identity(manifest) -> dict[str, Any]:
+    text = json.dumps(manifest.config, sort_keys=True)
+    return {"name": manifest.config.get("name"),
+            "config_sha256": hashlib.sha256(text.encode()).hexdigest()}
+
+
+def identity_key(identity: dict[str, Any]) -> str:
+    return hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:20]

@@ -28,7 +28,7 @@ def base_sha256(base: Denoiser) -> str:
     """Digest of what a base computes with: its definition's name, its config and its
     weights (paths, dtypes, shapes, bytes; ``None`` for a denoiser without parameters)."""
     from jaxden.config import config_to_dict
-    from jaxden.progressive.cache import hash_params
+    from jaxden.data.item_cache import hash_params
 
     digest = hashlib.sha256()
     config = (config_to_dict(base.config) if dataclasses.is_dataclass(base.config)

@@ -45,16 +45,22 @@ Finite-difference step (``eps`` unset): :func:`jaxden.sure.settings.default_eps`
 
 from __future__ import annotations
 
-import dataclasses
-import hashlib
-import json
 from pathlib import Path
-from typing import Any
 
-import jax
 import numpy as np
 
-from jaxden.data.item_cache import CacheKind, ItemCacheReader, read_manifest
+from jaxden.data.item_cache import (  # noqa: F401  (the identity helpers: re-exported)
+    DERIVED_DIR,
+    CacheKind,
+    ItemCacheReader,
+    cache_dataset_identity,
+    denoiser_identity,
+    denoiser_slug,
+    hash_params,
+    identity_key,
+    params_sha256,
+    read_manifest,
+)
 from jaxden.errors import DatasetError, ExrError, FrameError
 from jaxden.sure.denoiser import resolve_denoiser
 from jaxden.sure.settings import SureSettings
@@ -63,68 +69,10 @@ CACHE_MANIFEST = "sure-cache.json"
 CACHE_FORMAT = "jaxden-sure-cache"
 CACHE_VERSION = 1
 LOCK_NAME = ".sure-cache.lock"
-DERIVED_DIR = "derived"
 SURE_CHANNELS = ("sure.R", "sure.G", "sure.B")
 DIVERGENCE_CHANNELS = ("divergence.R", "divergence.G", "divergence.B")
 DENOISED_CHANNELS = ("R", "G", "B")
 MEMORY_LIMIT_BYTES = 2 << 30
-
-
-def params_sha256(params: Any) -> str | None:
-    """SHA-256 over the parameter pytree (paths, dtypes, shapes, bytes); None for no params."""
-    if params is None:
-        return None
-    digest = hashlib.sha256()
-    hash_params(digest, params)
-    return digest.hexdigest()
-
-
-def hash_params(digest, params: Any) -> None:
-    """Feed ``params`` into the hashlib object ``digest``: each leaf's path, dtype, shape and
-    bytes, in path order."""
-    leaves = jax.tree_util.tree_leaves_with_path(params)
-    for path, leaf in sorted(leaves, key=lambda pair: jax.tree_util.keystr(pair[0])):
-        array = np.ascontiguousarray(np.asarray(leaf))
-        digest.update(jax.tree_util.keystr(path).encode())
-        digest.update(f"{array.dtype.str}{array.shape}".encode())
-        digest.update(array.tobytes())
-
-
-def _plain(value: Any) -> Any:
-    from jaxden.config import config_to_dict
-
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return config_to_dict(value)
-    return repr(value)
-
-
-def denoiser_identity(denoiser) -> dict[str, Any]:
-    """What makes two denoisers the same for the cache: name, config, parameters and code
-    (:func:`jaxden.denoise.identity.code_sha256`: a changed denoiser never reuses what the
-    old code computed)."""
-    from jaxden.denoise.identity import code_sha256
-
-    return {
-        "name": denoiser.name,
-        "config": _plain(denoiser.config),
-        "params_sha256": params_sha256(denoiser.params),
-        "code_sha256": code_sha256(denoiser),
-    }
-
-
-def denoiser_slug(denoiser) -> str:
-    """Folder name for a denoiser: its name, plus a parameter hash for trained weights, plus a
-    config hash for a denoiser with spec options run with other than its default config
-    (``oidn:quality=fast``, ``oidn-jax:precision=bfloat16``: another output, another cache;
-    the default config keeps the plain name)."""
-    slug = denoiser.name
-    definition = getattr(denoiser, "definition", None)
-    if definition is not None and definition.options and \
-            denoiser.config != definition.config_cls():
-        text = json.dumps(_plain(denoiser.config), sort_keys=True, default=str)
-        slug += "-c" + hashlib.sha256(text.encode()).hexdigest()[:8]
-    digest = params_sha256(denoiser.params)
-    return slug if digest is None else f"{slug}-{digest[:10]}"
 
 
 # ------------------------------------------------------------------------------- files
@@ -181,16 +129,6 @@ def default_cache_dir(dataset_dir, denoiser, sure: SureSettings | None = None) -
     slug += "-cov" if covariance else ""
     slug += "" if probe_dist == "normal" else f"-{probe_dist}"
     return Path(dataset_dir) / DERIVED_DIR / slug
-
-
-def cache_dataset_identity(manifest) -> dict[str, Any]:
-    text = json.dumps(manifest.config, sort_keys=True)
-    return {"name": manifest.config.get("name"),
-            "config_sha256": hashlib.sha256(text.encode()).hexdigest()}
-
-
-def identity_key(identity: dict[str, Any]) -> str:
-    return hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:20]
 
 
 #: The SURE cache's files (:mod:`jaxden.data.item_cache`).

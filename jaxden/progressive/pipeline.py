@@ -174,7 +174,7 @@ def _trained_on(trained: str, denoiser, spec) -> bool:
         return True
     memo = (trained, denoiser.name, id(denoiser.params))
     if memo not in _SAME:  # shipped or trained weights: the same network and parameters?
-        from jaxden.progressive.cache import params_sha256
+        from jaxden.data.item_cache import params_sha256
 
         try:
             original = resolve_denoiser(trained)

@@ -26,8 +26,8 @@ regressions, ``baseA.R/G/B``, ``baseB.R/G/B`` the base on each half. Header attr
 ``jaxden.item``, ``jaxden.cache_key``, ``jaxden.source_sha256`` (half A's file),
 ``jaxden.replica_sha256`` (half B's), ``jaxden.spp`` (of the combination).
 
-Identity: the two datasets (:func:`jaxden.progressive.cache.cache_dataset_identity` of each
-manifest), the base (:func:`jaxden.progressive.cache.denoiser_identity`: name, config,
+Identity: the two datasets (:func:`jaxden.data.item_cache.cache_dataset_identity` of each
+manifest), the base (:func:`jaxden.data.item_cache.denoiser_identity`: name, config,
 weights, code) and the settings (bandwidth, window, ridge and the code of
 :mod:`jaxden.denoise.njs`). A folder holding another identity is refused, naming the
 differences.
@@ -127,9 +127,9 @@ def check_replica(dataset_dir, replica_dir):
 # ------------------------------------------------------------------------------ identity
 def cache_identity(manifest, replica, base, *, bandwidth, window, ridge) -> dict[str, Any]:
     """What the cache's content depends on (module docstring)."""
+    from jaxden.data.item_cache import cache_dataset_identity, denoiser_identity
     from jaxden.denoise import njs
     from jaxden.denoise.identity import code_text_sha256
-    from jaxden.progressive.cache import cache_dataset_identity, denoiser_identity
 
     return {
         "dataset": cache_dataset_identity(manifest),
@@ -143,7 +143,7 @@ def cache_identity(manifest, replica, base, *, bandwidth, window, ridge) -> dict
 
 def default_cache_dir(dataset_dir, base, identity: dict) -> Path:
     """``DATASET/derived/njs-<base slug>-<first 8 of the identity key>``."""
-    from jaxden.progressive.cache import DERIVED_DIR, denoiser_slug, identity_key
+    from jaxden.data.item_cache import DERIVED_DIR, denoiser_slug, identity_key
 
     return (Path(dataset_dir) / DERIVED_DIR
             / f"njs-{denoiser_slug(base)}-{identity_key(identity)[:8]}")
@@ -197,7 +197,7 @@ def build_njs_cache(dataset_dir, replica_dir, base_spec, out_dir=None, *,
     base = as_denoiser(base_spec, "the NJS base")
     identity = cache_identity(manifest, replica, base, bandwidth=bandwidth, window=window,
                               ridge=ridge)
-    from jaxden.progressive.cache import identity_key
+    from jaxden.data.item_cache import identity_key
 
     cache_key = identity_key(identity)
     directory = Path(out_dir) if out_dir else default_cache_dir(dataset_dir, base, identity)
@@ -291,7 +291,7 @@ class NJSCache(ItemCacheReader):
 
     def __init__(self, dataset_dir, replica_dir, cache_dir, *,
                  memory_limit: int = MEMORY_LIMIT_BYTES):
-        from jaxden.progressive.cache import cache_dataset_identity
+        from jaxden.data.item_cache import cache_dataset_identity
 
         self.dataset_dir, self.replica_dir = Path(dataset_dir), Path(replica_dir)
         self.directory = Path(cache_dir)
