@@ -341,7 +341,6 @@ def _memory_limit(args: argparse.Namespace) -> int | None:
 def cmd_progressive(args: argparse.Namespace) -> int:
     """``jaxden progressive IN [IN ...] --denoiser NAME|CKPT --mixer CKPT (--out OUT.exr |
     --out-dir DIR)``: the mixer and the denoiser loaded once, each input run in turn."""
-    import dataclasses
     import warnings
 
     import jax
@@ -393,11 +392,9 @@ def cmd_progressive(args: argparse.Namespace) -> int:
         if args.no_tstat:
             raise ConfigError("jaxden progressive: --tstat sets fields of the t-statistic "
                               "that --no-tstat turns off; give one of them")
-        from jaxden.config import load_config
-        from jaxden.progressive.tstat import TStatConfig
+        from jaxden.progressive.mixer_config import with_tstat_overrides
 
-        config = dataclasses.replace(config, tstat=load_config(
-            config.tstat, TStatConfig, overrides=list(args.tstat)))
+        config = with_tstat_overrides(config, args.tstat)
     settings = sure_settings(args).over(config.sure)  # an unset option: the mixer's
     base = load_denoiser(args.denoiser)  # first: a spec that cannot load is the error
     if several:

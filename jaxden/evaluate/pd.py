@@ -282,15 +282,12 @@ def resolve_mixer(options: PDOptions):
     afresh at each call: a sweep evaluates the checkpoint its run has just written."""
     from jaxden.config import load_config
     from jaxden.progressive.mixer_checkpoints import load_mixer
-    from jaxden.progressive.mixer_config import MixerConfig
-    from jaxden.progressive.tstat import TStatConfig
+    from jaxden.progressive.mixer_config import MixerConfig, with_tstat_overrides
 
     params, config = load_mixer(options.mixer)
     if options.swap_average is not None:
         config = dataclasses.replace(config, swap_average=options.swap_average)
-    if options.tstat:
-        config = dataclasses.replace(
-            config, tstat=load_config(config.tstat, TStatConfig, overrides=list(options.tstat)))
+    config = with_tstat_overrides(config, options.tstat)
     if options.logit_bound is not None:
         config = dataclasses.replace(config, logit_bound=options.logit_bound or None)
     config = dataclasses.replace(config, sure=options.sure.over(config.sure))

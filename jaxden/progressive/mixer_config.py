@@ -240,6 +240,17 @@ CLOSED_FORM_OPTIONS = {"sigma": "closed_form_sigma", "per_channel": "closed_form
                        "stops": "closed_form_stops", "covariance": "sure.covariance"}
 
 
+def with_tstat_overrides(config: MixerConfig, words) -> MixerConfig:
+    """``config`` with ``KEY=VALUE`` words applied to its :class:`TStatConfig` (checked:
+    ConfigError naming a wrong key or value); ``config`` itself without words."""
+    if not words:
+        return config
+    from jaxden.config import load_config
+
+    return dataclasses.replace(config, tstat=load_config(config.tstat, TStatConfig,
+                                                         overrides=list(words)))
+
+
 def closed_form_mixer(spec: str = CLOSED_FORM_SPEC):
     """``({}, MixerConfig)`` of the closed-form mixer for a spec ``closed-form`` or
     ``closed-form:KEY=VALUE,...`` (keys: :data:`CLOSED_FORM_OPTIONS`)."""
