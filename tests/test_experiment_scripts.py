@@ -927,3 +927,35 @@ def test_consistent_table_ratios_and_missing_methods(tmp_path):
     assert bar["worst"] == pytest.approx(1.2) and bar["over_1_05"] == 2 and bar["cells"] == 4
     assert "Not in this set yet: WSKP-6" in text and "NJS(OIDN) s0" in text
     assert "No results yet" in text  # the other two sets
+
+
+# ------------------------------------------------------------------------- statmc_bound
+def test_statmc_bound_two_materials_share_the_boxcox_mean_and_chunks_pool_exactly():
+    """experiments/statmc_bound.py: the two halves of ``two-materials`` have the same mean of
+    sqrt(L) (what StatMC's test compares) but truths 3.94x apart, and their samples have the
+    image's truth as their mean (20000 samples per pixel: within 5 standard errors); the
+    Accumulator's statistics over chunks equal those of all the samples at once."""
+    from jaxden.render.integrators import boxcox_of_samples
+
+    bound = load_script("statmc_bound")
+    truth = bound.truth_image("two-materials", 0)
+    left, right = truth[:, 0], truth[:, -1]
+    assert np.allclose(right / left, bound._root_mean_gamma() ** 2 / bound.GLOSSY_P)
+    assert 3.9 < right[0, 0] / left[0, 0] < 4.0
+    small = truth[:2, 30:34]  # two columns of each half
+    samples = bound.draw(np.random.default_rng(3), "equal-root", 20000, small)
+    for values, target in ((samples, small), (np.sqrt(samples), None)):
+        mean, error = values.mean(0), values.std(0) / np.sqrt(len(values))
+        if target is None:  # equal roots: each column against the first
+            target = np.broadcast_to(mean[:, :1], mean.shape)
+            error = error * np.sqrt(2.0)
+        assert np.all(np.abs(mean - target) < 5 * error)
+    acc = bound.Accumulator(small.shape)
+    for start, stop in ((0, 7), (7, 100), (100, 356)):
+        acc.add(samples[start:stop])
+    frame = acc.frame()
+    np.testing.assert_allclose(frame.boxcox, boxcox_of_samples(samples[:356]), rtol=2e-4,
+                               atol=1e-6)
+    np.testing.assert_allclose(frame.color, samples[:356].mean(0), rtol=1e-6)
+    np.testing.assert_allclose(frame.variance, samples[:356].var(0, ddof=1) / 356, rtol=1e-4)
+    assert frame.spp == 356
