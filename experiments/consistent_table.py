@@ -11,7 +11,8 @@ Reads what the queue writes under ``$JAXDEN_HOME/runs/consistent/<set>/`` (exper
 queue.sh, steps ``consistent-*``; each one command): ``jaxden evaluate pd`` of OIDN in JAX with
 the shipped ``oidn-pd`` mixer (MC, OIDN, PD(OIDN)), of WSKP-6 with ``wskp-6-pd``, of the Deep
 Combiner runs ``dc-oidn-s{0,1}`` under the closed-form mixer (Eq. 9 alone: no mixer was
-trained on DC); ``jaxden evaluate denoise`` of ``statmc`` and ``statmc-moon``; ``jaxden
+trained on DC); ``jaxden evaluate denoise`` of ``statmc``, ``statmc-moon`` and of WSKP-6 with the lamps taken out
+before the filter (``wskp-6:emission=separate``); ``jaxden
 evaluate njs`` of the neural James-Stein combiner runs ``njs-oidn-s{0,1}`` over OIDN in JAX
 (``train-njs.toml``), whose row at 2s spp combines the set's and its replica's s-spp items
 (the same number of samples as MC's row at 2s, from other renders). Times at
@@ -42,7 +43,9 @@ SETS = {"pd-test-high-stats": "held-out crops (pd-test-high, 8 procedural scenes
 #: Columns: (label, result file, column prefix of its rows, base label for PD's bar or None).
 METHODS = (("MC", "pd-oidn", "mc", None), ("OIDN", "pd-oidn", "denoiser", None),
            ("PD(OIDN)", "pd-oidn", "pd", "OIDN"),
-           ("WSKP-6", "pd-wskp6", "denoiser", None), ("PD(WSKP-6)", "pd-wskp6", "pd", "WSKP-6"),
+           ("WSKP-6", "pd-wskp6", "denoiser", None),
+           ("WSKP-6 (emission separate)", "wskp6-separate", "den", None),
+           ("PD(WSKP-6)", "pd-wskp6", "pd", "WSKP-6"),
            ("DC s0", "pd-dc-s0", "denoiser", None), ("PD(DC s0)", "pd-dc-s0", "pd", "DC s0"),
            ("DC s1", "pd-dc-s1", "denoiser", None), ("PD(DC s1)", "pd-dc-s1", "pd", "DC s1"),
            ("StatMC", "statmc", "den", None), ("StatMC (Moon CI)", "statmc-moon", "den", None),

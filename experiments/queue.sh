@@ -137,6 +137,15 @@ for set in pd-test-high-stats stress-stats; do
     --replica "$H/data/$set-r1" --denoiser "$H/runs/njs-wskp6-s0" \
     --out "$H/runs/consistent/$set/njs-wskp6-s0"
 done
+# WSKP-6 with the lamps taken out before the filter and added back (emission=separate): the
+# documented remedy for its lamp spreading, in the table beside WSKP-6 alone.
+for set in pd-test-high-stats stress-stats frames-stats; do
+  LEVELS=(4 8 16 32 64 128 256 512 1024 2048 4096)
+  if [ "$set" = frames-stats ]; then LEVELS=("${LEVELS[@]:0:9}"); fi
+  step "consistent-$set-wskp6-separate" $J evaluate denoise --data "$H/data/$set" \
+    --denoiser wskp-6:emission=separate --spp "${LEVELS[@]}" --no-input \
+    --out "$H/runs/consistent/$set/wskp6-separate"
+done
 step sweep-rt-main $J sweep experiments/sweeps/rt-main.toml --workdir "$H/runs/sweeps/rt-main"
 step sweep-rt-wskp3 $J sweep experiments/sweeps/rt-wskp3.toml --workdir "$H/runs/sweeps/rt-wskp3"
 step mixer-wskp6-fact "${X[@]}" $J train experiments/configs/mixer-wskp6.toml \
