@@ -14,7 +14,8 @@ Combiner runs ``dc-oidn-s{0,1}`` under the closed-form mixer (Eq. 9 alone: no mi
 trained on DC); ``jaxden evaluate denoise`` of ``statmc``, ``statmc-moon`` and of WSKP-6 with the lamps taken out
 before the filter (``wskp-6:emission=separate``); ``jaxden
 evaluate njs`` of the neural James-Stein combiner runs ``njs-oidn-s{0,1}`` over OIDN in JAX
-(``train-njs.toml``), whose row at 2s spp combines the set's and its replica's s-spp items
+(``train-njs.toml``; ``njs-wskp6-s{0,1}`` over WSKP-6 on the crops and the stress frames),
+whose row at 2s spp combines the set's and its replica's s-spp items
 (the same number of samples as MC's row at 2s, from other renders). Times at
 1280 x 720 come from the committed benchmarks (``bench-denoisers.json``,
 ``bench-progressive.json``), each a ratio to OIDN measured in the same run.
@@ -50,7 +51,8 @@ METHODS = (("MC", "pd-oidn", "mc", None), ("OIDN", "pd-oidn", "denoiser", None),
            ("DC s1", "pd-dc-s1", "denoiser", None), ("PD(DC s1)", "pd-dc-s1", "pd", "DC s1"),
            ("StatMC", "statmc", "den", None), ("StatMC (Moon CI)", "statmc-moon", "den", None),
            ("NJS(OIDN) s0", "njs-s0", "den", "OIDN"), ("NJS(OIDN) s1", "njs-s1", "den", "OIDN"),
-           ("NJS(WSKP-6) s0", "njs-wskp6-s0", "den", "WSKP-6"))
+           ("NJS(WSKP-6) s0", "njs-wskp6-s0", "den", "WSKP-6"),
+           ("NJS(WSKP-6) s1", "njs-wskp6-s1", "den", "WSKP-6"))
 METRICS = (("rmse", "RMSE"), ("relmse", "relMSE"), ("flip", "FLIP"))
 #: Not measured on these sets yet, with why (named in every table's notes).
 NOT_RUN = {"Neural kernel regression (SIGGRAPH Asia 2024)":
