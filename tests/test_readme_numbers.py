@@ -123,6 +123,12 @@ HEADLINE = {
         ("offline-nfor.json", lambda d: d["means"]["OIDN"]["rmse"] / d["means"]["MC"]["rmse"]),
         ("offline-nfor.json",
          lambda d: d["means"]["PD(OIDN)"]["rmse"] / d["means"]["MC"]["rmse"])],
+    ("consistent denoisers, RMSE over MC's at 4096 spp, worst frame: PD(OIDN); PD(DC s0); "
+     "StatMC; its Moon-CI test; NJS(OIDN) s0",
+     "stress: 8 frames (small lamps, glints, caustics)"): [
+        ("consistent-table.json",
+         _key("sets", "stress-stats", "rmse", "top_spp_over_mc", label, "worst"))
+        for label in ("PD(OIDN)", "PD(DC s0)", "StatMC", "StatMC (Moon CI)", "NJS(OIDN) s0")],
     ("OIDN in JAX (Intel's weights) / pyoidn, 1280 x 720", "one frame"): [
         ("bench-denoisers.json", _key("oidnjax_over_oidn"))],
     ("SURE by `jax.jvp` (one probe) / one WSKP-6 forward, 1280 x 720", "one frame"): [
