@@ -165,7 +165,7 @@ def _function_from_source(source: str):
 def test_changing_the_code_changes_the_sure_cache_key():
     """Same name, same (no) weights: a changed computation is another SURE cache identity;
     a changed comment or docstring is not."""
-    from jaxden.progressive.cache import denoiser_identity, identity_key
+    from jaxden.data.item_cache import denoiser_identity, identity_key
 
     first = "import jax.numpy as jnp\ndef smooth(frame):\n    return 0.5 * frame.color\n"
     documented = ("import jax.numpy as jnp\n# a comment\n\ndef smooth(frame):\n"

@@ -22,8 +22,9 @@ Each item EXR holds, float32 (or half with ``half=True``), all (H, W) of the dat
 ``jaxden.denoiser``, ``jaxden.probes``, ``jaxden.method``, ``jaxden.eps``, ``jaxden.seed`` (the
 item's probe seed).
 
-Identity: a cache is for one dataset, one denoiser (:func:`denoiser_identity`) and one SURE
-setting (:func:`jaxden.progressive.cache_build.cache_settings` of its
+Identity: a cache is for one dataset, one denoiser
+(:func:`jaxden.data.item_cache.denoiser_identity`) and one SURE setting
+(:func:`jaxden.progressive.cache_build.cache_settings` of its
 :class:`~jaxden.sure.settings.SureSettings`: probes, method, eps, finite-difference scheme,
 seed, and the covariance and probe distribution where not the defaults); a rerun with
 anything else into the same folder is a DatasetError that names the differences. Items
@@ -49,16 +50,12 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxden.data.item_cache import (  # noqa: F401  (the identity helpers: re-exported)
+from jaxden.data.item_cache import (
     DERIVED_DIR,
     CacheKind,
     ItemCacheReader,
     cache_dataset_identity,
-    denoiser_identity,
     denoiser_slug,
-    hash_params,
-    identity_key,
-    params_sha256,
     read_manifest,
 )
 from jaxden.errors import DatasetError, ExrError, FrameError

@@ -12,7 +12,16 @@ from typing import Any
 
 import jax
 
-from jaxden.data.item_cache import build_items, file_record, finished, item_state, read_manifest
+from jaxden.data.item_cache import (
+    build_items,
+    cache_dataset_identity,
+    denoiser_identity,
+    file_record,
+    finished,
+    identity_key,
+    item_state,
+    read_manifest,
+)
 from jaxden.errors import DatasetError
 from jaxden.fileio import folder_lock
 from jaxden.progressive.cache import (
@@ -20,11 +29,8 @@ from jaxden.progressive.cache import (
     CACHE_MANIFEST,
     LOCK_NAME,
     SureCache,
-    cache_dataset_identity,
     default_cache_dir,
-    denoiser_identity,
     eligible_items,
-    identity_key,
     item_seed,
     read_sure_exr,
     write_sure_exr,
