@@ -11,13 +11,12 @@ Reads what the queue writes under ``$JAXDEN_HOME/runs/consistent/<set>/`` (exper
 queue.sh, steps ``consistent-*``; each one command): ``jaxden evaluate pd`` of OIDN in JAX with
 the shipped ``oidn-pd`` mixer (MC, OIDN, PD(OIDN)), of WSKP-6 with ``wskp-6-pd``, of the Deep
 Combiner runs ``dc-oidn-s{0,1}`` under the closed-form mixer (Eq. 9 alone: no mixer was
-trained on DC); ``jaxden evaluate denoise`` of ``statmc``, ``statmc-moon`` and of WSKP-6 with the lamps taken out
-before the filter (``wskp-6:emission=separate``); ``jaxden
-evaluate njs`` of the neural James-Stein combiner runs ``njs-oidn-s{0,1}`` over OIDN in JAX
+trained on DC); ``jaxden evaluate denoise`` of ``statmc``, ``statmc-moon`` and of WSKP-6 with
+the lamps taken out before the filter (``wskp-6:emission=separate``); ``jaxden evaluate njs``
+of the neural James-Stein combiner runs ``njs-oidn-s{0,1}`` over OIDN in JAX
 (``train-njs.toml``; ``njs-wskp6-s{0,1}`` over WSKP-6 on the crops and the stress frames),
-whose row at 2s spp combines the set's and its replica's s-spp items
-(the same number of samples as MC's row at 2s, from other renders). Times at
-1280 x 720 come from the committed benchmarks (``bench-denoisers.json``,
+whose row at 2s spp combines the set's and its replica's s-spp items (the same number of
+samples as MC's row at 2s, from other renders). Times at 1280 x 720 come from the committed benchmarks (``bench-denoisers.json``,
 ``bench-progressive.json``), each a ratio to OIDN measured in the same run.
 
 Writes, per set: RMSE, relMSE and FLIP per spp (means over the images, linear HDR); each

@@ -111,6 +111,10 @@ for set in stress-stats pd-test-high-stats frames-stats; do
     --denoiser statmc-moon --spp "${LEVELS[@]}" --no-input --out "$C/statmc-moon"
   step "consistent-$set-pd-oidn" pd_eval "$set" oidn-jax oidn-pd "$C/pd-oidn"
   step "consistent-$set-pd-wskp6" pd_eval "$set" wskp-6 wskp-6-pd "$C/pd-wskp6"
+  # WSKP-6 with the lamps taken out before the filter and added back (emission=separate): the
+  # documented remedy for its lamp spreading, beside WSKP-6 alone.
+  step "consistent-$set-wskp6-separate" $J evaluate denoise --data "$H/data/$set" \
+    --denoiser wskp-6:emission=separate --spp "${LEVELS[@]}" --no-input --out "$C/wskp6-separate"
   for seed in 0 1; do
     step "consistent-$set-pd-dc-s$seed" pd_eval "$set" "$H/runs/dc-oidn-s$seed" closed-form \
       "$C/pd-dc-s$seed"
@@ -139,15 +143,6 @@ for seed in 0 1; do
       --replica "$H/data/$set-r1" --denoiser "$H/runs/njs-wskp6-s$seed" \
       --out "$H/runs/consistent/$set/njs-wskp6-s$seed"
   done
-done
-# WSKP-6 with the lamps taken out before the filter and added back (emission=separate): the
-# documented remedy for its lamp spreading, in the table beside WSKP-6 alone.
-for set in pd-test-high-stats stress-stats frames-stats; do
-  LEVELS=(4 8 16 32 64 128 256 512 1024 2048 4096)
-  if [ "$set" = frames-stats ]; then LEVELS=("${LEVELS[@]:0:9}"); fi
-  step "consistent-$set-wskp6-separate" $J evaluate denoise --data "$H/data/$set" \
-    --denoiser wskp-6:emission=separate --spp "${LEVELS[@]}" --no-input \
-    --out "$H/runs/consistent/$set/wskp6-separate"
 done
 step sweep-rt-main $J sweep experiments/sweeps/rt-main.toml --workdir "$H/runs/sweeps/rt-main"
 step sweep-rt-wskp3 $J sweep experiments/sweeps/rt-wskp3.toml --workdir "$H/runs/sweeps/rt-wskp3"
