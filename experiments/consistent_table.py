@@ -16,8 +16,9 @@ the lamps taken out before the filter (``wskp-6:emission=separate``); ``jaxden e
 of the neural James-Stein combiner runs ``njs-oidn-s{0,1}`` over OIDN in JAX
 (``train-njs.toml``; ``njs-wskp6-s{0,1}`` over WSKP-6 on the crops and the stress frames),
 whose row at 2s spp combines the set's and its replica's s-spp items (the same number of
-samples as MC's row at 2s, from other renders). Times at 1280 x 720 come from the committed benchmarks (``bench-denoisers.json``,
-``bench-progressive.json``), each a ratio to OIDN measured in the same run.
+samples as MC's row at 2s, from other renders). Times at 1280 x 720 come from the committed
+benchmarks (``bench-denoisers.json``, ``bench-progressive.json``), each a ratio to OIDN
+measured in the same run.
 
 Writes, per set: RMSE, relMSE and FLIP per spp (means over the images, linear HDR); each
 method's RMSE over MC's at the top spp per image (worst, and how many images are above 1);
