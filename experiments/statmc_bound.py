@@ -47,6 +47,8 @@ IMAGES = ("flat", "shading", "texture", "bumps", "two-materials")
 NOISES = ("exponential", "fireflies")
 #: ``two-materials`` has its own sampling (its ``noise`` column).
 OWN_NOISE = {"two-materials": "equal-root"}
+#: Every noise, in the order that seeds the sample streams.
+ALL_NOISES = (*NOISES, *OWN_NOISE.values())
 #: two-materials: the diffuse half's Gamma shape and the glossy half's hit probability.
 DIFFUSE_SHAPE, GLOSSY_P = 16.0, 0.25
 LEVELS = (4, 8, 16, 32, 64, 128, 256, 512, 1024, 2048, 4096)
@@ -142,7 +144,7 @@ def measure(images, noises, seeds, levels=LEVELS) -> list[dict]:
         for image in images:
             truth = truth_image(image, seed)
             for noise in ([OWN_NOISE[image]] if image in OWN_NOISE else noises):
-                rng = np.random.default_rng([seed, IMAGES.index(image), (*NOISES, *OWN_NOISE.values()).index(noise)])
+                rng = np.random.default_rng([seed, IMAGES.index(image), ALL_NOISES.index(noise)])
                 acc = Accumulator(truth.shape)
                 for level in levels:
                     while acc.n < level:
